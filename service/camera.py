@@ -1,0 +1,258 @@
+"""Camera model: intrinsics and plumb-bob distortion, read from and written to calibration files.
+
+The on-disk format is the ROS camera_info YAML layout (what `camera_calibration` and most robotics
+users already have). OpenCV FileStorage files (`cv2.FileStorage`, keys `camera_matrix` and
+`distortion_coefficients`) are read too.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+
+from service.errors import CalibrationError
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A pinhole camera with OpenCV plumb-bob distortion (k1, k2, p1, p2, k3)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    name: str = "camera"
+    skew: float = field(default=0.0)
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise CalibrationError(f"image size must be positive, got {self.width}x{self.height}")
+        for label, value in (("fx", self.fx), ("fy", self.fy)):
+            if not math.isfinite(value) or value <= 0:
+                raise CalibrationError(f"camera_matrix {label} must be positive, got {value}")
+        for label, value in (("cx", self.cx), ("cy", self.cy)):
+            if not math.isfinite(value):
+                raise CalibrationError(f"camera_matrix {label} is not finite")
+        if len(self.distortion) not in (4, 5, 8, 12, 14):
+            raise CalibrationError(
+                f"distortion_coefficients must have 4, 5, 8, 12 or 14 values, "
+                f"got {len(self.distortion)}"
+            )
+        if not all(math.isfinite(d) for d in self.distortion):
+            raise CalibrationError("distortion_coefficients contain a non-finite value")
+
+    @property
+    def matrix(self) -> FloatArray:
+        return np.array(
+            [[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+            dtype=np.float64,
+        )
+
+    @property
+    def dist_coeffs(self) -> FloatArray:
+        return np.asarray(self.distortion, dtype=np.float64)
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0.0 for d in self.distortion)
+
+    def scaled_to(self, width: int, height: int) -> CameraModel:
+        """The same lens at another resolution of the same sensor (same aspect ratio)."""
+        if (width, height) == (self.width, self.height):
+            return self
+        sx, sy = width / self.width, height / self.height
+        if abs(sx - sy) > 0.01 * max(sx, sy):
+            raise CalibrationError(
+                f"calibration is for {self.width}x{self.height}; frames are {width}x{height}, "
+                "a different aspect ratio: recalibrate at this resolution"
+            )
+        # Pixel centres: OpenCV's convention puts pixel i's centre at i, so scale about -0.5.
+        return CameraModel(
+            width=width,
+            height=height,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+            distortion=self.distortion,
+            name=self.name,
+            skew=self.skew * sx,
+        )
+
+    def undistort_pixels(self, pixels: npt.ArrayLike) -> FloatArray:
+        """Distorted pixel coordinates (..., 2) -> undistorted normalised coordinates (..., 2)."""
+        import cv2
+
+        pts = np.asarray(pixels, dtype=np.float64)
+        shape = pts.shape
+        flat = pts.reshape(-1, 1, 2)
+        if not self.has_distortion:
+            out = np.empty_like(flat)
+            out[..., 1] = (flat[..., 1] - self.cy) / self.fy
+            out[..., 0] = (flat[..., 0] - self.cx - self.skew * out[..., 1]) / self.fx
+            return out.reshape(shape)
+        # The default 5 iterations are not enough for strong underwater-housing distortion.
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+            und = cv2.undistortPointsIter(flat, self.matrix, self.dist_coeffs, None, None, criteria)
+        else:  # OpenCV 5 folded the iterative variant into undistortPoints
+            und = cv2.undistortPoints(
+                flat, self.matrix, self.dist_coeffs, R=None, P=None, criteria=criteria
+            )
+        return np.asarray(und, dtype=np.float64).reshape(shape)
+
+    def project_normalized(self, normalized: npt.ArrayLike) -> FloatArray:
+        """Undistorted normalised coordinates (..., 2) -> distorted pixel coordinates (..., 2)."""
+        import cv2
+
+        pts = np.asarray(normalized, dtype=np.float64)
+        shape = pts.shape
+        obj = np.concatenate([pts.reshape(-1, 2), np.ones((pts.size // 2, 1))], axis=1)
+        img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.matrix, self.dist_coeffs)
+        return np.asarray(img, dtype=np.float64).reshape(shape)
+
+    def to_ros_dict(self) -> dict[str, Any]:
+        k = self.matrix
+        p = np.zeros((3, 4))
+        p[:, :3] = k
+        return {
+            "image_width": int(self.width),
+            "image_height": int(self.height),
+            "camera_name": self.name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in k.ravel()]},
+            "distortion_model": "plumb_bob" if len(self.distortion) <= 5 else "rational_polynomial",
+            "distortion_coefficients": {
+                "rows": 1,
+                "cols": len(self.distortion),
+                "data": [float(v) for v in self.distortion],
+            },
+            "rectification_matrix": {
+                "rows": 3,
+                "cols": 3,
+                "data": [float(v) for v in np.eye(3).ravel()],
+            },
+            "projection_matrix": {"rows": 3, "cols": 4, "data": [float(v) for v in p.ravel()]},
+        }
+
+
+def _matrix(doc: Mapping[str, Any], key: str, rows: int, cols: int | None) -> FloatArray:
+    node = doc.get(key)
+    if node is None:
+        raise CalibrationError(f"missing key '{key}'")
+    data = node.get("data") if isinstance(node, Mapping) else node
+    try:
+        arr = np.asarray(data, dtype=np.float64).ravel()
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"'{key}' data is not a list of numbers") from exc
+    if cols is not None and arr.size != rows * cols:
+        raise CalibrationError(f"'{key}' must have {rows * cols} values, got {arr.size}")
+    return arr
+
+
+def camera_from_ros_dict(doc: Mapping[str, Any], source: str = "calibration") -> CameraModel:
+    """Build a camera from a parsed ROS camera_info YAML document."""
+    if not isinstance(doc, Mapping):
+        raise CalibrationError(f"{source}: not a YAML mapping")
+    for key in ("image_width", "image_height"):
+        if key not in doc:
+            raise CalibrationError(f"{source}: missing key '{key}'")
+    try:
+        width, height = int(doc["image_width"]), int(doc["image_height"])
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{source}: image_width/image_height must be integers") from exc
+    try:
+        k = _matrix(doc, "camera_matrix", 3, 3).reshape(3, 3)
+        model = str(doc.get("distortion_model", "plumb_bob"))
+        if model not in ("plumb_bob", "rational_polynomial"):
+            raise CalibrationError(
+                f"distortion_model '{model}' is not supported (use plumb_bob or "
+                "rational_polynomial)"
+            )
+        dist = _matrix(doc, "distortion_coefficients", 1, None) if (
+            "distortion_coefficients" in doc
+        ) else np.zeros(5)
+        if dist.size == 0:
+            dist = np.zeros(5)
+        return CameraModel(
+            width=width,
+            height=height,
+            fx=float(k[0, 0]),
+            fy=float(k[1, 1]),
+            cx=float(k[0, 2]),
+            cy=float(k[1, 2]),
+            skew=float(k[0, 1]),
+            distortion=tuple(float(v) for v in dist),
+            name=str(doc.get("camera_name", "camera")),
+        )
+    except CalibrationError as exc:
+        raise CalibrationError(f"{source}: {exc}") from None
+
+
+def _load_opencv_storage(path: Path) -> CameraModel:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise CalibrationError(f"{path}: cannot be parsed as YAML or OpenCV FileStorage")
+        k = fs.getNode("camera_matrix").mat()
+        if k is None:
+            raise CalibrationError(f"{path}: missing key 'camera_matrix'")
+        d = fs.getNode("distortion_coefficients").mat()
+        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
+        if w_node.empty() or h_node.empty():
+            raise CalibrationError(f"{path}: missing key 'image_width'/'image_height'")
+        dist = np.zeros(5) if d is None else np.asarray(d, dtype=np.float64).ravel()
+        return CameraModel(
+            width=int(w_node.real()),
+            height=int(h_node.real()),
+            fx=float(k[0, 0]),
+            fy=float(k[1, 1]),
+            cx=float(k[0, 2]),
+            cy=float(k[1, 2]),
+            skew=float(k[0, 1]),
+            distortion=tuple(float(v) for v in dist),
+            name=path.stem,
+        )
+    finally:
+        fs.release()
+
+
+def load_camera(path: str | Path) -> CameraModel:
+    """Read a calibration file (ROS camera_info YAML, or OpenCV FileStorage YAML/XML)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibrationError(f"{p}: calibration file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{p}: cannot read calibration file ({exc})") from None
+    if text.lstrip().startswith("%YAML") or p.suffix.lower() == ".xml" or "!!opencv-matrix" in text:
+        return _load_opencv_storage(p)
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise CalibrationError(f"{p}: invalid YAML{where}") from None
+    return camera_from_ros_dict(doc, source=str(p))
+
+
+def save_camera(camera: CameraModel, path: str | Path) -> None:
+    """Write a calibration in the ROS camera_info YAML layout."""
+    Path(path).write_text(
+        yaml.safe_dump(camera.to_ros_dict(), sort_keys=False, default_flow_style=None),
+        encoding="utf-8",
+    )

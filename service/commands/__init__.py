@@ -1,0 +1,1 @@
+"""Sub-commands of `netpose`; each module exposes `add_parser(subparsers)`."""

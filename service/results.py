@@ -1,0 +1,91 @@
+"""What the estimator returns: plain, immutable values that every output can serialise."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+Mat2 = tuple[Vec2, Vec2]
+
+
+@dataclass(frozen=True)
+class RoiResult:
+    """One square region of the frame and the lattice found in its spectrum.
+
+    Vectors are in full-resolution, distorted pixel units of the input frame. `reciprocal`
+    holds the reduced reciprocal basis k1, k2 in cycles per pixel; `mesh_edges` the dual (real
+    space) basis e1, e2 in pixels, with e_i . k_j = delta_ij.
+    """
+
+    center_px: Vec2
+    size_px: int
+    level: int
+    detected: bool
+    reciprocal: Mat2 | None = None
+    mesh_edges: Mat2 | None = None
+    cell_area_px: float = math.nan
+    snr_db: float = 0.0
+    inlier_fraction: float = 0.0
+    peaks: int = 0
+    used_in_fit: bool = False
+
+    @property
+    def period_px(self) -> float:
+        """Geometric-mean mesh period (sqrt of the cell area) in pixels."""
+        return math.sqrt(self.cell_area_px) if self.cell_area_px > 0 else math.nan
+
+
+@dataclass(frozen=True)
+class NetEstimate:
+    """Detection and pose of the net plane in the camera frame (x right, y down, z forward).
+
+    `normal` is the unit normal of the net plane pointing from the net towards the camera;
+    `distance_m` the perpendicular distance from the camera centre to the plane; `range_m` the
+    distance along the optical axis to the plane. Sigmas are one standard deviation.
+    """
+
+    detected: bool
+    confidence: float
+    normal: Vec3 | None = None
+    distance_m: float | None = None
+    range_m: float | None = None
+    sigma_distance_m: float | None = None
+    sigma_range_m: float | None = None
+    sigma_normal_deg: float | None = None
+    rois: tuple[RoiResult, ...] = ()
+    rois_used: int = 0
+    level: int = 0
+    reason: str = ""
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def tilt_deg(self) -> float | None:
+        """Angle between the optical axis and the net normal (0 = facing the net squarely)."""
+        if self.normal is None:
+            return None
+        return math.degrees(math.acos(min(1.0, abs(self.normal[2]))))
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready dict (no ROI detail); None where not detected."""
+
+        def rounded(value: float | None, digits: int) -> float | None:
+            return None if value is None else round(float(value), digits)
+
+        return {
+            "detected": self.detected,
+            "confidence": round(self.confidence, 4),
+            "range_m": rounded(self.range_m, 5),
+            "distance_m": rounded(self.distance_m, 5),
+            "normal": None if self.normal is None else [round(v, 6) for v in self.normal],
+            "tilt_deg": rounded(self.tilt_deg, 3),
+            "sigma_range_m": rounded(self.sigma_range_m, 5),
+            "sigma_distance_m": rounded(self.sigma_distance_m, 5),
+            "sigma_normal_deg": rounded(self.sigma_normal_deg, 3),
+            "rois_used": self.rois_used,
+            "rois": len(self.rois),
+            "reason": self.reason,
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+        }
