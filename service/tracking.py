@@ -1,0 +1,353 @@
+"""Kalman filter over the estimator's output, with outlier gating and an explicit validity state.
+
+The state is the perpendicular distance to the net plane and the net's orientation as two angles,
+each with its rate: x = [d, d', yaw, yaw', pitch, pitch'] (metres, degrees). `yaw` is the angle
+of the net normal in the camera's x-z plane, `pitch` in the y-z plane (0, 0 = facing the net
+squarely). Angles rather than normal components keep the measurement noise (the estimator's
+`sigma_normal_deg`) directly usable and stay linear over the tilts the estimator can measure.
+
+Validity (what decides what the autopilot is told):
+  TRACKING  this frame's measurement was accepted;
+  COASTING  no accepted measurement this frame, the last one less than `coast_timeout_s` ago: the
+            filter predicts through the gap (the autopilot still gets the prediction for
+            `report_coasting_s`);
+  LOST      no track, or nothing accepted for `coast_timeout_s`.
+A new track starts tentative (state LOST) and becomes TRACKING after `acquire_count`
+measurements that pass the gate, so a single false detection never reaches the autopilot.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from service.errors import ConfigError
+from service.results import NetEstimate
+
+FloatArray = npt.NDArray[np.float64]
+
+# Index of each tracked quantity in the state vector; its rate follows it.
+_D, _YAW, _PITCH = 0, 2, 4
+
+
+class TrackState(enum.Enum):
+    TRACKING = "tracking"
+    COASTING = "coasting"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Tuning of the tracker; the `[filter]` section of the configuration."""
+
+    # Process noise: standard deviation of the (white) acceleration of distance and angles, i.e.
+    # how hard the ROV and the net can plausibly move between frames.
+    accel_sigma_distance: float = 0.5  # m/s^2
+    accel_sigma_angle: float = 30.0  # deg/s^2
+    # Innovation gate: a measurement further than this many standard deviations (Mahalanobis
+    # distance over the 3-dimensional measurement) from the prediction is rejected.
+    gate_sigma: float = 4.0
+    # After this many consecutive rejected measurements the track restarts from the newest one:
+    # the net (or the ROV) really moved faster than the model allows.
+    max_consecutive_rejects: int = 5
+    # Gated measurements needed before a new track is believed (TRACKING).
+    acquire_count: int = 3
+    # Without an accepted measurement for this long the track is LOST.
+    coast_timeout_s: float = 1.0
+    # While COASTING, the autopilot still gets the predicted distance for this long (0 = only
+    # while TRACKING). Must not exceed coast_timeout_s.
+    report_coasting_s: float = 0.3
+    # Estimates below this confidence are treated as no detection.
+    min_confidence: float = 0.3
+    # Floors on the estimator's own sigmas: its uncertainty never looks better than this.
+    min_sigma_distance_m: float = 0.005
+    min_sigma_angle_deg: float = 0.5
+    # Used when the estimator reports a detection without sigmas.
+    fallback_sigma_distance_frac: float = 0.05
+    fallback_sigma_angle_deg: float = 5.0
+    # Initial uncertainty of the rates of a new track.
+    initial_sigma_distance_rate: float = 0.5  # m/s
+    initial_sigma_angle_rate: float = 20.0  # deg/s
+
+    def __post_init__(self) -> None:
+        positive = (
+            "accel_sigma_distance",
+            "accel_sigma_angle",
+            "gate_sigma",
+            "coast_timeout_s",
+            "min_sigma_distance_m",
+            "min_sigma_angle_deg",
+            "fallback_sigma_distance_frac",
+            "fallback_sigma_angle_deg",
+            "initial_sigma_distance_rate",
+            "initial_sigma_angle_rate",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"filter.{name}", f"must be a positive number, got {value}")
+        if self.max_consecutive_rejects < 1:
+            raise ConfigError("filter.max_consecutive_rejects", "must be at least 1")
+        if self.acquire_count < 1:
+            raise ConfigError("filter.acquire_count", "must be at least 1")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError("filter.min_confidence", f"must be 0..1, got {self.min_confidence}")
+        if not 0.0 <= self.report_coasting_s <= self.coast_timeout_s:
+            raise ConfigError(
+                "filter.report_coasting_s",
+                f"must be 0..coast_timeout_s ({self.coast_timeout_s}), "
+                f"got {self.report_coasting_s}",
+            )
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What the filter takes from one NetEstimate: distance and two angles with 1-sigma noise."""
+
+    distance_m: float
+    yaw_deg: float
+    pitch_deg: float
+    sigma_distance_m: float
+    sigma_angle_deg: float
+    facing_sign: float  # sign of the normal's z component, kept to rebuild the normal
+
+
+def angles_from_normal(normal: tuple[float, float, float]) -> tuple[float, float, float]:
+    """(yaw_deg, pitch_deg, sign of n_z) of a unit normal; inverse of `normal_from_angles`."""
+    nx, ny, nz = normal
+    sign = -1.0 if nz < 0 else 1.0
+    az = max(abs(nz), 1e-9)
+    return math.degrees(math.atan2(nx, az)), math.degrees(math.atan2(ny, az)), sign
+
+
+def normal_from_angles(yaw_deg: float, pitch_deg: float, sign: float) -> tuple[float, float, float]:
+    tx, ty = math.tan(math.radians(yaw_deg)), math.tan(math.radians(pitch_deg))
+    norm = math.sqrt(tx * tx + ty * ty + 1.0)
+    return tx / norm, ty / norm, sign / norm
+
+
+def measurement_from_estimate(
+    estimate: NetEstimate, settings: FilterSettings
+) -> Measurement | None:
+    """The filter's view of an estimate, or None when it carries no usable detection."""
+    if not estimate.detected or estimate.confidence < settings.min_confidence:
+        return None
+    if estimate.distance_m is None or estimate.normal is None:
+        return None
+    d = float(estimate.distance_m)
+    if not math.isfinite(d) or d <= 0 or not all(math.isfinite(v) for v in estimate.normal):
+        return None
+    yaw, pitch, sign = angles_from_normal(estimate.normal)
+    sd = estimate.sigma_distance_m
+    sa = estimate.sigma_normal_deg
+    sd = settings.fallback_sigma_distance_frac * d if sd is None or not math.isfinite(sd) else sd
+    sa = settings.fallback_sigma_angle_deg if sa is None or not math.isfinite(sa) else sa
+    return Measurement(
+        distance_m=d,
+        yaw_deg=yaw,
+        pitch_deg=pitch,
+        sigma_distance_m=max(float(sd), settings.min_sigma_distance_m),
+        sigma_angle_deg=max(float(sa), settings.min_sigma_angle_deg),
+        facing_sign=sign,
+    )
+
+
+@dataclass(frozen=True)
+class TrackOutput:
+    """The filter's answer for one frame."""
+
+    state: TrackState
+    # Filtered values (None when there is no track at all).
+    distance_m: float | None
+    distance_rate_mps: float | None
+    range_m: float | None  # along the optical axis: distance / cos(tilt)
+    yaw_deg: float | None
+    pitch_deg: float | None
+    normal: tuple[float, float, float] | None
+    sigma_distance_m: float | None
+    # What happened to this frame's measurement: "accepted", "rejected", "none" or "reset".
+    measurement: str
+    mahalanobis: float | None
+    consecutive_rejects: int
+    since_accepted_s: float | None
+    # True when the autopilot may be given `distance_m`.
+    valid: bool
+
+
+class NetTracker:
+    """Constant-velocity Kalman filter (filterpy) with gating and TRACKING/COASTING/LOST state.
+
+    Call `step(t, estimate)` once per processed frame with the frame's capture time (monotonic
+    seconds); `estimate` may be None for a frame that produced nothing.
+    """
+
+    def __init__(self, settings: FilterSettings) -> None:
+        from filterpy.kalman import KalmanFilter  # pulls in SciPy: only when a tracker is made
+
+        self._settings = settings
+        self._kf = KalmanFilter(dim_x=6, dim_z=3)
+        self._kf.F = np.eye(6)
+        self._kf.H = np.zeros((3, 6))
+        self._kf.H[0, _D] = self._kf.H[1, _YAW] = self._kf.H[2, _PITCH] = 1.0
+        self._H = self._kf.H.copy()
+        self._has_track = False
+        self._confirmed = False
+        self._hits = 0
+        self._rejects = 0
+        self._t_last: float | None = None
+        self._t_accepted: float | None = None
+        self._facing_sign = -1.0
+        self.accepted_total = 0
+        self.rejected_total = 0
+        self.resets_total = 0
+
+    @property
+    def settings(self) -> FilterSettings:
+        return self._settings
+
+    def reconfigure(self, settings: FilterSettings) -> None:
+        """New tuning (configuration reload); the current track and its state are kept."""
+        self._settings = settings
+
+    def reset(self) -> None:
+        self._has_track = False
+        self._confirmed = False
+        self._hits = 0
+        self._rejects = 0
+        self._t_accepted = None
+
+    # -- the filter ------------------------------------------------------------------------
+    def _start(self, m: Measurement, t: float) -> None:
+        s = self._settings
+        self._kf.x = np.array([[m.distance_m], [0.0], [m.yaw_deg], [0.0], [m.pitch_deg], [0.0]])
+        self._kf.P = np.diag(
+            [
+                m.sigma_distance_m**2,
+                s.initial_sigma_distance_rate**2,
+                m.sigma_angle_deg**2,
+                s.initial_sigma_angle_rate**2,
+                m.sigma_angle_deg**2,
+                s.initial_sigma_angle_rate**2,
+            ]
+        )
+        self._has_track = True
+        self._confirmed = s.acquire_count <= 1
+        self._hits = 1
+        self._rejects = 0
+        self._t_accepted = t
+        self._facing_sign = m.facing_sign
+
+    def _predict(self, dt: float) -> None:
+        s = self._settings
+        F = np.eye(6)
+        Q = np.zeros((6, 6))
+        # Discrete white-noise acceleration: accel variance q gives this per-axis block.
+        block = np.array([[dt**4 / 4.0, dt**3 / 2.0], [dt**3 / 2.0, dt**2]])
+        for i, sigma in ((_D, s.accel_sigma_distance), (_YAW, s.accel_sigma_angle),
+                         (_PITCH, s.accel_sigma_angle)):
+            F[i, i + 1] = dt
+            Q[i : i + 2, i : i + 2] = block * sigma**2
+        self._kf.predict(F=F, Q=Q)
+
+    def _gate(self, m: Measurement) -> tuple[FloatArray, FloatArray, float]:
+        z = np.array([[m.distance_m], [m.yaw_deg], [m.pitch_deg]])
+        R = np.diag([m.sigma_distance_m**2, m.sigma_angle_deg**2, m.sigma_angle_deg**2])
+        y = z - self._H @ self._kf.x
+        S = self._H @ self._kf.P @ self._H.T + R
+        d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
+        return z, R, math.sqrt(max(d2, 0.0))
+
+    def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
+        s = self._settings
+        m = None if estimate is None else measurement_from_estimate(estimate, s)
+        if self._has_track and self._t_last is not None:
+            dt = t - self._t_last
+            if dt > 0:
+                self._predict(dt)
+        self._t_last = t
+
+        outcome = "none"
+        maha: float | None = None
+        if m is not None:
+            if not self._has_track:
+                self._start(m, t)
+                outcome = "reset"
+            else:
+                z, R, maha = self._gate(m)
+                if maha <= s.gate_sigma:
+                    # filterpy 2.0: with H given, z must already be a (dim_z, 1) column.
+                    self._kf.update(z, R=R, H=self._H)
+                    self._t_accepted = t
+                    self._rejects = 0
+                    self._hits += 1
+                    self._facing_sign = m.facing_sign
+                    if self._hits >= s.acquire_count:
+                        self._confirmed = True
+                    outcome = "accepted"
+                    self.accepted_total += 1
+                else:
+                    self._rejects += 1
+                    self.rejected_total += 1
+                    outcome = "rejected"
+                    if self._rejects >= s.max_consecutive_rejects:
+                        # The world moved beyond the model: start again from what is seen now,
+                        # and earn trust again before telling the autopilot anything.
+                        self._start(m, t)
+                        self._confirmed = s.acquire_count <= 1
+                        self.resets_total += 1
+                        outcome = "reset"
+
+        since = None if self._t_accepted is None else t - self._t_accepted
+        if self._has_track and since is not None and since >= s.coast_timeout_s:
+            self.reset()
+            since = None
+
+        if not self._has_track or not self._confirmed:
+            state = TrackState.LOST
+        elif since is not None and since <= 0.0:
+            state = TrackState.TRACKING
+        else:
+            state = TrackState.COASTING
+        return self._output(state, outcome, maha, since)
+
+    def _output(
+        self, state: TrackState, outcome: str, maha: float | None, since: float | None
+    ) -> TrackOutput:
+        if not self._has_track:
+            return TrackOutput(
+                state=state, distance_m=None, distance_rate_mps=None, range_m=None, yaw_deg=None,
+                pitch_deg=None, normal=None, sigma_distance_m=None, measurement=outcome,
+                mahalanobis=maha, consecutive_rejects=self._rejects, since_accepted_s=since,
+                valid=False,
+            )
+        x = self._kf.x[:, 0]
+        d, yaw, pitch = float(x[_D]), float(x[_YAW]), float(x[_PITCH])
+        normal = normal_from_angles(yaw, pitch, self._facing_sign)
+        cos_tilt = abs(normal[2])
+        valid = d > 0 and (
+            state is TrackState.TRACKING
+            or (
+                state is TrackState.COASTING
+                and since is not None
+                and since <= self._settings.report_coasting_s
+            )
+        )
+        return TrackOutput(
+            state=state,
+            distance_m=d,
+            distance_rate_mps=float(x[_D + 1]),
+            range_m=d / cos_tilt if cos_tilt > 1e-6 else None,
+            yaw_deg=yaw,
+            pitch_deg=pitch,
+            normal=normal,
+            sigma_distance_m=math.sqrt(max(float(self._kf.P[_D, _D]), 0.0)),
+            measurement=outcome,
+            mahalanobis=maha,
+            consecutive_rejects=self._rejects,
+            since_accepted_s=since,
+            valid=valid,
+        )
