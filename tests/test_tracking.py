@@ -73,7 +73,7 @@ def test_filter_reduces_noise_on_a_moving_net() -> None:
     assert out is not None and out.distance_rate_mps == pytest.approx(-0.2, abs=0.05)
     assert out.yaw_deg == pytest.approx(10.0 + 5.0 * 299 / FPS, abs=1.0)
     # range along the optical axis follows from distance and tilt.
-    assert out.normal is not None
+    assert out.normal is not None and out.distance_m is not None
     assert out.range_m == pytest.approx(out.distance_m / abs(out.normal[2]), rel=1e-9)
 
 
