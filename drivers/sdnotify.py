@@ -1,0 +1,138 @@
+"""systemd service notifications (sd_notify): READY, WATCHDOG, STATUS, STOPPING, RELOADING.
+
+No dependency on libsystemd: the protocol is one datagram per message on the AF_UNIX socket named
+by $NOTIFY_SOCKET (a leading '@' means the Linux abstract namespace). Outside systemd the variable
+is absent and `notifier_from_environment()` returns a `NullNotifier`, so the daemon code is the
+same everywhere.
+
+Watchdog pings are rate-limited here (at half of $WATCHDOG_USEC, as sd_watchdog_enabled(3)
+recommends) so the frame loop can call `watchdog()` every iteration for free.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+
+from drivers.errors import NotifyError
+
+
+class Notifier(ABC):
+    """Tells the service manager how the service is doing. Never raises during operation."""
+
+    def __init__(self, watchdog_interval_s: float | None = None) -> None:
+        # None: the service manager expects no watchdog pings.
+        self.watchdog_interval_s = watchdog_interval_s
+        self._last_watchdog = -float("inf")
+
+    @abstractmethod
+    def notify(self, message: str) -> bool:
+        """Send one raw notification ('KEY=value' lines); True when it was delivered."""
+
+    def ready(self, status: str | None = None) -> bool:
+        return self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))
+
+    def status(self, text: str) -> bool:
+        # STATUS is one line in `systemctl status`; newlines would start new assignments.
+        return self.notify("STATUS=" + " ".join(text.splitlines()))
+
+    def stopping(self) -> bool:
+        return self.notify("STOPPING=1")
+
+    def reloading(self) -> bool:
+        # systemd >= 253 wants MONOTONIC_USEC with RELOADING=1 (Type=notify-reload); older ones
+        # ignore the extra field.
+        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self.notify(f"RELOADING=1\nMONOTONIC_USEC={usec}")
+
+    def watchdog(self, now: float | None = None) -> bool:
+        """Ping the watchdog if it is enabled and half its interval has passed since the last."""
+        if self.watchdog_interval_s is None:
+            return False
+        t = time.monotonic() if now is None else now
+        if t - self._last_watchdog < self.watchdog_interval_s / 2.0:
+            return False
+        self._last_watchdog = t
+        return self.notify("WATCHDOG=1")
+
+    def close(self) -> None:  # noqa: B027 - optional hook, most notifiers hold nothing
+        """Release resources."""
+
+
+class NullNotifier(Notifier):
+    """Not started by systemd: every notification is dropped."""
+
+    def notify(self, message: str) -> bool:
+        return False
+
+
+class RecordingNotifier(Notifier):
+    """PC stand-in that keeps the messages in memory (for tests of the code that notifies)."""
+
+    def __init__(self, watchdog_interval_s: float | None = None) -> None:
+        super().__init__(watchdog_interval_s)
+        self.messages: list[str] = []
+
+    def notify(self, message: str) -> bool:
+        self.messages.append(message)
+        return True
+
+
+class SystemdNotifier(Notifier):
+    """The real thing: datagrams to the service manager's notification socket."""
+
+    def __init__(self, socket_path: str, watchdog_interval_s: float | None = None) -> None:
+        super().__init__(watchdog_interval_s)
+        if not socket_path or socket_path[0] not in "/@":
+            raise NotifyError(f"NOTIFY_SOCKET must be an absolute path or start with '@': "
+                              f"{socket_path!r}")
+        self._address = "\0" + socket_path[1:] if socket_path[0] == "@" else socket_path
+        self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        self._socket.setblocking(False)  # the frame loop must never wait on systemd
+        self._failed_once = False
+
+    def notify(self, message: str) -> bool:
+        try:
+            self._socket.sendto(message.encode("utf-8"), self._address)
+        except OSError:
+            # The manager is gone or the queue is full: nothing useful to do but carry on.
+            # The daemon logs the first failure via `failed`.
+            self._failed_once = True
+            return False
+        return True
+
+    @property
+    def failed(self) -> bool:
+        """True once any notification could not be delivered."""
+        return self._failed_once
+
+    def close(self) -> None:
+        self._socket.close()
+
+
+def watchdog_interval_from_environment(env: Mapping[str, str]) -> float | None:
+    """$WATCHDOG_USEC in seconds if the watchdog is meant for this process (sd_watchdog_enabled)."""
+    usec = env.get("WATCHDOG_USEC")
+    if not usec:
+        return None
+    pid = env.get("WATCHDOG_PID")
+    if pid and pid.strip() != str(os.getpid()):
+        return None
+    try:
+        value = int(usec)
+    except ValueError:
+        return None
+    return value / 1e6 if value > 0 else None
+
+
+def notifier_from_environment(env: Mapping[str, str] | None = None) -> Notifier:
+    """The notifier systemd asked for through the environment, or a NullNotifier."""
+    environ = os.environ if env is None else env
+    path = environ.get("NOTIFY_SOCKET", "")
+    interval = watchdog_interval_from_environment(environ)
+    if not path:
+        return NullNotifier(interval)
+    return SystemdNotifier(path, interval)

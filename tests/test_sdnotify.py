@@ -1,0 +1,115 @@
+"""sd_notify against a real AF_UNIX datagram socket standing in for the service manager."""
+
+from __future__ import annotations
+
+import os
+import socket
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from drivers.errors import NotifyError
+from drivers.sdnotify import (
+    NullNotifier,
+    RecordingNotifier,
+    SystemdNotifier,
+    notifier_from_environment,
+    watchdog_interval_from_environment,
+)
+
+
+@pytest.fixture
+def manager_socket(tmp_path: Path) -> Iterator[tuple[socket.socket, str]]:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path = str(tmp_path / "notify.sock")
+    sock.bind(path)
+    sock.settimeout(2.0)
+    yield sock, path
+    sock.close()
+
+
+def test_messages_arrive_as_datagrams(manager_socket: tuple[socket.socket, str]) -> None:
+    sock, path = manager_socket
+    n = SystemdNotifier(path)
+    try:
+        assert n.ready(status="started")
+        assert sock.recv(4096) == b"READY=1\nSTATUS=started"
+        assert n.status("tracking 1.23 m\nsecond line")
+        assert sock.recv(4096) == b"STATUS=tracking 1.23 m second line"
+        assert n.stopping()
+        assert sock.recv(4096) == b"STOPPING=1"
+        assert n.reloading()
+        reload_msg = sock.recv(4096).decode()
+        assert reload_msg.startswith("RELOADING=1\nMONOTONIC_USEC=")
+        assert not n.failed
+    finally:
+        n.close()
+
+
+def test_abstract_namespace_socket() -> None:
+    name = f"netpose-test-{uuid.uuid4().hex}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind("\0" + name)
+    sock.settimeout(2.0)
+    n = notifier_from_environment({"NOTIFY_SOCKET": "@" + name})
+    try:
+        assert isinstance(n, SystemdNotifier)
+        assert n.notify("READY=1")
+        assert sock.recv(4096) == b"READY=1"
+    finally:
+        n.close()
+        sock.close()
+
+
+def test_watchdog_is_rate_limited_to_half_the_interval(
+    manager_socket: tuple[socket.socket, str],
+) -> None:
+    sock, path = manager_socket
+    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": str(os.getpid())}
+    n = notifier_from_environment(env)
+    try:
+        assert n.watchdog_interval_s == pytest.approx(2.0)
+        sent = [n.watchdog(now=t / 10.0) for t in range(0, 35)]  # 0 .. 3.4 s every 0.1 s
+        # Pings at 0, 1.0, 2.0, 3.0 s: every half interval, never more often.
+        assert [i / 10.0 for i, s in enumerate(sent) if s] == [0.0, 1.0, 2.0, 3.0]
+        sock.settimeout(0.5)
+        assert [sock.recv(64) for _ in range(4)] == [b"WATCHDOG=1"] * 4
+    finally:
+        n.close()
+
+
+def test_watchdog_meant_for_another_process_is_ignored() -> None:
+    assert watchdog_interval_from_environment({"WATCHDOG_USEC": "1000000",
+                                               "WATCHDOG_PID": "1"}) is None
+    assert watchdog_interval_from_environment({"WATCHDOG_USEC": "junk"}) is None
+    assert watchdog_interval_from_environment({"WATCHDOG_USEC": "500000"}) == pytest.approx(0.5)
+
+
+def test_outside_systemd_nothing_is_sent() -> None:
+    n = notifier_from_environment({})
+    assert isinstance(n, NullNotifier)
+    assert not n.ready() and not n.watchdog()
+
+
+def test_vanished_manager_does_not_raise(tmp_path: Path) -> None:
+    n = SystemdNotifier(str(tmp_path / "nobody-listens.sock"))
+    try:
+        assert not n.ready()
+        assert n.failed
+    finally:
+        n.close()
+
+
+def test_relative_socket_path_is_refused() -> None:
+    with pytest.raises(NotifyError):
+        SystemdNotifier("relative/path.sock")
+
+
+def test_recording_notifier_keeps_messages() -> None:
+    n = RecordingNotifier(watchdog_interval_s=1.0)
+    n.ready()
+    n.watchdog(now=0.0)
+    n.watchdog(now=0.1)
+    assert n.messages == ["READY=1", "WATCHDOG=1"]
