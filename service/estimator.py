@@ -1,0 +1,360 @@
+"""The net estimator: one grayscale frame in, detection and pose of the net plane out.
+
+Pipeline per frame (pure: arrays in, a NetEstimate out):
+1. scale search - the ROI size is fixed; an image pyramid brings the mesh period into the range
+   the ROI measures best (a few to ~20 px). A handful of probe ROIs pick the level, unless the
+   caller passes the previous estimate's level as a hint;
+2. a grid of ROIs over the frame at that level: whitened spectrum -> sub-bin peaks -> robust
+   lattice fit -> mesh cell area, mapped through the lens (undistortion Jacobian at the ROI
+   centre) into normalised image units;
+3. a robust multi-ROI plane fit gives the unit normal, the distance and the range, without the
+   mirror ambiguity of single-square PnP, and with uncertainties.
+
+Everything that depends only on frame size, camera and settings (windows, ROI rays and
+Jacobians) is computed once and cached.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from service.camera import CameraModel
+from service.errors import ConfigError, EstimatorInputError
+from service.lattice import LatticeFinder, LatticeFit
+from service.mesh import MeshGeometry
+from service.plane import fit_plane
+from service.results import Mat2, NetEstimate, RoiResult
+from service.spectrum import SpectrumAnalyzer
+
+F64 = npt.NDArray[np.float64]
+Image = npt.NDArray[np.generic]
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Tuning of the estimator; the defaults are what the benchmark was run with."""
+
+    roi_size: int = 128
+    grid_cols: int = 5
+    grid_rows: int = 3
+    levels: int = 3
+    preferred_period_px: float = 9.0
+    min_period_px: float = 2.9
+    min_cycles: float = 3.0
+    min_snr: float = 2.8
+    min_roi_snr: float = 4.0
+    min_inlier_fraction: float = 0.45
+    min_rois: int = 4
+    min_confidence: float = 0.25
+
+    def validate(self) -> None:
+        if self.roi_size not in (64, 128, 256, 512):
+            raise ConfigError("estimator.roi_size", "must be 64, 128, 256 or 512")
+        if not 2 <= self.grid_cols <= 12 or not 2 <= self.grid_rows <= 12:
+            raise ConfigError("estimator.grid_cols", "grid must be 2..12 ROIs in each direction")
+        if not 1 <= self.levels <= 5:
+            raise ConfigError("estimator.levels", "must be 1..5")
+        if self.min_rois < 4:
+            raise ConfigError("estimator.min_rois", "must be at least 4 (3 unknowns + 1 check)")
+        if self.grid_cols * self.grid_rows < self.min_rois:
+            raise ConfigError("estimator.min_rois", "exceeds the number of ROIs in the grid")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError("estimator.min_confidence", "must be in 0..1")
+
+
+@dataclass(frozen=True)
+class _RoiGeometry:
+    """Where one ROI sits and how its pixels map into normalised camera coordinates."""
+
+    x0: int  # top-left corner in level pixels
+    y0: int
+    center_full: tuple[float, float]  # full-resolution distorted pixel
+    ray: F64  # (x, y, 1) undistorted normalised
+    jacobian: F64  # d(normalised) / d(full-resolution pixel), 2x2
+
+
+@dataclass
+class _RoiMeasurement:
+    geometry: _RoiGeometry
+    level: int
+    fit: LatticeFit | None
+    peaks: int
+    reciprocal_px: F64 | None = None  # cycles per full-res pixel, columns k1 k2
+    area_norm: float = math.nan
+    valid: bool = False
+
+
+class NetEstimator:
+    """Multi-ROI FFT net estimator for one camera and one mesh geometry."""
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        mesh: MeshGeometry,
+        settings: EstimatorSettings | None = None,
+    ) -> None:
+        self.settings = settings or EstimatorSettings()
+        self.settings.validate()
+        self.camera = camera
+        self.mesh = mesh
+        self._spectrum = SpectrumAnalyzer(self.settings.roi_size, min_snr=self.settings.min_snr)
+        self._lattice = LatticeFinder()
+        self._grids: dict[tuple[int, int, int, str], list[_RoiGeometry]] = {}
+        self._cameras: dict[tuple[int, int], CameraModel] = {}
+
+    # -- geometry, cached per frame size and level ---------------------------------------------
+    def _camera_for(self, width: int, height: int) -> CameraModel:
+        key = (width, height)
+        if key not in self._cameras:
+            self._cameras[key] = self.camera.scaled_to(width, height)
+        return self._cameras[key]
+
+    def _layout(self, width: int, height: int, level: int, kind: str) -> list[_RoiGeometry]:
+        key = (width, height, level, kind)
+        if key in self._grids:
+            return self._grids[key]
+        n = self.settings.roi_size
+        scale = 2**level
+        lw, lh = _level_size(width, level), _level_size(height, level)
+        grid: list[_RoiGeometry] = []
+        if lw >= n and lh >= n:
+            if kind == "probe":
+                xs = [(lw - n) // 2, (lw - n) // 4, 3 * (lw - n) // 4]
+                corners = [(x, (lh - n) // 2) for x in xs]
+            else:
+                cols, rows = self.settings.grid_cols, self.settings.grid_rows
+                xs = np.linspace(0, lw - n, cols).round().astype(int)
+                ys = np.linspace(0, lh - n, rows).round().astype(int)
+                corners = sorted({(int(x), int(y)) for y in ys for x in xs}, key=lambda c: c[::-1])
+            cam = self._camera_for(width, height)
+            centres = np.array(
+                [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
+                  + (scale - 1) / 2) for x, y in corners]
+            )
+            eps = 2.0
+            probes = np.concatenate(
+                [centres, centres + [eps, 0.0], centres + [0.0, eps]], axis=0
+            )
+            norm = cam.undistort_pixels(probes)
+            k = len(corners)
+            base, dx, dy = norm[:k], norm[k : 2 * k], norm[2 * k :]
+            for i, (x, y) in enumerate(corners):
+                jac = np.stack([(dx[i] - base[i]) / eps, (dy[i] - base[i]) / eps], axis=1)
+                grid.append(
+                    _RoiGeometry(
+                        x0=x,
+                        y0=y,
+                        center_full=(float(centres[i, 0]), float(centres[i, 1])),
+                        ray=np.array([base[i, 0], base[i, 1], 1.0]),
+                        jacobian=jac,
+                    )
+                )
+        self._grids[key] = grid
+        return grid
+
+    # -- per ROI ---------------------------------------------------------------------------------
+    def _measure(self, image: Image, geom: _RoiGeometry, level: int) -> _RoiMeasurement:
+        n = self.settings.roi_size
+        patch = image[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
+        peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
+        fit = self._lattice.fit(peaks)
+        meas = _RoiMeasurement(geometry=geom, level=level, fit=fit, peaks=len(peaks))
+        if fit is None:
+            return meas
+        s = self.settings
+        lengths = np.linalg.norm(fit.basis, axis=0)
+        period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
+        quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
+            s.min_inlier_fraction
+        )
+        reciprocal = fit.basis / (n * 2**level)
+        meas.reciprocal_px = reciprocal
+        det_k = abs(float(np.linalg.det(reciprocal)))
+        meas.area_norm = abs(float(np.linalg.det(geom.jacobian))) / det_k
+        meas.valid = bool(period_ok and quality_ok)
+        return meas
+
+    def _median_period(self, measurements: list[_RoiMeasurement]) -> float | None:
+        periods = [
+            self.settings.roi_size / math.sqrt(m.fit.det)
+            for m in measurements
+            if m.valid and m.fit is not None
+        ]
+        return float(np.median(periods)) if periods else None
+
+    # -- per frame -------------------------------------------------------------------------------
+    def estimate(self, frame: Image, level_hint: int | None = None) -> NetEstimate:
+        """Estimate the net plane in one frame (grayscale, or BGR which is converted).
+
+        `level_hint` (the previous estimate's `level`) skips the scale search while tracking.
+        """
+        import cv2
+
+        t0 = time.perf_counter()
+        gray = _as_gray(frame)
+        h, w = gray.shape
+        self._camera_for(w, h)  # fail early on a resolution the calibration cannot serve
+        timings: dict[str, float] = {}
+        pyramid: list[Image] = [gray]
+
+        def level_image(level: int) -> Image:
+            while len(pyramid) <= level:
+                pyramid.append(cv2.pyrDown(pyramid[-1]))
+            return pyramid[level]
+
+        levels = [lv for lv in range(self.settings.levels) if self._layout(w, h, lv, "grid")]
+        if not levels:
+            raise EstimatorInputError(
+                f"frame {w}x{h} is smaller than one {self.settings.roi_size}px ROI"
+            )
+        t1 = time.perf_counter()
+        order = self._level_order(levels, level_hint, level_image, w, h)
+        t2 = time.perf_counter()
+        timings["scale_search"] = (t2 - t1) * 1e3
+        best: NetEstimate | None = None
+        for level in order[:2]:
+            result = self._estimate_at(level_image(level), level, w, h, timings)
+            if best is None or result.confidence > best.confidence:
+                best = result
+            if result.detected:
+                break
+        assert best is not None
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        return NetEstimate(**{**best.__dict__, "timings_ms": timings})
+
+    def _level_order(
+        self, levels: list[int], hint: int | None, level_image: object, w: int, h: int
+    ) -> list[int]:
+        """Levels to try, best first: the hint, else the probes' verdict."""
+        if hint is not None and hint in levels:
+            return [hint] + sorted((lv for lv in levels if lv != hint), key=lambda v: abs(v - hint))
+        preferred = self.settings.preferred_period_px
+        scored: list[tuple[float, int]] = []
+        get = level_image  # typed loosely to keep the closure simple
+        for level in levels:
+            img = get(level)  # type: ignore[operator]
+            probes = [self._measure(img, g, level) for g in self._layout(w, h, level, "probe")]
+            period = self._median_period(probes)
+            if period is not None:
+                scored.append((abs(math.log(period / preferred)), level))
+        if not scored:
+            return []
+        scored.sort()
+        return [lv for _, lv in scored]
+
+    def _estimate_at(
+        self, image: Image, level: int, w: int, h: int, timings: dict[str, float]
+    ) -> NetEstimate:
+        t0 = time.perf_counter()
+        grid = self._layout(w, h, level, "grid")
+        measurements = [self._measure(image, g, level) for g in grid]
+        t1 = time.perf_counter()
+        timings["rois"] = timings.get("rois", 0.0) + (t1 - t0) * 1e3
+        valid = [m for m in measurements if m.valid and m.fit is not None]
+        plane = None
+        if len(valid) >= self.settings.min_rois:
+            rays = np.array([m.geometry.ray for m in valid])
+            areas = np.array([m.area_norm for m in valid])
+            sigmas = np.array([m.fit.relative_area_sigma for m in valid if m.fit is not None])
+            plane = fit_plane(
+                rays, areas, sigmas, self.mesh.cell_area_m2, min_rois=self.settings.min_rois
+            )
+        timings["plane"] = timings.get("plane", 0.0) + (time.perf_counter() - t1) * 1e3
+        used_ids = set()
+        if plane is not None:
+            used_ids = {id(m) for m, u in zip(valid, plane.used, strict=True) if u}
+        rois = tuple(_roi_result(m, self.settings.roi_size, id(m) in used_ids) for m in measurements)
+        # Confidence: the share of the grid that shows one consistent net, weighted by how
+        # cleanly each ROI's peaks sit on its lattice and how well the ROIs agree on a plane.
+        scores = [
+            (m.fit.inlier_weight_fraction * min(1.0, m.fit.mean_snr / 8.0))
+            if id(m) in used_ids and m.fit is not None
+            else 0.0
+            for m in measurements
+        ]
+        coverage = float(np.mean(scores)) if scores else 0.0
+        if plane is None:
+            reason = (
+                f"{len(valid)} of {len(measurements)} ROIs show a lattice"
+                if valid
+                else "no lattice in any ROI"
+            )
+            return NetEstimate(
+                detected=False,
+                confidence=min(coverage, 0.2),
+                rois=rois,
+                level=level,
+                reason=reason if len(valid) < self.settings.min_rois else
+                "ROI lattices do not agree on a plane",
+            )
+        consistency = math.exp(-plane.relative_rms / 0.03)
+        confidence = float(np.clip(math.sqrt(coverage) * consistency, 0.0, 1.0))
+        detected = confidence >= self.settings.min_confidence
+        n = -plane.normal_away
+        return NetEstimate(
+            detected=detected,
+            confidence=confidence,
+            normal=(float(n[0]), float(n[1]), float(n[2])) if detected else None,
+            distance_m=plane.distance_m if detected else None,
+            range_m=plane.range_m if detected else None,
+            sigma_distance_m=plane.sigma_distance_m if detected else None,
+            sigma_range_m=plane.sigma_range_m if detected else None,
+            sigma_normal_deg=plane.sigma_normal_deg if detected else None,
+            rois=rois,
+            rois_used=int(plane.used.sum()),
+            level=level,
+            reason="" if detected else f"confidence {confidence:.2f} below threshold",
+        )
+
+
+def _level_size(size: int, level: int) -> int:
+    for _ in range(level):
+        size = (size + 1) // 2
+    return size
+
+
+def _as_gray(frame: Image) -> Image:
+    import cv2
+
+    arr = np.asarray(frame)
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
+    elif arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 2:
+        raise EstimatorInputError(f"expected a grayscale or BGR image, got shape {arr.shape}")
+    if arr.dtype not in (np.uint8, np.uint16, np.float32):
+        arr = arr.astype(np.float32)
+    return arr
+
+
+def _mat2(m: F64) -> Mat2:
+    return ((float(m[0, 0]), float(m[0, 1])), (float(m[1, 0]), float(m[1, 1])))
+
+
+def _roi_result(m: _RoiMeasurement, size: int, used: bool) -> RoiResult:
+    scale = 2**m.level
+    if m.fit is None or m.reciprocal_px is None:
+        return RoiResult(
+            center_px=m.geometry.center_full, size_px=size * scale, level=m.level,
+            detected=False, peaks=m.peaks,
+        )
+    edges = np.linalg.inv(m.reciprocal_px).T  # columns e1, e2 with e_i . k_j = delta_ij
+    return RoiResult(
+        center_px=m.geometry.center_full,
+        size_px=size * scale,
+        level=m.level,
+        detected=m.valid,
+        reciprocal=_mat2(m.reciprocal_px.T),
+        mesh_edges=_mat2(edges.T),
+        cell_area_px=1.0 / abs(float(np.linalg.det(m.reciprocal_px))),
+        snr_db=10.0 / math.log(10.0) * m.fit.mean_snr,
+        inlier_fraction=m.fit.inlier_weight_fraction,
+        peaks=m.peaks,
+        used_in_fit=used,
+    )
