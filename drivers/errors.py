@@ -15,3 +15,7 @@ class DriverError(NetposeError):
 
 class NotifyError(DriverError):
     """The systemd notification socket named in NOTIFY_SOCKET cannot be used."""
+
+
+class MavlinkLinkError(DriverError):
+    """The MAVLink link to the autopilot cannot be opened or was closed by the other side."""

@@ -1,0 +1,574 @@
+"""The autopilot link: DISTANCE_SENSOR (and opt-in VISION_POSITION_ESTIMATE) to ArduSub.
+
+The frame loop only calls cheap setters (`set_range`, `set_vision_pose`): each stores the newest
+value under a lock, a bounded queue of depth one where the newest value wins. One owned thread
+(`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
+with exponential backoff, sends HEARTBEAT at 1 Hz as an onboard controller, tracks the
+autopilot's heartbeat (connecting -> connected -> lost -> connected), and sends DISTANCE_SENSOR
+at `rate_hz` only while the newest reading is valid and younger than `max_age_s`. With no
+believable reading it sends nothing; ArduPilot then reports the rangefinder as "no data" after
+500 ms, which is the protocol's own meaning of "invalid" for a MAVLink rangefinder.
+
+`RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+from drivers.errors import MavlinkLinkError
+from drivers.mavlink_settings import (
+    MavlinkSettings,
+    RangeReading,
+    VisionPose,
+    load_signing_key,
+    serial_device,
+)
+from drivers.mavlink_wire import distance_sensor_fields, vision_covariance
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_PERIOD_S = 1.0
+# How long one wait for incoming data may last: bounds how late close() is noticed.
+_POLL_LIMIT_S = 0.1
+# Incoming messages handled per loop turn, so a flood cannot starve the send schedule.
+_MAX_MESSAGES_PER_TURN = 200
+# A serial write that cannot finish in this time means the port is dead or wedged.
+_SERIAL_WRITE_TIMEOUT_S = 0.2
+# A jump of the autopilot's boot clock larger than this is a reboot, not network jitter.
+_REBOOT_JUMP_S = 1.0
+
+# MAVLink enum values used below (common.xml), spelled out to keep pymavlink out of import time.
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_COMP_ID_AUTOPILOT1 = 1
+# Heartbeat types that are never the autopilot even if they claim an autopilot field.
+_NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, ADS-B, camera
+
+SendTimes = dict[str, int]
+
+
+class AutopilotLink(ABC):
+    """What the daemon needs from an autopilot link. Setters are cheap and never block."""
+
+    @abstractmethod
+    def start(self) -> None:
+        """Begin connecting and sending (returns at once)."""
+
+    @abstractmethod
+    def set_range(self, reading: RangeReading | None, t: float) -> None:
+        """Newest distance; `t` is the time.monotonic() of the frame it came from."""
+
+    @abstractmethod
+    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+        """Newest vehicle pose in the net frame (sent only when vision is enabled)."""
+
+    @abstractmethod
+    def status(self) -> dict[str, Any]:
+        """A JSON-serialisable snapshot for telemetry."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop sending and release the transport; idempotent."""
+
+    def __enter__(self) -> AutopilotLink:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+@dataclass
+class _AutopilotIdentity:
+    sysid: int
+    compid: int
+    mav_type: int
+    autopilot: int
+    mavlink_version: int
+    last_heartbeat: float
+    flight_sw_version: int | None = None
+
+
+class _TransportClosedError(MavlinkLinkError):
+    """The peer closed the connection or the device went away."""
+
+
+def _import_mavutil() -> Any:
+    # MAVLINK20 must be set before pymavlink picks its dialect module.
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil
+
+    if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+        # mavutil was imported elsewhere before MAVLINK20 was set.
+        mavutil.set_dialect("ardupilotmega")
+    return mavutil
+
+
+def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any:
+    """Open a pymavlink connection whose failures raise instead of printing and retrying.
+
+    pymavlink's own reconnect logic sleeps inside recv/write and reports a closed TCP peer only
+    on stdout; the link needs an exception so it can back off on its own thread.
+    """
+    mavutil = _import_mavutil()
+    common = {
+        "source_system": settings.source_system,
+        "source_component": settings.source_component,
+        "autoreconnect": False,
+    }
+    if settings.is_serial:
+        conn = mavutil.mavlink_connection(
+            serial_device(settings.url), baud=settings.baud, **common
+        )
+        conn.port.write_timeout = _SERIAL_WRITE_TIMEOUT_S
+    elif settings.url.startswith("tcp:"):
+        conn = mavutil.mavlink_connection(settings.url, retries=0, **common)
+
+        def closed() -> None:
+            raise _TransportClosedError("connection closed by the peer")
+
+        conn.handle_eof = closed
+        conn.handle_disconnect = closed
+    else:
+        conn = mavutil.mavlink_connection(settings.url, **common)
+    if signing_key is not None:
+        # Outgoing messages are signed; unsigned incoming ones are accepted because the link only
+        # reads heartbeats and clocks from them and a router may forward unsigned traffic.
+        conn.setup_signing(
+            signing_key, sign_outgoing=True, allow_unsigned_callback=lambda _mav, _id: True
+        )
+    return conn
+
+
+class MavlinkLink(AutopilotLink):
+    """pymavlink link on its own thread; see the module docstring."""
+
+    def __init__(
+        self,
+        settings: MavlinkSettings,
+        clock: Callable[[], float] = time.monotonic,
+        connection_factory: Callable[[MavlinkSettings, bytes | None], Any] = open_connection,
+    ) -> None:
+        self.settings = settings
+        self._clock = clock
+        self._connection_factory = connection_factory
+        # Read at start-up so a bad key stops the service before anything is sent unsigned.
+        self._signing_key = (
+            load_signing_key(settings.signing_key_file) if settings.signing_key_file else None
+        )
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._started_at = clock()
+        # Inputs, written by the frame loop.
+        self._range: tuple[RangeReading | None, float] = (None, -math.inf)
+        self._pose: tuple[VisionPose | None, float] = (None, -math.inf)
+        # Link state, written by the link thread, read by status().
+        self._transport_up = False
+        self._autopilot: _AutopilotIdentity | None = None
+        self._autopilot_alive = False
+        self._autopilot_boot: float | None = None
+        self._sent: SendTimes = dict.fromkeys(
+            ("HEARTBEAT", "DISTANCE_SENSOR", "VISION_POSITION_ESTIMATE"), 0
+        )
+        self._received = 0
+        self._errors = 0
+        self._last_error: str | None = None
+        self._reconnects = 0
+        self._sending_distance = False
+        self._sending_vision = False
+        self._vision_reset_counter = 0
+        self._vision_frame_id: int | None = None
+        self._vision_resumed = False
+        self._foreign_autopilots: set[int] = set()
+        self._in_outage = False
+
+    # ---- frame-loop side: cheap, never blocks on I/O -------------------------------------
+
+    def set_range(self, reading: RangeReading | None, t: float) -> None:
+        with self._lock:
+            self._range = (reading, t)
+
+    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+        with self._lock:
+            self._pose = (pose, t)
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="netpose-mavlink", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=5.0)
+            if thread.is_alive():
+                log.error("MAVLink thread did not stop within 5 s")
+
+    def status(self) -> dict[str, Any]:
+        now = self._clock()
+        with self._lock:
+            ap = self._autopilot
+            autopilot = None
+            if ap is not None:
+                autopilot = {
+                    "sysid": ap.sysid,
+                    "compid": ap.compid,
+                    "type": ap.mav_type,
+                    "autopilot": ap.autopilot,
+                    "mavlink_version": ap.mavlink_version,
+                    "flight_sw_version": ap.flight_sw_version,
+                }
+            return {
+                "state": self._state_locked(),
+                "transport": "up" if self._transport_up else "down",
+                "url": self.settings.url,
+                "autopilot": autopilot,
+                "last_heartbeat_age_s": None if ap is None else round(now - ap.last_heartbeat, 3),
+                "sent": dict(self._sent),
+                "received": self._received,
+                "errors": self._errors,
+                "last_error": self._last_error,
+                "reconnects": self._reconnects,
+                "sending_distance": self._sending_distance,
+                "sending_vision": self._sending_vision,
+                "vision_reset_counter": self._vision_reset_counter,
+            }
+
+    def _state_locked(self) -> str:
+        if self._autopilot is None:
+            return "connecting"
+        return "connected" if self._autopilot_alive and self._transport_up else "lost"
+
+    # ---- link thread ------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        delay = self.settings.retry_initial_s
+        attempts = 0
+        while not self._stop.is_set():
+            attempts += 1
+            try:
+                conn = self._connection_factory(self.settings, self._signing_key)
+            except Exception as exc:  # any failure to open is retried, never fatal
+                self._note_failure(exc, attempts)
+                self._stop.wait(delay)
+                delay = min(delay * 2.0, self.settings.retry_max_s)
+                continue
+            self._note_up(attempts)
+            attempts = 0
+            delay = self.settings.retry_initial_s
+            try:
+                self._serve(conn)
+            except Exception as exc:
+                self._note_failure(exc, 1)
+                self._stop.wait(delay)
+            finally:
+                with contextlib.suppress(Exception):
+                    conn.close()
+                with self._lock:
+                    self._transport_up = False
+
+    def _note_failure(self, exc: Exception, attempts: int) -> None:
+        message = f"{type(exc).__name__}: {exc}"
+        with self._lock:
+            self._errors += 1
+            self._last_error = message
+            first = not self._in_outage
+            self._in_outage = True
+            was_up = self._transport_up
+            self._transport_up = False
+        if first:
+            # Once per outage; the retries that follow are only at DEBUG level.
+            log.warning(
+                "MAVLink link %s %s (%s); retrying with backoff up to %.0f s",
+                self.settings.url,
+                "lost" if was_up else "unavailable",
+                message,
+                self.settings.retry_max_s,
+            )
+        else:
+            log.debug("MAVLink link %s attempt %d failed: %s", self.settings.url, attempts, message)
+
+    def _note_up(self, attempts: int) -> None:
+        with self._lock:
+            self._transport_up = True
+            reconnect = self._in_outage
+            self._in_outage = False
+            if reconnect:
+                self._reconnects += 1
+        if reconnect:
+            log.info("MAVLink link %s up again after %d attempt(s)", self.settings.url, attempts)
+        else:
+            log.info("MAVLink link %s open", self.settings.url)
+
+    def _serve(self, conn: Any) -> None:
+        now = self._clock()
+        next_heartbeat = now
+        next_output = now
+        period = self.settings.period_s
+        while not self._stop.is_set():
+            now = self._clock()
+            if now >= next_heartbeat:
+                self._send_heartbeat(conn)
+                next_heartbeat = _advance(next_heartbeat, HEARTBEAT_PERIOD_S, now)
+            if now >= next_output:
+                self._send_outputs(conn, now)
+                next_output = _advance(next_output, period, now)
+            self._check_autopilot_timeout(now)
+            wait = min(next_heartbeat, next_output) - self._clock()
+            if wait > 0:
+                conn.select(min(wait, _POLL_LIMIT_S))
+            for _ in range(_MAX_MESSAGES_PER_TURN):
+                msg = conn.recv_msg()
+                if msg is None:
+                    break
+                self._handle(msg, self._clock())
+
+    def _send(self, conn: Any, name: str, send: Callable[[], None]) -> None:
+        send()
+        if getattr(conn, "portdead", False):
+            raise _TransportClosedError(f"cannot write to {self.settings.url}")
+        with self._lock:
+            self._sent[name] += 1
+
+    def _send_heartbeat(self, conn: Any) -> None:
+        self._send(
+            conn,
+            "HEARTBEAT",
+            lambda: conn.mav.heartbeat_send(
+                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+            ),
+        )
+
+    def _send_outputs(self, conn: Any, now: float) -> None:
+        with self._lock:
+            reading, reading_t = self._range
+            pose, pose_t = self._pose
+        max_age = self.settings.max_age_s
+        fresh_range = reading is not None and reading.usable and now - reading_t <= max_age
+        self._note_sending("distance", fresh_range)
+        if fresh_range and reading is not None:
+            fields = distance_sensor_fields(reading, self.settings)
+            time_boot_ms = self._autopilot_time_ms(now)
+            self._send(
+                conn,
+                "DISTANCE_SENSOR",
+                lambda: conn.mav.distance_sensor_send(
+                    time_boot_ms,
+                    fields.min_distance,
+                    fields.max_distance,
+                    fields.current_distance,
+                    fields.type,
+                    fields.id,
+                    fields.orientation,
+                    fields.covariance,
+                    horizontal_fov=fields.horizontal_fov,
+                    vertical_fov=fields.vertical_fov,
+                    signal_quality=fields.signal_quality,
+                ),
+            )
+        if not self.settings.vision_enabled:
+            return
+        fresh_pose = pose is not None and pose.usable and now - pose_t <= max_age
+        self._note_sending("vision", fresh_pose)
+        if fresh_pose and pose is not None:
+            self._update_reset_counter(pose)
+            usec = self._autopilot_time_ms(now) * 1000
+            covariance = vision_covariance(pose)
+            reset_counter = self._vision_reset_counter
+            self._send(
+                conn,
+                "VISION_POSITION_ESTIMATE",
+                lambda: conn.mav.vision_position_estimate_send(
+                    usec,
+                    pose.x,
+                    pose.y,
+                    pose.z,
+                    pose.roll,
+                    pose.pitch,
+                    pose.yaw,
+                    covariance=covariance,
+                    reset_counter=reset_counter,
+                ),
+            )
+
+    def _note_sending(self, what: str, sending: bool) -> None:
+        attribute = f"_sending_{what}"
+        with self._lock:
+            changed = getattr(self, attribute) != sending
+            setattr(self, attribute, sending)
+            if what == "vision" and changed and not sending:
+                # The next pose after a gap starts a new net frame for the EKF.
+                self._vision_resumed = True
+        if changed:
+            if sending:
+                log.info("MAVLink: sending %s", what)
+            else:
+                log.info("MAVLink: no valid fresh %s; not sending it", what)
+
+    def _update_reset_counter(self, pose: VisionPose) -> None:
+        with self._lock:
+            jumped = self._vision_frame_id is not None and (
+                pose.frame_id != self._vision_frame_id or self._vision_resumed
+            )
+            if jumped:
+                self._vision_reset_counter = (self._vision_reset_counter + 1) % 256
+            self._vision_frame_id = pose.frame_id
+            self._vision_resumed = False
+
+    def _autopilot_time_ms(self, now: float) -> int:
+        """Milliseconds since the autopilot booted (our own start if its clock is unknown)."""
+        with self._lock:
+            base = self._autopilot_boot if self._autopilot_boot is not None else self._started_at
+        return int(max(0.0, now - base) * 1000.0) & 0xFFFFFFFF
+
+    def _is_own(self, msg: Any) -> bool:
+        return bool(
+            msg.get_srcSystem() == self.settings.source_system
+            and msg.get_srcComponent() == self.settings.source_component
+        )
+
+    def _handle(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA" or self._is_own(msg):
+            return  # noise, or our own message echoed back by a router
+        with self._lock:
+            self._received += 1
+        if kind == "HEARTBEAT":
+            self._handle_heartbeat(msg, now)
+            return
+        ap = self._autopilot
+        if ap is None or (msg.get_srcSystem(), msg.get_srcComponent()) != (ap.sysid, ap.compid):
+            return
+        if kind == "AUTOPILOT_VERSION":
+            with self._lock:
+                ap.flight_sw_version = int(msg.flight_sw_version)
+        time_boot_ms = getattr(msg, "time_boot_ms", None)
+        if isinstance(time_boot_ms, int):
+            self._update_boot_time(now - time_boot_ms / 1000.0)
+
+    def _update_boot_time(self, boot: float) -> None:
+        with self._lock:
+            old = self._autopilot_boot
+            if old is None or abs(boot - old) > _REBOOT_JUMP_S:
+                self._autopilot_boot = boot
+                rebooted = old is not None
+            else:
+                # The earliest estimate had the least transport delay in it.
+                self._autopilot_boot = min(old, boot)
+                rebooted = False
+        if rebooted:
+            log.warning("MAVLink: autopilot clock jumped by %.1f s (reboot?)", boot - (old or 0))
+
+    def _handle_heartbeat(self, msg: Any, now: float) -> None:
+        if (
+            msg.autopilot == MAV_AUTOPILOT_INVALID
+            or msg.type in _NON_AUTOPILOT_TYPES
+            or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1
+        ):
+            return
+        sysid = msg.get_srcSystem()
+        if sysid != self.settings.source_system:
+            if sysid not in self._foreign_autopilots:
+                self._foreign_autopilots.add(sysid)
+                log.warning(
+                    "MAVLink: ignoring autopilot with system id %d (mavlink.source_system is %d)",
+                    sysid,
+                    self.settings.source_system,
+                )
+            return
+        with self._lock:
+            first = self._autopilot is None
+            back = not first and not self._autopilot_alive
+            version = None if self._autopilot is None else self._autopilot.flight_sw_version
+            self._autopilot = _AutopilotIdentity(
+                sysid=sysid,
+                compid=msg.get_srcComponent(),
+                mav_type=msg.type,
+                autopilot=msg.autopilot,
+                mavlink_version=2 if msg.get_msgbuf()[0] == 0xFD else 1,
+                last_heartbeat=now,
+                flight_sw_version=version,
+            )
+            self._autopilot_alive = True
+        if first:
+            log.info("MAVLink: autopilot %d/%d connected (type %d)", sysid, msg.get_srcComponent(),
+                     msg.type)
+        elif back:
+            log.info("MAVLink: autopilot heartbeat back")
+
+    def _check_autopilot_timeout(self, now: float) -> None:
+        with self._lock:
+            ap = self._autopilot
+            lost = (
+                ap is not None
+                and self._autopilot_alive
+                and now - ap.last_heartbeat > self.settings.heartbeat_timeout_s
+            )
+            if lost:
+                self._autopilot_alive = False
+        if lost:
+            log.warning(
+                "MAVLink: autopilot heartbeat lost (none for %.1f s)",
+                self.settings.heartbeat_timeout_s,
+            )
+
+
+def _advance(deadline: float, period: float, now: float) -> float:
+    """Next deadline of a fixed-rate schedule; after a stall, restart from now, no burst."""
+    deadline += period
+    return deadline if deadline > now else now + period
+
+
+class RecordingAutopilotLink(AutopilotLink):
+    """Stand-in without I/O: records what the daemon handed over, reports a fixed status."""
+
+    def __init__(self) -> None:
+        self.started = False
+        self.closed = False
+        self.ranges: list[tuple[RangeReading | None, float]] = []
+        self.poses: list[tuple[VisionPose | None, float]] = []
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        self.started = True
+
+    def set_range(self, reading: RangeReading | None, t: float) -> None:
+        with self._lock:
+            self.ranges.append((reading, t))
+
+    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+        with self._lock:
+            self.poses.append((pose, t))
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "state": "connected" if self.started and not self.closed else "connecting",
+                "transport": "fake",
+                "ranges": len(self.ranges),
+                "poses": len(self.poses),
+            }
+
+    def close(self) -> None:
+        self.closed = True

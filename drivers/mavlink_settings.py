@@ -1,0 +1,246 @@
+"""Configuration and input values of the MAVLink autopilot link (no I/O apart from the key file).
+
+The daemon builds `MavlinkSettings` from the TOML section `[mavlink]` (same key names, see
+docs/mavlink.md); every problem is reported as ConfigError('mavlink.<key>', problem).
+The link's inputs are plain values (`RangeReading`, `VisionPose`): the link knows nothing about
+the estimator.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from service.errors import ConfigError
+
+# Component ids a BlueOS vehicle already uses (191 = MAVLink2Rest/onboard computer, 194 = the
+# camera manager, 100-105 = cameras), plus ids that are never valid for a companion service:
+# 0 (broadcast) and 1 (the autopilot itself).
+RESERVED_COMPONENT_IDS = frozenset({0, 1, 191, 194, *range(100, 106)})
+
+# MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY: a camera-based pose/range source, not used by BlueOS.
+DEFAULT_COMPONENT_ID = 197
+
+# ArduPilot drops a MAVLink rangefinder 500 ms after its last message; the send period must
+# stay well below that so one lost datagram does not flip the rangefinder to "no data".
+AUTOPILOT_RANGEFINDER_TIMEOUT_S = 0.5
+
+_URL_PATTERN = re.compile(r"^(udpout|udpin|tcp):([^:\s]+):(\d{1,5})$")
+
+
+def _is_serial_url(url: str) -> bool:
+    return url.startswith("/dev/") or url.startswith("serial:")
+
+
+def serial_device(url: str) -> str:
+    """The device path of a serial URL ('/dev/ttyACM0' or 'serial:/dev/ttyACM0')."""
+    return url[len("serial:") :] if url.startswith("serial:") else url
+
+
+@dataclass(frozen=True)
+class MavlinkSettings:
+    """Everything the link needs; validated on construction.
+
+    url: 'udpout:HOST:PORT' (we send first; the usual BlueOS choice is a UDP server endpoint),
+    'udpin:HOST:PORT' (we listen and answer the last sender), 'tcp:HOST:PORT' (BlueOS router:
+    tcp:127.0.0.1:5777), or a serial device '/dev/ttyXXX' / 'serial:/dev/ttyXXX' at `baud`.
+    """
+
+    url: str = "tcp:127.0.0.1:5777"
+    baud: int = 115200
+    source_system: int = 1
+    source_component: int = DEFAULT_COMPONENT_ID
+    rate_hz: float = 10.0
+    max_age_s: float = 0.3
+    orientation: int = 0
+    min_distance_m: float = 0.3
+    max_distance_m: float = 8.0
+    sensor_id: int = 0
+    fov_horizontal_deg: float = 0.0
+    fov_vertical_deg: float = 0.0
+    vision_enabled: bool = False
+    signing_key_file: str | None = None
+    heartbeat_timeout_s: float = 3.0
+    retry_initial_s: float = 0.5
+    retry_max_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        self._check_url()
+        if _is_serial_url(self.url) and self.baud <= 0:
+            self._fail("baud", f"must be a positive baud rate, got {self.baud}")
+        if not 1 <= self.source_system <= 254:
+            # 255 is the ground station's id by convention; 0 is broadcast.
+            self._fail("source_system", f"must be 1..254 (use the vehicle's id), got "
+                       f"{self.source_system}")
+        if not 0 <= self.source_component <= 255 or (
+            self.source_component in RESERVED_COMPONENT_IDS or self.source_component == 255
+        ):
+            self._fail(
+                "source_component",
+                f"{self.source_component} is reserved or already used on a BlueOS vehicle "
+                f"(0, 1, 100-105, 191, 194, 255); the default is {DEFAULT_COMPONENT_ID}",
+            )
+        min_rate = 2.0 / AUTOPILOT_RANGEFINDER_TIMEOUT_S  # two messages per autopilot timeout
+        if not min_rate <= self.rate_hz <= 50.0:
+            self._fail("rate_hz", f"must be between {min_rate:g} and 50 Hz (the autopilot "
+                       f"drops the rangefinder after {AUTOPILOT_RANGEFINDER_TIMEOUT_S} s "
+                       f"without a message), got {self.rate_hz}")
+        if not 0.0 < self.max_age_s <= 2.0:
+            self._fail("max_age_s", f"must be in (0, 2] seconds, got {self.max_age_s}")
+        if not 0 <= self.orientation <= 40:
+            self._fail("orientation", "must be a MAV_SENSOR_ORIENTATION 0..40 (0 forward, "
+                       f"25 down), got {self.orientation}")
+        if not (
+            math.isfinite(self.min_distance_m)
+            and math.isfinite(self.max_distance_m)
+            and 0.0 <= self.min_distance_m < self.max_distance_m <= 655.0
+        ):
+            self._fail("max_distance_m" if self.min_distance_m >= 0 else "min_distance_m",
+                       "need 0 <= min_distance_m < max_distance_m <= 655 m, got "
+                       f"{self.min_distance_m}..{self.max_distance_m}")
+        if not 0 <= self.sensor_id <= 255:
+            self._fail("sensor_id", f"must be 0..255, got {self.sensor_id}")
+        for key in ("fov_horizontal_deg", "fov_vertical_deg"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and 0.0 <= value <= 180.0):
+                self._fail(key, f"must be 0..180 degrees (0 = unknown), got {value}")
+        if not self.heartbeat_timeout_s > 0:
+            self._fail("heartbeat_timeout_s", f"must be > 0, got {self.heartbeat_timeout_s}")
+        if not 0.0 < self.retry_initial_s <= self.retry_max_s:
+            self._fail("retry_initial_s", "need 0 < retry_initial_s <= retry_max_s, got "
+                       f"{self.retry_initial_s}, {self.retry_max_s}")
+
+    @staticmethod
+    def _fail(key: str, problem: str) -> None:
+        raise ConfigError(f"mavlink.{key}", problem)
+
+    def _check_url(self) -> None:
+        if _is_serial_url(self.url):
+            if not serial_device(self.url).startswith("/"):
+                self._fail("url", f"serial device must be an absolute path, got {self.url!r}")
+            return
+        match = _URL_PATTERN.match(self.url)
+        if match is None:
+            self._fail("url", f"{self.url!r} is not udpout:HOST:PORT, udpin:HOST:PORT, "
+                       "tcp:HOST:PORT or a serial device path like /dev/ttyACM0")
+        elif not 0 < int(match.group(3)) < 65536:
+            self._fail("url", f"port out of range in {self.url!r}")
+
+    @property
+    def is_serial(self) -> bool:
+        return _is_serial_url(self.url)
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> MavlinkSettings:
+        """Build from a parsed `[mavlink]` table; unknown keys and wrong types are errors."""
+        known = {f.name: f for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in values.items():
+            if key not in known:
+                raise ConfigError(f"mavlink.{key}", f"unknown key (known: {', '.join(known)})")
+            kwargs[key] = _coerce(key, value, getattr(cls, key, None))
+        return cls(**kwargs)
+
+
+def _coerce(key: str, value: Any, default: Any) -> Any:
+    """Type-check one TOML value against the type of its default."""
+    full_key = f"mavlink.{key}"
+    if key == "signing_key_file":
+        if value is None or (isinstance(value, str) and value):
+            return value or None
+        raise ConfigError(full_key, f"must be a file path, got {value!r}")
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(full_key, f"must be true or false, got {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(full_key, f"must be an integer, got {value!r}")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(full_key, f"must be a number, got {value!r}")
+        return float(value)
+    if not isinstance(value, str):
+        raise ConfigError(full_key, f"must be a string, got {value!r}")
+    return value
+
+
+def load_signing_key(path: str) -> bytes:
+    """Read a MAVLink 2 signing key: 32 raw bytes, or 64 hexadecimal characters (one line).
+
+    Raises ConfigError('mavlink.signing_key_file', ...) so a bad key stops start-up instead of
+    silently sending unsigned messages that a signing autopilot would drop.
+    """
+    key = "mavlink.signing_key_file"
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ConfigError(key, f"cannot read {path}: {exc.strerror or exc}") from exc
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise ConfigError(key, f"{path} must hold 32 raw bytes or 64 hex characters, "
+                      f"found {len(data)} bytes")
+
+
+@dataclass(frozen=True)
+class RangeReading:
+    """One distance to the net along the sensor orientation.
+
+    distance_m: along the configured orientation (forward: the optical axis);
+    sigma_m: one standard deviation (nan = unknown); quality: 0..1 confidence (nan = unknown);
+    valid: False when the estimator has no distance it believes (nothing will be sent).
+    """
+
+    distance_m: float
+    sigma_m: float = math.nan
+    quality: float = math.nan
+    valid: bool = True
+
+    @property
+    def usable(self) -> bool:
+        return self.valid and math.isfinite(self.distance_m) and self.distance_m >= 0.0
+
+
+@dataclass(frozen=True)
+class VisionPose:
+    """The vehicle's pose in the net frame (metres, radians), for VISION_POSITION_ESTIMATE.
+
+    Frame: ArduPilot expects a right-handed, z-down frame (x forward, y right, z down at
+    acquisition). `covariance` is the upper triangle (21 values, row-major) of the 6x6
+    covariance of (x, y, z, roll, pitch, yaw), or None if unknown. `frame_id` identifies one
+    acquisition of the net frame: change it whenever the net is re-acquired so the link bumps
+    reset_counter and the EKF does not fuse a jump as motion.
+    """
+
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+    covariance: tuple[float, ...] | None = None
+    frame_id: int = 0
+
+    def __post_init__(self) -> None:
+        if self.covariance is not None and len(self.covariance) != 21:
+            raise ValueError(f"covariance needs 21 values, got {len(self.covariance)}")
+
+    @property
+    def usable(self) -> bool:
+        values = (self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
+        return all(math.isfinite(v) for v in values)

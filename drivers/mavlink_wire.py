@@ -1,0 +1,85 @@
+"""Pure conversions from netpose values to MAVLink message fields (units, ranges, encodings).
+
+Kept apart from the link so each mapping is a one-line rule that can be tested alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from drivers.mavlink_settings import MavlinkSettings, RangeReading, VisionPose
+
+# MAV_DISTANCE_SENSOR_UNKNOWN: a camera is none of laser/ultrasound/infrared/radar.
+DISTANCE_SENSOR_TYPE_UNKNOWN = 4
+# DISTANCE_SENSOR.covariance is a uint8 in cm^2; 255 means "unknown".
+COVARIANCE_UNKNOWN = 255
+UINT16_MAX = 65535
+
+
+def signal_quality(quality: float) -> int:
+    """Map a 0..1 confidence to DISTANCE_SENSOR.signal_quality (percent).
+
+    0 is reserved for "unknown" and sent only when the confidence is unknown (nan); a known
+    confidence maps to round(100 * q) clamped to 1..100, so even the weakest reading we still
+    send is "1 = worst" (ArduPilot turns 1 into 0 % and 0 into "unknown").
+    """
+    if not math.isfinite(quality):
+        return 0
+    return max(1, min(100, round(100.0 * quality)))
+
+
+def covariance_cm2(sigma_m: float) -> int:
+    """DISTANCE_SENSOR.covariance: the variance in cm^2, or 255 (unknown).
+
+    A variance that does not fit the uint8 (sigma > ~15.9 cm) is sent as unknown rather than
+    saturated at 254, which would claim a precision we do not have.
+    """
+    if not math.isfinite(sigma_m) or sigma_m < 0.0:
+        return COVARIANCE_UNKNOWN
+    variance = (sigma_m * 100.0) ** 2
+    return round(variance) if variance < 254.5 else COVARIANCE_UNKNOWN
+
+
+def distance_cm(distance_m: float) -> int:
+    return max(0, min(UINT16_MAX - 1, round(distance_m * 100.0)))
+
+
+@dataclass(frozen=True)
+class DistanceSensorFields:
+    """Field values of one DISTANCE_SENSOR (without time_boot_ms)."""
+
+    min_distance: int
+    max_distance: int
+    current_distance: int
+    type: int
+    id: int
+    orientation: int
+    covariance: int
+    horizontal_fov: float
+    vertical_fov: float
+    signal_quality: int
+
+
+def distance_sensor_fields(
+    reading: RangeReading, settings: MavlinkSettings
+) -> DistanceSensorFields:
+    return DistanceSensorFields(
+        min_distance=distance_cm(settings.min_distance_m),
+        max_distance=distance_cm(settings.max_distance_m),
+        current_distance=distance_cm(reading.distance_m),
+        type=DISTANCE_SENSOR_TYPE_UNKNOWN,
+        id=settings.sensor_id,
+        orientation=settings.orientation,
+        covariance=covariance_cm2(reading.sigma_m),
+        horizontal_fov=math.radians(settings.fov_horizontal_deg),
+        vertical_fov=math.radians(settings.fov_vertical_deg),
+        signal_quality=signal_quality(reading.quality),
+    )
+
+
+def vision_covariance(pose: VisionPose) -> list[float]:
+    """VISION_POSITION_ESTIMATE.covariance: 21 floats, first element NaN when unknown."""
+    if pose.covariance is None or not all(math.isfinite(c) for c in pose.covariance):
+        return [math.nan] + [0.0] * 20
+    return [float(c) for c in pose.covariance]
