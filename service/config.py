@@ -83,7 +83,7 @@ class ServiceSettings:
     # Which distance the autopilot's forward rangefinder receives: "perpendicular" (camera to net
     # plane, what net-following wants) or "optical_axis" (along the camera axis, what a physical
     # forward rangefinder would measure).
-    autopilot_distance: Literal["perpendicular", "optical_axis"] = "perpendicular"
+    autopilot_distance: Literal["perpendicular", "optical_axis"] = "optical_axis"
 
     def __post_init__(self) -> None:
         if self.log_level not in LOG_LEVELS:

@@ -1,0 +1,32 @@
+"""`netpose run`: the daemon (frame source -> estimator -> filter -> MAVLink and telemetry)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "run",
+        help="run the service: camera to distance for the autopilot (systemd-ready)",
+        description="Run the netpose daemon until SIGTERM/SIGINT; SIGHUP reloads the "
+        "configuration. Exit status 78 on a configuration error.",
+    )
+    p.add_argument("--config", "-c", metavar="FILE", default=None,
+                   help="TOML configuration (see config/netpose.toml); default: built-in "
+                   "defaults, which need at least --set mesh.bar_length_m=...")
+    p.add_argument("--set", dest="overrides", metavar="SECTION.KEY=VALUE", action="append",
+                   default=[], help="override one configuration key (TOML value), repeatable")
+    p.add_argument("--duration", type=float, metavar="SECONDS", default=None,
+                   help="stop cleanly after this many seconds (default: run until stopped)")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.daemon import main
+
+    if args.duration is not None and not args.duration > 0:
+        from service.errors import ConfigError
+
+        raise ConfigError("--duration", "must be a positive number of seconds")
+    return main(args.config, args.overrides, args.duration)

@@ -1,0 +1,241 @@
+"""Configuration: defaults, validation naming the key, overrides, digest, shipped examples."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from service.config import (
+    CameraSettings,
+    Config,
+    ServiceSettings,
+    build_section,
+    load_config,
+    parse_override,
+)
+from service.errors import ConfigError
+from service.tracking import FilterSettings
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG_DIR = REPO / "config"
+
+MINIMAL = '[mesh]\nbar_length_m = 0.025\n'
+
+
+@dataclasses.dataclass(frozen=True)
+class LinkSettings:
+    """Stands in for a driver's settings dataclass (the daemon passes the real ones)."""
+
+    url: str = "udpout:127.0.0.1:14550"
+    rate_hz: float = 10.0
+    system_id: int = 1
+    enabled: bool = True
+    mode: Literal["a", "b"] = "a"
+    endpoints: tuple[str, ...] = ()
+    note: str | None = None
+
+    def __post_init__(self) -> None:
+        if not 1.0 <= self.rate_hz <= 50.0:
+            raise ConfigError("rate_hz", "must be 1..50 Hz")
+
+
+def write(tmp_path: Path, text: str, name: str = "netpose.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_defaults_fill_every_section(tmp_path: Path) -> None:
+    cfg = load_config(write(tmp_path, MINIMAL))
+    assert cfg.camera == CameraSettings()
+    assert cfg.filter == FilterSettings()
+    assert cfg.service == ServiceSettings()
+    assert cfg.mesh.bar_length_m == 0.025 and cfg.mesh.opening_angle_deg == 90.0
+    assert cfg.effective["filter"]["gate_sigma"] == FilterSettings().gate_sigma
+    assert cfg.digest.startswith("sha256:") and len(cfg.digest) == len("sha256:") + 16
+
+
+def test_missing_required_key_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, "[filter]\ngate_sigma = 3.0\n"))
+    assert info.value.key == "mesh.bar_length_m"
+    assert "required" in info.value.problem
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "words"),
+    [
+        ("[filter]\ngate_sigmaa = 3.0\n", "filter.gate_sigmaa", "unknown key"),
+        ("[filtre]\ngate_sigma = 3.0\n", "filtre", "unknown section"),
+        ("[filter]\ngate_sigma = 'wide'\n", "filter.gate_sigma", "must be a number"),
+        ("[filter]\nacquire_count = 2.5\n", "filter.acquire_count", "must be an integer"),
+        ("[filter]\nacquire_count = true\n", "filter.acquire_count", "must be an integer"),
+        ("[filter]\ngate_sigma = -1\n", "filter.gate_sigma", "positive"),
+        ("[filter]\ngate_sigma = nan\n", "filter.gate_sigma", "finite"),
+        ("[service]\nlog_level = 'LOUD'\n", "service.log_level", "must be one of"),
+        ("[camera]\nread_timeout_s = 2.0\n", "camera.read_timeout_s", "within a second"),
+        ("[link]\nrate_hz = 500.0\n", "link.rate_hz", "1..50"),
+        ("[link]\nendpoints = [1, 2]\n", "link.endpoints", "must be a string"),
+        ("[link]\nmode = 'c'\n", "link.mode", "must be one of"),
+        ("filter = 3\n", "filter", "must be a table"),
+    ],
+)
+def test_bad_values_name_the_key(tmp_path: Path, text: str, key: str, words: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        # Top-level keys must come before the first table to be top-level.
+        full = MINIMAL + text if text.startswith("[") else text + MINIMAL
+        load_config(write(tmp_path, full), extra_sections={"link": LinkSettings})
+    assert info.value.key == key
+    assert words in info.value.problem
+
+
+def test_mesh_range_checked_by_the_mesh_itself(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, "[mesh]\nbar_length_m = 5.0\n"))
+    assert info.value.key == "mesh.bar_length_m"
+
+
+def test_invalid_toml_names_file_and_line(tmp_path: Path) -> None:
+    p = write(tmp_path, "[mesh]\nbar_length_m = = 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    assert info.value.key == str(p)
+    assert "line 2" in info.value.problem
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "absent.toml")
+
+
+def test_calibration_path_relative_to_config_and_must_exist(tmp_path: Path) -> None:
+    text = MINIMAL + "[camera]\nurl = 'rtsp://127.0.0.1:8554/x'\ncalibration = 'cam.yaml'\n"
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    assert info.value.key == "camera.calibration"
+    assert str(tmp_path / "cam.yaml") in info.value.problem
+    (tmp_path / "cam.yaml").write_text("image_width: 4\n")
+    assert load_config(p).calibration_path() == tmp_path / "cam.yaml"
+
+
+def test_extra_section_builds_the_driver_dataclass(tmp_path: Path) -> None:
+    text = MINIMAL + "[link]\nrate_hz = 20\nendpoints = ['a', 'b']\nmode = 'b'\n"
+    cfg = load_config(write(tmp_path, text), extra_sections={"link": LinkSettings})
+    link = cfg.section("link", LinkSettings)
+    assert link == LinkSettings(rate_hz=20.0, endpoints=("a", "b"), mode="b")
+    assert isinstance(link.rate_hz, float)  # TOML integer accepted for a float key
+    assert cfg.effective["link"]["endpoints"] == ["a", "b"]
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("filter.gate_sigma=3.5", ("filter", "gate_sigma", 3.5)),
+        ("filter.acquire_count=2", ("filter", "acquire_count", 2)),
+        ("link.enabled=false", ("link", "enabled", False)),
+        ("camera.url=rtsp://127.0.0.1:8554/video_stream__dev_video2",
+         ("camera", "url", "rtsp://127.0.0.1:8554/video_stream__dev_video2")),
+        ('camera.url="synthetic:?fps=30"', ("camera", "url", "synthetic:?fps=30")),
+        ("link.endpoints=['x', 'y']", ("link", "endpoints", ["x", "y"])),
+    ],
+)
+def test_parse_override(text: str, expected: tuple[str, str, object]) -> None:
+    assert parse_override(text) == expected
+
+
+@pytest.mark.parametrize("text", ["gate_sigma=3", "filter.gate_sigma", ".x=1", "a.b.c=1"])
+def test_malformed_override(text: str) -> None:
+    with pytest.raises(ConfigError, match=r"section\.key=value"):
+        parse_override(text)
+
+
+def test_overrides_win_and_are_validated(tmp_path: Path) -> None:
+    p = write(tmp_path, MINIMAL + "[filter]\ngate_sigma = 3.0\n")
+    cfg = load_config(p, ["filter.gate_sigma=5", "service.log_level=DEBUG"])
+    assert cfg.filter.gate_sigma == 5.0 and cfg.service.log_level == "DEBUG"
+    with pytest.raises(ConfigError) as info:
+        load_config(p, ["filter.gate_sigme=5"])
+    assert info.value.key == "filter.gate_sigme"
+
+
+def test_digest_is_canonical(tmp_path: Path) -> None:
+    a = load_config(write(tmp_path, MINIMAL, "a.toml"))
+    # The same effective settings written differently (explicit default, other order, int vs
+    # float) give the same digest; any real change gives another.
+    b_text = "[filter]\ngate_sigma = 4\n" + MINIMAL
+    b = load_config(write(tmp_path, b_text, "b.toml"))
+    c = load_config(write(tmp_path, MINIMAL, "c.toml"), ["filter.gate_sigma=4.5"])
+    assert a.digest == b.digest
+    assert a.digest != c.digest
+    assert a.changed_sections(c) == {"filter"}
+
+
+def test_build_section_rejects_non_dataclass() -> None:
+    with pytest.raises(TypeError):
+        build_section("x", dict, {})
+
+
+def _shipped(name: str) -> Path:
+    return CONFIG_DIR / name
+
+
+def _all_sections() -> dict[str, type]:
+    from service.daemon import driver_sections
+
+    return driver_sections()
+
+
+@pytest.mark.parametrize("name", ["netpose.toml", "demo.toml", "blueos.toml", "raspberrypi.toml"])
+def test_shipped_configs_are_valid(name: str) -> None:
+    path = _shipped(name)
+    if not path.exists():
+        pytest.fail(f"{path} is missing")
+    cfg = load_config(path, extra_sections=_all_sections(), check_files=False)
+    assert isinstance(cfg, Config)
+
+
+def test_reference_config_documents_every_key_with_its_default() -> None:
+    """config/netpose.toml lists every key of every section, set to its default (keys whose
+    default is 'unset' appear as a commented line), so the file is the reference."""
+    path = _shipped("netpose.toml")
+    text = path.read_text(encoding="utf-8")
+    doc = tomllib.loads(text)
+    from service.config import core_sections
+
+    sections = core_sections() | _all_sections()
+    assert set(doc) == set(sections)
+    for name, cls in sections.items():
+        for f in dataclasses.fields(cls):
+            key = f"{name}.{f.name}"
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                assert f.name in doc[name], f"required key {key} missing from netpose.toml"
+                continue
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            if default is None:
+                assert f"# {f.name} =" in text, f"{key} (unset by default) not documented"
+                continue
+            assert f.name in doc[name], f"{key} missing from netpose.toml"
+            cfg_value = load_config(path, extra_sections=_all_sections(),
+                                    check_files=False).effective[name][f.name]
+            from service.config import _jsonable
+
+            assert cfg_value == _jsonable(default), f"{key}: file says {cfg_value}, default is "\
+                f"{default}"
+
+
+def test_cli_exits_78_naming_the_key(tmp_path: Path) -> None:
+    p = write(tmp_path, MINIMAL + "[filter]\ngate_sigma = 'x'\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "run", "--config", str(p)],
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )
+    assert proc.returncode == 78, proc.stderr
+    assert "netpose: configuration error: filter.gate_sigma: must be a number" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
