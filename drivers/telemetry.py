@@ -69,7 +69,6 @@ class TelemetrySettings:
     connect: tuple[str, ...] | None = None
     scouting: bool | None = None
     config_file: str | None = None
-    status_hz: float = 1.0
     preview_hz: float = 0.5
     preview_width: int = 320
     preview_quality: int = 70
@@ -121,14 +120,12 @@ class TelemetrySettings:
                     raise bad(key, f"{endpoint!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447")
         if self.config_file is not None and not isinstance(self.config_file, str):
             raise bad("config_file", "must be a path string")
-        for key in ("status_hz", "preview_hz", "retry_initial_s", "retry_max_s"):
+        for key in ("preview_hz", "retry_initial_s", "retry_max_s"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise bad(key, "must be a number")
             if not math.isfinite(value) or value < 0:
                 raise bad(key, "must be a finite number >= 0")
-        if self.status_hz <= 0:
-            raise bad("status_hz", "must be > 0")
         if self.retry_initial_s <= 0 or self.retry_max_s < self.retry_initial_s:
             raise bad("retry_max_s", "retry_initial_s must be > 0 and <= retry_max_s")
         for key, low, high in (
@@ -164,7 +161,6 @@ class TelemetrySettings:
             "connect": resolved(self.connect, list(DEFAULT_CONNECT)),
             "scouting": resolved(self.scouting, False),
             "config_file": self.config_file,
-            "status_hz": self.status_hz,
             "preview_hz": self.preview_hz,
             "preview_width": self.preview_width,
             "preview_quality": self.preview_quality,
@@ -220,7 +216,6 @@ class TelemetryPublisher(ABC):
 
     def __init__(self, settings: TelemetrySettings) -> None:
         self.settings = settings
-        self._last_status_at = -math.inf
         self._last_preview_at = -math.inf
 
     @abstractmethod
@@ -255,13 +250,6 @@ class TelemetryPublisher(ABC):
     def online(self) -> bool:
         """True when published data can leave the process."""
         return False
-
-    def wants_status(self, now_mono: float) -> bool:
-        """True once per 1/status_hz: the daemon then builds and publishes a status."""
-        if now_mono - self._last_status_at < 1.0 / self.settings.status_hz:
-            return False
-        self._last_status_at = now_mono
-        return True
 
     def wants_preview(self, now_mono: float) -> bool:
         """True once per 1/preview_hz while online, so no JPEG is drawn for nobody."""

@@ -1,0 +1,273 @@
+"""What `netpose monitor` knows and shows: received telemetry -> rates, link state, text lines.
+
+Pure bookkeeping, no Zenoh and no terminal: the command feeds `MonitorState.ingest()` with
+(key, bytes, receive time) and asks for lines to print. Times are the monitor's own monotonic
+clock, so rates and staleness do not depend on the clocks of the vehicle.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.telemetry_schema import (
+    ESTIMATE_SUFFIX,
+    PREVIEW_SUFFIX,
+    STATE_SUFFIX,
+    STATUS_SUFFIX,
+    schema_problems,
+)
+
+STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX)
+
+
+@dataclass
+class StreamStats:
+    """Arrivals of one stream (estimate, status or preview) of one vehicle."""
+
+    window_s: float
+    count: int = 0
+    last_mono: float = -math.inf
+    recent: collections.deque[float] = field(default_factory=collections.deque)
+
+    def add(self, now_mono: float) -> None:
+        self.count += 1
+        self.last_mono = now_mono
+        self.recent.append(now_mono)
+        self._trim(now_mono)
+
+    def _trim(self, now_mono: float) -> None:
+        while self.recent and self.recent[0] < now_mono - self.window_s:
+            self.recent.popleft()
+
+    def rate_hz(self, now_mono: float) -> float:
+        """Messages per second over the last window (0 when fewer than two arrived in it)."""
+        self._trim(now_mono)
+        if len(self.recent) < 2:
+            return 0.0
+        span = self.recent[-1] - self.recent[0]
+        return (len(self.recent) - 1) / span if span > 0 else 0.0
+
+
+@dataclass
+class VehicleView:
+    """Latest values and stream statistics of one vehicle."""
+
+    name: str
+    window_s: float
+    streams: dict[str, StreamStats] = field(default_factory=dict)
+    estimate: dict[str, Any] | None = None
+    status: dict[str, Any] | None = None
+    preview_bytes: int = 0
+    preview_meta: dict[str, Any] | None = None
+    problems: set[str] = field(default_factory=set)
+
+    def stream(self, name: str) -> StreamStats:
+        if name not in self.streams:
+            self.streams[name] = StreamStats(self.window_s)
+        return self.streams[name]
+
+    def last_seen(self) -> float:
+        return max((s.last_mono for s in self.streams.values()), default=-math.inf)
+
+
+@dataclass(frozen=True)
+class Received:
+    """One message after decoding: what --save writes and the plot reads."""
+
+    vehicle: str
+    kind: str
+    key: str
+    payload: dict[str, Any] | None
+    size: int
+    meta: dict[str, Any] | None = None
+
+    def record(self, recv_time_unix: float) -> dict[str, Any]:
+        """The JSON-lines record: JSON payloads in full, previews as size and metadata."""
+        record: dict[str, Any] = {
+            "recv_time_unix": round(recv_time_unix, 6),
+            "key": self.key,
+            "kind": self.kind,
+            "vehicle": self.vehicle,
+        }
+        if self.kind == PREVIEW_SUFFIX:
+            record["bytes"] = self.size
+            record["meta"] = self.meta
+        else:
+            record["payload"] = self.payload
+        return record
+
+
+def _decode_json(data: bytes | None) -> dict[str, Any] | None:
+    if not data:
+        return None
+    try:
+        value = json.loads(data)
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+class MonitorState:
+    """Everything the monitor has seen, per vehicle."""
+
+    def __init__(self, stale_after_s: float = 3.0, window_s: float = 5.0) -> None:
+        self.stale_after_s = stale_after_s
+        self.window_s = window_s
+        self.vehicles: dict[str, VehicleView] = {}
+        self.undecodable = 0
+
+    def ingest(
+        self,
+        key: str,
+        data: bytes,
+        now_mono: float,
+        attachment: bytes | None = None,
+    ) -> Received | None:
+        """Account for one sample on `<prefix>/<vehicle>/<kind>`; None if not ours/unreadable."""
+        parts = key.split("/")
+        if len(parts) < 3:
+            return None
+        vehicle, kind = parts[-2], parts[-1]
+        if kind not in (*STREAMS, STATE_SUFFIX):
+            return None
+        view = self.vehicles.get(vehicle)
+        if view is None:
+            view = self.vehicles[vehicle] = VehicleView(vehicle, self.window_s)
+        if kind == PREVIEW_SUFFIX:
+            meta = _decode_json(attachment)
+            view.stream(kind).add(now_mono)
+            view.preview_bytes = len(data)
+            view.preview_meta = meta
+            return Received(vehicle, kind, key, None, len(data), meta)
+        payload = _decode_json(data)
+        if payload is None:
+            self.undecodable += 1
+            view.problems.add(f"{kind}: not a JSON object")
+            return None
+        view.problems.update(f"{kind}: {p}" for p in schema_problems(payload))
+        if kind in STREAMS:
+            view.stream(kind).add(now_mono)
+        if kind == ESTIMATE_SUFFIX:
+            view.estimate = payload
+        elif kind == STATUS_SUFFIX:
+            view.status = payload
+        return Received(vehicle, kind, key, payload, len(data))
+
+    def link_state(self, now_mono: float, vehicle: str | None = None) -> str:
+        """'waiting' (nothing yet), 'live', or 'stale' (silent for stale_after_s)."""
+        if vehicle is None:
+            views = list(self.vehicles.values())
+        else:
+            views = [self.vehicles[vehicle]] if vehicle in self.vehicles else []
+        if not views:
+            return "waiting"
+        last = max(v.last_seen() for v in views)
+        return "live" if now_mono - last <= self.stale_after_s else "stale"
+
+    def rate_hz(self, vehicle: str, stream: str, now_mono: float) -> float:
+        view = self.vehicles.get(vehicle)
+        if view is None or stream not in view.streams:
+            return 0.0
+        return view.streams[stream].rate_hz(now_mono)
+
+    # --- text ---------------------------------------------------------------------------
+
+    def summary(self, now_mono: float) -> str:
+        """One line for all vehicles (what a non-terminal stdout gets once per second)."""
+        if not self.vehicles:
+            return "waiting for telemetry"
+        return " | ".join(self._vehicle_summary(v, now_mono) for v in self.vehicles.values())
+
+    def _vehicle_summary(self, view: VehicleView, now_mono: float) -> str:
+        link = self.link_state(now_mono, view.name)
+        parts = [f"{view.name} {link}"]
+        parts.append(f"est {self.rate_hz(view.name, ESTIMATE_SUFFIX, now_mono):.1f}Hz")
+        parts.append(_estimate_text(view.estimate))
+        parts.append(f"status {self.rate_hz(view.name, STATUS_SUFFIX, now_mono):.1f}Hz")
+        parts.append(_status_text(view.status))
+        return " ".join(p for p in parts if p)
+
+    def render(self, now_mono: float) -> list[str]:
+        """A screenful of lines for a terminal."""
+        lines = ["netpose monitor"]
+        if not self.vehicles:
+            return [*lines, "", "waiting for telemetry ..."]
+        for view in self.vehicles.values():
+            lines.append("")
+            lines.append(f"vehicle {view.name}: link {self.link_state(now_mono, view.name)}")
+            for stream in STREAMS:
+                stats = view.streams.get(stream)
+                if stats is None:
+                    lines.append(f"  {stream:<9} none yet")
+                    continue
+                age = now_mono - stats.last_mono
+                lines.append(
+                    f"  {stream:<9} {stats.rate_hz(now_mono):6.2f} Hz  {stats.count:7d} msgs"
+                    f"  last {age:5.1f} s ago"
+                )
+            lines.append("  estimate  " + (_estimate_text(view.estimate) or "-"))
+            estimate = view.estimate or {}
+            filtered = estimate.get("filtered") or {}
+            if filtered:
+                lines.append(
+                    f"  filtered  valid {filtered.get('valid')}"
+                    f"  d {_fmt(filtered.get('distance_m'))}"
+                    f" +/- {_fmt(filtered.get('sigma_distance_m'))} m"
+                    f"  rate {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
+                )
+            latency = estimate.get("latency_ms") or {}
+            if latency:
+                lines.append(
+                    f"  latency   estimator {_fmt(latency.get('estimator_total'), 1)} ms"
+                    f"  frame->publish {_fmt(latency.get('frame_to_publish'), 1)} ms"
+                )
+            lines.append("  status    " + (_status_text(view.status) or "-"))
+            if view.preview_meta is not None:
+                lines.append(
+                    f"  preview   {view.preview_meta.get('width')}x"
+                    f"{view.preview_meta.get('height')}  {view.preview_bytes} bytes"
+                )
+            for problem in sorted(view.problems):
+                lines.append(f"  ! {problem}")
+        return lines
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        return f"{value:.{digits}f}"
+    return "-"
+
+
+def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
+    if estimate is None:
+        return ""
+    if not estimate.get("detected"):
+        reason = estimate.get("reason") or "no net"
+        return f"no net ({reason})"
+    return (
+        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(estimate.get('sigma_distance_m'))} m"
+        f" range {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
+        f" conf {_fmt(estimate.get('confidence'))}"
+    )
+
+
+def _status_text(status: Mapping[str, Any] | None) -> str:
+    if status is None:
+        return ""
+    camera = status.get("frame_source") or {}
+    autopilot = status.get("autopilot") or {}
+    telemetry = status.get("telemetry") or {}
+    cpu = status.get("cpu") or {}
+    text = (
+        f"{status.get('state')} cam {camera.get('state')} {_fmt(camera.get('fps'), 1)} fps"
+        f" dropped {camera.get('dropped')} ap {autopilot.get('state')}"
+        f" cpu {_fmt(cpu.get('process_percent'), 0)}%"
+    )
+    if telemetry.get("queue_dropped"):
+        text += f" tx-dropped {telemetry.get('queue_dropped')}"
+    return text
