@@ -297,10 +297,13 @@ class MavlinkLink(AutopilotLink):
             self._in_outage = True
             was_up = self._transport_up
             self._transport_up = False
+            # Without a transport there is no autopilot either; the warning below says why, so
+            # the heartbeat timeout must not log a second time.
+            self._autopilot_alive = False
         if first:
             # Once per outage; the retries that follow are only at DEBUG level.
             log.warning(
-                "MAVLink link %s %s (%s); retrying with backoff up to %.0f s",
+                "MAVLink link %s %s (%s); retrying with backoff up to %.1f s",
                 self.settings.url,
                 "lost" if was_up else "unavailable",
                 message,

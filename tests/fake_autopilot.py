@@ -18,6 +18,7 @@ Usage (also from the daemon's end-to-end tests: `from tests.fake_autopilot impor
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import socket
@@ -105,10 +106,8 @@ class UdpClientTransport(Transport):
         return self._sock.recv(65535)
 
     def write(self, data: bytes) -> None:
-        try:
+        with contextlib.suppress(ConnectionRefusedError):  # the link is not listening yet
             self._sock.sendto(data, self._target)
-        except ConnectionRefusedError:
-            pass  # the link is not listening yet
 
     def close(self) -> None:
         self._sock.close()
