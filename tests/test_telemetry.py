@@ -1,0 +1,562 @@
+"""Telemetry: schema builders, settings, and the Zenoh publisher against real Zenoh sessions.
+
+Every Zenoh test runs on loopback with explicit endpoints on ports chosen free at runtime and
+multicast scouting off. Subscribers, routers and queriers run in other processes (real Zenoh
+sessions in `python -c` children), so what is checked is what crosses the wire.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.telemetry import (
+    NullPublisher,
+    RecordingPublisher,
+    TelemetrySettings,
+    ZenohPublisher,
+    build_zenoh_config,
+    make_publisher,
+)
+from drivers.telemetry_cpu import CpuMeter
+from service import telemetry_schema as ts
+from service.errors import ConfigError
+from service.results import NetEstimate, RoiResult
+
+pytestmark = pytest.mark.timeout(90)
+
+REPO = Path(__file__).resolve().parents[1]
+DOCS = REPO / "docs" / "telemetry.md"
+
+
+# --- helpers -------------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def wait_for(condition: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def sample_estimate() -> dict[str, Any]:
+    roi = RoiResult(center_px=(640.0, 360.0), size_px=256, level=0, detected=True,
+                    mesh_edges=((20.0, 1.0), (-1.0, 21.0)), cell_area_px=421.0,
+                    used_in_fit=True)
+    estimate = NetEstimate(
+        detected=True, confidence=0.87, normal=(0.1, -0.05, -0.9937), distance_m=1.234,
+        range_m=1.242, sigma_distance_m=0.021, sigma_range_m=0.022, sigma_normal_deg=1.5,
+        rois=(roi,), rois_used=1, level=0, timings_ms={"spectrum": 12.5, "fit": 3.25},
+    )
+    return estimate.to_json_dict()
+
+
+def estimate_at(seq: int, vehicle: str = "rov9") -> dict[str, Any]:
+    now = time.monotonic()
+    return ts.estimate_payload(
+        vehicle=vehicle, seq=seq, estimate=sample_estimate(), now_unix=time.time(),
+        now_mono=now, frame_time_mono=now - 0.05, frame_time_unix=time.time() - 0.05,
+        filtered=ts.filtered_payload(valid=True, distance_m=1.23, sigma_distance_m=0.01),
+    )
+
+
+def status_now(vehicle: str = "rov9", telemetry: dict[str, Any] | None = None) -> dict[str, Any]:
+    return ts.status_payload(
+        vehicle=vehicle, version="0.1.0", state="running", uptime_s=12.0,
+        config_digest="sha256:0123456789abcdef", now_unix=time.time(), now_mono=time.monotonic(),
+        frame_source=ts.frame_source_status(state="streaming", fps=15.0, frames=180, dropped=2,
+                                            last_frame_age_s=0.07),
+        autopilot=ts.autopilot_status(state="connected", heartbeat_age_s=0.4, messages_sent=170),
+        estimator=ts.estimator_status(fps=14.8, frames=178, detected_fraction=0.9,
+                                      latency_ms_mean=40.0, latency_ms_max=75.0),
+        cpu=CpuMeter().sample(),
+        telemetry=telemetry,
+    )
+
+
+# A subscriber / querier in another process: prints one JSON line per sample, then the answer
+# of the state queryable, then exits once it has `want` estimates, a status and a preview.
+SUBSCRIBER = textwrap.dedent(
+    """
+    import json, sys, time, zenoh
+    connect, prefix, want, limit = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    seen = {"estimate": 0, "status": 0, "preview": 0}
+    def on_sample(sample):
+        kind = str(sample.key_expr).rsplit("/", 1)[-1]
+        seen[kind] = seen.get(kind, 0) + 1
+        data = sample.payload.to_bytes()
+        att = sample.attachment
+        line = {"key": str(sample.key_expr), "encoding": str(sample.encoding), "size": len(data),
+                "attachment": None if att is None else json.loads(att.to_bytes())}
+        if kind != "preview":
+            line["payload"] = json.loads(data)
+        print(json.dumps(line), flush=True)
+    sub = session.declare_subscriber(prefix + "/**", on_sample)
+    print(json.dumps({"ready": True}), flush=True)
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        if seen["estimate"] >= want and seen["status"] >= 1 and seen["preview"] >= 1:
+            break
+        time.sleep(0.02)
+    for reply in session.get(prefix + "/state", timeout=5):
+        if reply.ok is not None:
+            print(json.dumps({"reply": json.loads(reply.ok.payload.to_bytes()),
+                              "encoding": str(reply.ok.encoding)}), flush=True)
+    session.close()
+    """
+)
+
+ROUTER = textwrap.dedent(
+    """
+    import json, sys, zenoh
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    print("ready", flush=True)
+    sys.stdin.read()  # until the test closes our stdin or kills us
+    session.close()
+    """
+)
+
+
+def start_subscriber(
+    connect: str, prefix: str, want: int, limit: float = 20.0
+) -> subprocess.Popen[str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SUBSCRIBER, connect, prefix, str(want), str(limit)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    assert proc.stdout is not None
+    first = proc.stdout.readline()
+    assert json.loads(first) == {"ready": True}, first + (proc.stderr.read() if proc.stderr else "")
+    return proc
+
+
+def start_router(listen: str) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-c", ROUTER, listen], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def feed_until_exit(
+    publisher: ZenohPublisher, proc: subprocess.Popen[str], limit: float = 25.0
+) -> list[dict[str, Any]]:
+    """Publish estimates (20 ms apart), a status and a preview per 10 until the child exits."""
+    deadline = time.monotonic() + limit
+    seq = 0
+    while proc.poll() is None:
+        assert time.monotonic() < deadline, "subscriber did not finish"
+        publisher.publish_estimate(estimate_at(seq))
+        if seq % 10 == 0:
+            publisher.publish_status(status_now(telemetry=publisher.status()))
+            meta = ts.preview_meta(vehicle="rov9", seq=seq, now_unix=time.time(), width=4,
+                                   height=3)
+            publisher.publish_preview(b"\xff\xd8\xff\xe0fakejpeg", meta)
+        seq += 1
+        time.sleep(0.02)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    return [json.loads(line) for line in out.splitlines() if line.strip()]
+
+
+@pytest.fixture
+def publisher_factory() -> Iterator[Callable[..., ZenohPublisher]]:
+    made: list[ZenohPublisher] = []
+
+    def make(**kwargs: Any) -> ZenohPublisher:
+        values: dict[str, Any] = {"vehicle": "rov9", "retry_initial_s": 0.1, "retry_max_s": 0.5}
+        values.update(kwargs)
+        publisher = ZenohPublisher(TelemetrySettings(**values))
+        made.append(publisher)
+        return publisher
+
+    yield make
+    for publisher in made:
+        publisher.close(timeout=10.0)
+
+
+# --- schema --------------------------------------------------------------------------------
+
+
+def test_estimate_payload_has_documented_keys_and_consistent_latency() -> None:
+    now = 1000.0
+    payload = ts.estimate_payload(
+        vehicle="rov1", seq=7, estimate=sample_estimate(), now_unix=1.7e9, now_mono=now,
+        frame_time_mono=now - 0.0625, frame_time_unix=1.7e9 - 0.0625,
+        filtered=ts.filtered_payload(valid=True, distance_m=1.2, normal=(0.0, 0.0, -1.0)),
+    )
+    assert set(payload) == ts.ESTIMATE_KEYS
+    assert set(payload["filtered"]) == ts.FILTERED_KEYS
+    assert set(payload["latency_ms"]) == ts.LATENCY_KEYS
+    assert payload["schema"] == ts.SCHEMA_VERSION and payload["kind"] == "estimate"
+    assert payload["distance_m"] == pytest.approx(1.234)
+    assert payload["rois"] == 1 and payload["rois_used"] == 1
+    # 62.5 ms is exact in binary, so the frame age must come out exactly.
+    assert payload["latency_ms"]["frame_to_publish"] == 62.5
+    assert payload["latency_ms"]["estimator_total"] == pytest.approx(15.75)
+    assert payload["latency_ms"]["stages"] == {"spectrum": 12.5, "fit": 3.25}
+    assert ts.schema_problems(payload) == []
+
+
+def test_payloads_are_strict_json_even_with_nan_and_missing_values() -> None:
+    raw = NetEstimate(detected=False, confidence=float("nan"), reason="no lattice").to_json_dict()
+    raw["range_m"] = float("inf")
+    payload = ts.estimate_payload(vehicle="r", seq=1, estimate=raw, now_unix=math.nan,
+                                  now_mono=5.0)
+    text = json.dumps(payload, allow_nan=False)  # raises on NaN/inf
+    back = json.loads(text)
+    assert back["confidence"] is None and back["range_m"] is None and back["time_unix"] is None
+    assert back["detected"] is False and back["reason"] == "no lattice"
+    assert back["latency_ms"]["frame_to_publish"] is None
+    status = status_now(telemetry={"x": float("nan"), "nested": [1.0, float("inf")]})
+    back = json.loads(json.dumps(status, allow_nan=False))
+    assert set(back) == ts.STATUS_KEYS
+    assert set(back["frame_source"]) == ts.FRAME_SOURCE_KEYS
+    assert set(back["autopilot"]) == ts.AUTOPILOT_KEYS
+    assert set(back["estimator"]) == ts.ESTIMATOR_KEYS
+    assert set(back["cpu"]) == ts.CPU_KEYS
+    assert back["telemetry"] == {"x": None, "nested": [1.0, None]}
+
+
+def test_schema_problems_name_missing_keys_and_version() -> None:
+    payload = estimate_at(1)
+    del payload["distance_m"]
+    payload["schema"] = 99
+    problems = ts.schema_problems(payload)
+    assert any("distance_m" in p for p in problems)
+    assert any("99" in p for p in problems)
+    assert ts.schema_problems({"kind": "banana"}) == ["unknown kind 'banana'"]
+
+
+def test_redaction_removes_secrets_and_digest_ignores_them() -> None:
+    config: dict[str, Any] = {
+        "camera": {"url": "rtsp://admin:hunter2@192.168.2.10:554/stream", "password": "pw"},
+        "mavlink": {"url": "tcp:127.0.0.1:5777", "api_key": "k", "tokens": ["a"]},
+        "service": {"log_level": "INFO", "passthrough": 3},
+    }
+    redacted = ts.redact_secrets(config)
+    text = json.dumps(redacted)
+    for secret in ("hunter2", '"pw"', '"k"', '"a"'):
+        assert secret not in text
+    assert redacted["camera"]["url"] == "rtsp://admin:<redacted>@192.168.2.10:554/stream"
+    assert redacted["service"] == {"log_level": "INFO", "passthrough": 3}
+    assert config["camera"]["password"] == "pw"  # the input is untouched
+    digest = ts.config_digest(config)
+    assert re.fullmatch(r"sha256:[0-9a-f]{16}", digest)
+    reordered = {k: config[k] for k in reversed(list(config))}
+    assert ts.config_digest(reordered) == digest
+    other_secret = json.loads(json.dumps(config))
+    other_secret["camera"]["password"] = "different"
+    assert ts.config_digest(other_secret) == digest
+    other_value = json.loads(json.dumps(config))
+    other_value["service"]["log_level"] = "DEBUG"
+    assert ts.config_digest(other_value) != digest
+
+
+def test_docs_describe_every_key() -> None:
+    text = DOCS.read_text(encoding="utf-8")
+    documented = set(re.findall(r"`([a-z_0-9]+)`", text))
+    every = (ts.ESTIMATE_KEYS | ts.FILTERED_KEYS | ts.LATENCY_KEYS | ts.STATUS_KEYS
+             | ts.FRAME_SOURCE_KEYS | ts.AUTOPILOT_KEYS | ts.ESTIMATOR_KEYS | ts.CPU_KEYS
+             | ts.STATE_KEYS | ts.PREVIEW_META_KEYS | set(TelemetrySettings.__dataclass_fields__))
+    assert sorted(every - documented) == []
+    assert f"SCHEMA_VERSION = {ts.SCHEMA_VERSION}" in text or f"version {ts.SCHEMA_VERSION}" in text
+
+
+def test_cpu_meter_measures_process_share_between_samples() -> None:
+    clock = iter([0.0, 2.0, 4.0])
+    cpu = iter([10.0, 11.0, 11.5])
+    meter = CpuMeter(wall=lambda: next(clock), cpu=lambda: next(cpu))
+    assert meter.sample()["process_percent"] == pytest.approx(50.0)  # 1 s CPU in 2 s
+    assert meter.sample()["process_percent"] == pytest.approx(25.0)
+
+
+# --- settings ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("values", "key"),
+    [
+        ({"mode": "router"}, "telemetry.mode"),
+        ({"vehicle": "rov/1"}, "telemetry.vehicle"),
+        ({"vehicle": "*"}, "telemetry.vehicle"),
+        ({"connect": ("127.0.0.1:7447",)}, "telemetry.connect"),
+        ({"listen": ("tcp/",)}, "telemetry.listen"),
+        ({"preview_hz": -1.0}, "telemetry.preview_hz"),
+        ({"preview_quality": 0}, "telemetry.preview_quality"),
+        ({"queue_size": 0}, "telemetry.queue_size"),
+        ({"retry_initial_s": 5.0, "retry_max_s": 1.0}, "telemetry.retry_max_s"),
+        ({"enabled": "yes"}, "telemetry.enabled"),
+    ],
+)
+def test_settings_reject_bad_values_naming_the_key(values: dict[str, Any], key: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        TelemetrySettings(**values)
+    assert info.value.key == key
+
+
+def test_settings_from_toml_table_and_through_the_config_loader() -> None:
+    settings = TelemetrySettings.from_mapping(
+        {"vehicle": "bluerov2", "mode": "peer", "listen": ["tcp/0.0.0.0:7447"], "connect": []}
+    )
+    assert settings.listen == ("tcp/0.0.0.0:7447",) and settings.connect == ()
+    assert settings.key(ts.ESTIMATE_SUFFIX) == "netpose/bluerov2/estimate"
+    with pytest.raises(ConfigError) as info:
+        TelemetrySettings.from_mapping({"vehicel": "x"})
+    assert info.value.key == "telemetry.vehicel"
+    # The daemon's generic loader builds the same object from the same TOML table.
+    from service.config import build_section
+
+    loaded = build_section("telemetry", TelemetrySettings,
+                           {"vehicle": "bluerov2", "mode": "peer", "listen": ["tcp/0.0.0.0:7447"],
+                            "connect": []})
+    assert loaded == settings
+    assert isinstance(make_publisher(loaded), ZenohPublisher)
+    assert isinstance(make_publisher(TelemetrySettings(enabled=False)), NullPublisher)
+
+
+def test_zenoh_config_defaults_file_passthrough_and_overrides(tmp_path: Path) -> None:
+    defaults = build_zenoh_config(TelemetrySettings())
+    assert json.loads(defaults.get_json("mode")) == "client"
+    assert json.loads(defaults.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(defaults.get_json("scouting/multicast/enabled")) is False
+
+    file = tmp_path / "zenoh.json5"
+    file.write_text("{ mode: 'peer', connect: { endpoints: ['tcp/10.0.0.1:7447'] },"
+                    " transport: { unicast: { open_timeout: 1234 } } }")
+    from_file = build_zenoh_config(TelemetrySettings(config_file=str(file)))
+    assert json.loads(from_file.get_json("mode")) == "peer"  # the file decides
+    assert json.loads(from_file.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447"]
+    assert json.loads(from_file.get_json("transport/unicast/open_timeout")) == 1234
+    overridden = build_zenoh_config(TelemetrySettings(config_file=str(file), mode="client"))
+    assert json.loads(overridden.get_json("mode")) == "client"  # an explicit key wins
+
+    with pytest.raises(ConfigError) as info:
+        build_zenoh_config(TelemetrySettings(config_file=str(tmp_path / "missing.json5")))
+    assert info.value.key == "telemetry.config_file"
+    file.write_text("{ mode: 'peer', no_such_section: 1 }")
+    with pytest.raises(ConfigError) as info:
+        build_zenoh_config(TelemetrySettings(config_file=str(file)))
+    assert info.value.key == "telemetry.config_file" and "no_such_section" in info.value.problem
+
+
+# --- fakes ---------------------------------------------------------------------------------
+
+
+def test_fakes_follow_the_interface() -> None:
+    recorder = RecordingPublisher(TelemetrySettings(preview_hz=2.0))
+    assert not recorder.wants_preview(0.0)  # not started: nobody to draw for
+    with recorder:
+        recorder.publish_estimate(estimate_at(1))
+        recorder.set_query_state(None, {"camera": {"password": "x"}})
+        assert recorder.wants_preview(10.0) and not recorder.wants_preview(10.4)
+        assert recorder.wants_preview(10.5)  # 2 Hz
+    assert recorder.closed and len(recorder.estimates) == 1
+    assert recorder.query_config == {"camera": {"password": ts.REDACTED}}
+    null = NullPublisher(TelemetrySettings(enabled=False))
+    null.start()
+    null.publish_estimate({})
+    assert null.status() == {"state": "disabled"} and not null.wants_preview(0.0)
+
+
+def test_queue_drops_oldest_and_counts() -> None:
+    publisher = ZenohPublisher(TelemetrySettings(queue_size=8))
+    publisher._online = True  # queue policy only: no worker runs, nothing drains
+    for seq in range(100):
+        publisher.publish_estimate({"seq": seq})
+    assert publisher.status()["queue_dropped"] == 92
+    kept = [item.payload for item in publisher._queue]
+    assert [p["seq"] for p in kept if isinstance(p, dict)] == list(range(92, 100))
+
+
+# --- real Zenoh ----------------------------------------------------------------------------
+
+
+def test_subscriber_in_another_process_receives_documented_schema_and_queryable_answers(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    publisher.set_query_state(None, {"camera": {"url": "rtsp://u:secret@cam/s"}, "n": 1})
+    subscriber = start_subscriber(listen, "netpose/rov9", want=20)
+    lines = feed_until_exit(publisher, subscriber)
+
+    estimates = [line for line in lines if line.get("key") == "netpose/rov9/estimate"]
+    statuses = [line for line in lines if line.get("key") == "netpose/rov9/status"]
+    previews = [line for line in lines if line.get("key") == "netpose/rov9/preview"]
+    replies = [line for line in lines if "reply" in line]
+    assert len(estimates) >= 20 and statuses and previews and len(replies) == 1
+    for line in estimates + statuses:
+        assert line["encoding"] == "application/json"
+        assert ts.schema_problems(line["payload"]) == []
+    seqs = [line["payload"]["seq"] for line in estimates]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # in order, no duplicates
+    assert estimates[0]["payload"]["distance_m"] == pytest.approx(1.234)
+    assert previews[0]["encoding"] == "image/jpeg" and previews[0]["size"] == 12
+    assert set(previews[0]["attachment"]) == ts.PREVIEW_META_KEYS
+
+    reply = replies[0]
+    assert reply["encoding"] == "application/json"
+    state = reply["reply"]
+    assert ts.schema_problems(state) == []
+    assert state["config"] == {"camera": {"url": "rtsp://u:<redacted>@cam/s"}, "n": 1}
+    assert state["status"]["kind"] == "status"  # the last published status
+    assert state["estimate"]["kind"] == "estimate"
+    status = publisher.status()
+    assert status["errors"] == 0 and status["queries"] == 1
+    assert status["sent"]["estimate"] >= 20
+
+
+def test_publisher_survives_a_subscriber_that_disappears_and_comes_back(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    first = start_subscriber(listen, "netpose/rov9", want=1000, limit=60)
+    assert first.stdout is not None
+    for seq in range(30):
+        publisher.publish_estimate(estimate_at(seq))
+        time.sleep(0.01)
+    wait_for(lambda: publisher.status()["links"] == 1, 5, "the subscriber's link")
+    first.kill()  # vanishes without a goodbye
+    first.communicate(timeout=10)
+    wait_for(lambda: publisher.status()["links"] == 0, 30, "the dead link to be noticed")
+    for seq in range(30, 60):  # publishing into the void must be harmless
+        publisher.publish_estimate(estimate_at(seq))
+    second = start_subscriber(listen, "netpose/rov9", want=10)
+    lines = feed_until_exit(publisher, second)
+    assert sum(1 for line in lines if line.get("key", "").endswith("/estimate")) >= 10
+    status = publisher.status()
+    assert status["state"] == "online" and status["errors"] == 0 and status["open_attempts"] == 1
+
+
+def test_client_without_router_runs_then_recovers_when_the_router_appears(
+    publisher_factory: Callable[..., ZenohPublisher], caplog: pytest.LogCaptureFixture
+) -> None:
+    router_endpoint = endpoint()
+    publisher = publisher_factory(mode="client", connect=(router_endpoint,))
+    caplog.set_level("WARNING", logger="drivers.telemetry")
+    publisher.start()
+    wait_for(lambda: publisher.status()["open_attempts"] >= 3, 10, "retries")
+    assert publisher.status()["state"] == "connecting" and not publisher.online
+    for seq in range(50):
+        publisher.publish_estimate(estimate_at(seq))  # accepted and counted, not queued
+    assert publisher.status()["skipped_offline"] == 50
+    warnings = [r for r in caplog.records if "cannot open Zenoh session" in r.getMessage()]
+    assert len(warnings) == 1  # logged once, not per retry
+
+    router = start_router(router_endpoint)
+    try:
+        wait_for(lambda: publisher.online, 15, "the publisher to find the router")
+        subscriber = start_subscriber(router_endpoint, "netpose/rov9", want=10)
+        lines = feed_until_exit(publisher, subscriber)
+        assert sum(1 for line in lines if line.get("key", "").endswith("/estimate")) >= 10
+        assert any("reply" in line for line in lines)  # queryable reachable through the router
+    finally:
+        router.kill()
+        router.communicate(timeout=10)
+
+
+def test_frame_loop_never_waits_for_a_hanging_zenoh_open(tmp_path: Path) -> None:
+    # A TCP listener that never speaks: the kernel accepts the connection, Zenoh's handshake
+    # waits for an answer until its open timeout (set through the pass-through config file).
+    black_hole = socket.socket()
+    black_hole.bind(("127.0.0.1", 0))
+    black_hole.listen(8)
+    port = black_hole.getsockname()[1]
+    zenoh_file = tmp_path / "zenoh.json5"
+    zenoh_file.write_text("{ transport: { unicast: { open_timeout: 3000 } } }")
+    publisher = ZenohPublisher(TelemetrySettings(
+        vehicle="rov9", mode="client", connect=(f"tcp/127.0.0.1:{port}",),
+        config_file=str(zenoh_file), retry_initial_s=5.0, retry_max_s=5.0,
+    ))
+    try:
+        publisher.start()
+        wait_for(lambda: publisher.status()["open_attempts"] == 1, 5, "the first open")
+        frames = 500
+        for seq in range(frames):  # the frame loop: estimate every frame, status every 10th
+            publisher.publish_estimate(estimate_at(seq))
+            if seq % 10 == 0:
+                publisher.publish_status(status_now())
+                publisher.wants_preview(time.monotonic())
+        status = publisher.status()
+        # The first open has not even returned (no error recorded yet), yet every frame went by.
+        assert status["open_attempts"] == 1 and status["last_error"] == ""
+        assert status["skipped_offline"] == frames + frames // 10
+        thread = publisher._thread
+        assert thread is not None and thread.is_alive()
+    finally:
+        publisher.close(timeout=10.0)  # waits for the hanging open (3 s) and joins
+        black_hole.close()
+    assert thread is not None and not thread.is_alive()
+    assert publisher.status()["state"] == "closed"
+
+
+def test_unserialisable_payload_is_counted_and_the_stream_goes_on(
+    publisher_factory: Callable[..., ZenohPublisher], caplog: pytest.LogCaptureFixture
+) -> None:
+    import zenoh
+
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    received: list[int] = []
+    with zenoh.open(conf) as session:
+        subscriber = session.declare_subscriber(
+            "netpose/rov9/estimate",
+            lambda sample: received.append(json.loads(sample.payload.to_bytes())["seq"]),
+        )
+        wait_for(lambda: publisher.status()["links"] == 1, 5, "the subscriber's link")
+        caplog.set_level("WARNING", logger="drivers.telemetry")
+        time.sleep(0.3)  # let the subscription reach the publisher before the first put
+        publisher.publish_estimate({"seq": 0, "bad": float("nan")})  # bypasses the builders
+        publisher.publish_estimate({"seq": 1, "bad": object()})
+        publisher.publish_estimate({"seq": 2, "bad": float("inf")})
+        for seq in range(3, 8):
+            publisher.publish_estimate({"seq": seq})
+        wait_for(lambda: len(received) >= 5, 5, "the good estimates")
+        subscriber.undeclare()
+    assert received == [3, 4, 5, 6, 7]
+    status = publisher.status()
+    assert status["errors"] == 3 and status["sent"]["estimate"] == 5
+    messages = [r.getMessage() for r in caplog.records if "cannot publish" in r.getMessage()]
+    assert len(messages) == 2  # once per kind of failure (ValueError, TypeError), not per message
