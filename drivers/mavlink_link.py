@@ -54,7 +54,7 @@ MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_AUTOPILOT1 = 1
 # Heartbeat types that are never the autopilot even if they claim an autopilot field.
-_NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, ADS-B, camera
+NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, ADS-B, camera
 
 SendTimes = dict[str, int]
 
@@ -110,7 +110,7 @@ class _TransportClosedError(MavlinkLinkError):
     """The peer closed the connection or the device went away."""
 
 
-def _import_mavutil() -> Any:
+def import_mavutil() -> Any:
     # MAVLINK20 must be set before pymavlink picks its dialect module.
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
@@ -127,7 +127,7 @@ def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any
     pymavlink's own reconnect logic sleeps inside recv/write and reports a closed TCP peer only
     on stdout; the link needs an exception so it can back off on its own thread.
     """
-    mavutil = _import_mavutil()
+    mavutil = import_mavutil()
     common = {
         "source_system": settings.source_system,
         "source_component": settings.source_component,
@@ -486,7 +486,7 @@ class MavlinkLink(AutopilotLink):
     def _handle_heartbeat(self, msg: Any, now: float) -> None:
         if (
             msg.autopilot == MAV_AUTOPILOT_INVALID
-            or msg.type in _NON_AUTOPILOT_TYPES
+            or msg.type in NON_AUTOPILOT_TYPES
             or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1
         ):
             return

@@ -1,0 +1,237 @@
+"""One-shot autopilot probe for `netpose mavlink-check`: identity, rangefinder parameters, and
+what an operator must change so ArduSub accepts netpose's DISTANCE_SENSOR.
+
+`probe_autopilot` does the I/O (blocking, bounded by a timeout); `advise` is pure.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from drivers.errors import MavlinkLinkError
+from drivers.mavlink_link import (
+    MAV_AUTOPILOT_INVALID,
+    MAV_COMP_ID_AUTOPILOT1,
+    MAV_STATE_ACTIVE,
+    MAV_TYPE_ONBOARD_CONTROLLER,
+    NON_AUTOPILOT_TYPES,
+    open_connection,
+)
+from drivers.mavlink_settings import MavlinkSettings, load_signing_key
+
+# ArduSub 4.5 names the limits in cm (RNGFND1_MIN_CM/MAX_CM), 4.7 in metres (RNGFND1_MIN/MAX);
+# asking for both tells which firmware generation answered.
+RANGEFINDER_PARAMS = (
+    "RNGFND1_TYPE",
+    "RNGFND1_ORIENT",
+    "RNGFND1_MIN_CM",
+    "RNGFND1_MAX_CM",
+    "RNGFND1_MIN",
+    "RNGFND1_MAX",
+    "RNGFND_SQ_MIN",
+)
+VISION_PARAMS = ("VISO_TYPE", "EK3_SRC1_POSXY")
+
+RNGFND_TYPE_MAVLINK = 10
+VISO_TYPE_MAVLINK = 1
+ORIENTATION_NAMES = {0: "forward", 4: "backward", 24: "up", 25: "down"}
+_MAV_CMD_REQUEST_MESSAGE = 512
+_MSG_ID_AUTOPILOT_VERSION = 148
+
+
+@dataclass(frozen=True)
+class AutopilotReport:
+    sysid: int
+    compid: int
+    mav_type: int
+    autopilot: int
+    mavlink_version: int
+    flight_sw_version: int | None
+    params: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def firmware(self) -> str | None:
+        """'4.5.3' (+ ' beta' etc. unless an official release) from AUTOPILOT_VERSION."""
+        v = self.flight_sw_version
+        if v is None:
+            return None
+        kinds = {0: "dev", 64: "alpha", 128: "beta", 192: "rc", 255: ""}
+        kind = kinds.get(v & 0xFF, f"type {v & 0xFF}")
+        text = f"{(v >> 24) & 0xFF}.{(v >> 16) & 0xFF}.{(v >> 8) & 0xFF}"
+        return f"{text} {kind}".strip()
+
+
+@dataclass(frozen=True)
+class Advice:
+    changes: list[str]  # parameter or configuration changes that are needed
+    notes: list[str]  # things worth knowing that need no change
+
+
+def _is_autopilot_heartbeat(msg: Any) -> bool:
+    return bool(
+        msg.get_type() == "HEARTBEAT"
+        and msg.autopilot != MAV_AUTOPILOT_INVALID
+        and msg.type not in NON_AUTOPILOT_TYPES
+        and msg.get_srcComponent() == MAV_COMP_ID_AUTOPILOT1
+    )
+
+
+def probe_autopilot(
+    settings: MavlinkSettings,
+    timeout_s: float = 5.0,
+    param_names: tuple[str, ...] = RANGEFINDER_PARAMS + VISION_PARAMS,
+) -> AutopilotReport:
+    """Wait for the autopilot's heartbeat, ask for AUTOPILOT_VERSION and the named parameters.
+
+    Parameters the firmware does not have are simply absent from the report (ArduPilot does not
+    answer PARAM_REQUEST_READ for unknown names). Raises MavlinkLinkError when the link cannot be
+    opened or no autopilot heartbeat arrives within `timeout_s`.
+    """
+    key = load_signing_key(settings.signing_key_file) if settings.signing_key_file else None
+    try:
+        conn = open_connection(settings, key)
+    except Exception as exc:
+        raise MavlinkLinkError(f"cannot open {settings.url}: {exc}") from exc
+    try:
+        return _probe(conn, settings, timeout_s, param_names)
+    finally:
+        conn.close()
+
+
+def _heartbeat(conn: Any) -> None:
+    # Our own heartbeat also tells a UDP peer or router where to send its answers.
+    conn.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
+                            MAV_STATE_ACTIVE)
+
+
+def _probe(
+    conn: Any, settings: MavlinkSettings, timeout_s: float, param_names: tuple[str, ...]
+) -> AutopilotReport:
+    deadline = time.monotonic() + timeout_s
+    next_heartbeat = 0.0
+    heartbeat = None
+    while heartbeat is None:
+        now = time.monotonic()
+        if now > deadline:
+            raise MavlinkLinkError(
+                f"no autopilot heartbeat on {settings.url} within {timeout_s:g} s "
+                "(is the autopilot powered and the URL right?)"
+            )
+        if now >= next_heartbeat:
+            _heartbeat(conn)
+            next_heartbeat = now + 1.0
+        msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=0.2)
+        if msg is not None and _is_autopilot_heartbeat(msg):
+            heartbeat = msg
+    sysid, compid = heartbeat.get_srcSystem(), heartbeat.get_srcComponent()
+    conn.mav.command_long_send(sysid, compid, _MAV_CMD_REQUEST_MESSAGE, 0,
+                               _MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
+    params: dict[str, float] = {}
+    version: int | None = None
+    # Answers come within milliseconds; missing ones are asked again once, then given up.
+    answer_deadline = time.monotonic() + max(1.0, min(3.0, timeout_s))
+    retry_at = time.monotonic() + 0.5 * (answer_deadline - time.monotonic())
+    asked_twice = False
+    for name in param_names:
+        conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
+    while time.monotonic() < answer_deadline:
+        if not asked_twice and time.monotonic() >= retry_at:
+            asked_twice = True
+            for name in param_names:
+                if name not in params:
+                    conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
+            if version is None:
+                conn.mav.command_long_send(sysid, compid, _MAV_CMD_REQUEST_MESSAGE, 0,
+                                           _MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
+        msg = conn.recv_match(type=["PARAM_VALUE", "AUTOPILOT_VERSION"], blocking=True,
+                              timeout=0.1)
+        if msg is None or (msg.get_srcSystem(), msg.get_srcComponent()) != (sysid, compid):
+            continue
+        if msg.get_type() == "AUTOPILOT_VERSION":
+            version = int(msg.flight_sw_version)
+        elif msg.param_id in param_names:
+            params[msg.param_id] = float(msg.param_value)
+        if version is not None and len(params) == len(param_names):
+            break
+    return AutopilotReport(
+        sysid=sysid,
+        compid=compid,
+        mav_type=heartbeat.type,
+        autopilot=heartbeat.autopilot,
+        mavlink_version=2 if heartbeat.get_msgbuf()[0] == 0xFD else 1,
+        flight_sw_version=version,
+        params=params,
+    )
+
+
+def _fmt(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
+
+
+def advise(report: AutopilotReport, settings: MavlinkSettings) -> Advice:
+    """What to change on the autopilot (or in netpose's [mavlink] settings) and why."""
+    p = report.params
+    changes: list[str] = []
+    notes: list[str] = []
+    if report.sysid != settings.source_system:
+        changes.append(f"set mavlink.source_system = {report.sysid} in netpose's configuration "
+                       "(netpose must use the vehicle's system id)")
+    rng_type = p.get("RNGFND1_TYPE")
+    if rng_type is None:
+        changes.append("the autopilot did not report RNGFND1_TYPE: use a firmware with "
+                       "rangefinder support")
+    elif int(rng_type) != RNGFND_TYPE_MAVLINK:
+        changes.append(f"set RNGFND1_TYPE = {RNGFND_TYPE_MAVLINK} (MAVLink; now "
+                       f"{_fmt(rng_type)}) and reboot the autopilot")
+    orient = p.get("RNGFND1_ORIENT")
+    want = settings.orientation
+    want_name = ORIENTATION_NAMES.get(want, f"rotation {want}")
+    if orient is not None and int(orient) != want:
+        changes.append(f"set RNGFND1_ORIENT = {want} ({want_name}; now {_fmt(orient)}): the "
+                       "autopilot ignores DISTANCE_SENSOR of any other orientation")
+    changes.extend(_limit_changes(p, settings, notes))
+    sq_min = p.get("RNGFND_SQ_MIN")
+    if sq_min is not None and sq_min > 0:
+        if want == 25:
+            notes.append(f"RNGFND_SQ_MIN = {_fmt(sq_min)}: SURFTRAK ignores readings whose "
+                         f"signal_quality is below it; netpose sends round(100 * confidence), so "
+                         f"confidence below {sq_min / 100:.2f} is not used")
+        else:
+            notes.append(f"RNGFND_SQ_MIN = {_fmt(sq_min)} applies only to the downward "
+                         "rangefinder (SURFTRAK); a forward reading is stored, logged and "
+                         "readable from Lua scripts whatever its quality")
+    if settings.vision_enabled:
+        viso = p.get("VISO_TYPE")
+        if viso is None or int(viso) != VISO_TYPE_MAVLINK:
+            changes.append(f"set VISO_TYPE = {VISO_TYPE_MAVLINK} (MAVLink) and reboot, or "
+                           "disable mavlink.vision_enabled")
+        posxy = p.get("EK3_SRC1_POSXY")
+        if posxy is not None and int(posxy) == 6:
+            notes.append("EK3_SRC1_POSXY = 6: the EKF treats the net-relative pose as a "
+                         "world-fixed position; a net moves with current and tide")
+    return Advice(changes=changes, notes=notes)
+
+
+def _limit_changes(p: dict[str, float], settings: MavlinkSettings, notes: list[str]) -> list[str]:
+    # ArduPilot uses the narrower of its parameters and the message's min/max, so its minimum
+    # must not exceed ours and its maximum must not fall short of ours.
+    ours_min, ours_max = settings.min_distance_m, settings.max_distance_m
+    changes: list[str] = []
+    for low, high, scale, unit in (
+        ("RNGFND1_MIN_CM", "RNGFND1_MAX_CM", 100.0, "cm"),
+        ("RNGFND1_MIN", "RNGFND1_MAX", 1.0, "m"),
+    ):
+        if low not in p and high not in p:
+            continue
+        if low in p and p[low] > ours_min * scale + 1e-6:
+            changes.append(f"set {low} = {_fmt(round(ours_min * scale, 2))} (now "
+                           f"{_fmt(p[low])} {unit}): readings below it are 'out of range'")
+        if high in p and p[high] < ours_max * scale - 1e-6:
+            changes.append(f"set {high} = {_fmt(round(ours_max * scale, 2))} (now "
+                           f"{_fmt(p[high])} {unit}): readings above it are 'out of range'")
+        return changes
+    notes.append("neither RNGFND1_MIN_CM/MAX_CM nor RNGFND1_MIN/MAX reported: range limits not "
+                 "checked")
+    return changes

@@ -1,0 +1,101 @@
+"""`netpose mavlink-check`: the first thing to run on a new vehicle.
+
+Connects like the daemon would, prints the autopilot's identity and rangefinder parameters, and
+lists what to change so ArduSub uses netpose's DISTANCE_SENSOR. Exit status: 0 = ready,
+3 = changes needed, 1 = no autopilot / link error, 78 = bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from service.errors import ConfigError
+
+EXIT_CHANGES_NEEDED = 3
+
+
+def add_parser(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "mavlink-check",
+        help="check the autopilot link and its rangefinder parameters",
+        description="Connect to the autopilot, print its identity and rangefinder parameters, "
+        "and say what to change. Exit 0 = ready, 3 = changes needed, 1 = no autopilot.",
+    )
+    p.add_argument("--url", default="tcp:127.0.0.1:5777",
+                   help="udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device "
+                   "(default: the BlueOS router, tcp:127.0.0.1:5777)")
+    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    p.add_argument("--source-system", type=int, default=1, help="our system id (default 1)")
+    p.add_argument("--source-component", type=int, default=None,
+                   help="our component id (default 197)")
+    p.add_argument("--orientation", type=int, default=0,
+                   help="MAV_SENSOR_ORIENTATION netpose will send (0 forward, 25 down)")
+    p.add_argument("--min-distance", type=float, default=None, help="netpose minimum, metres")
+    p.add_argument("--max-distance", type=float, default=None, help="netpose maximum, metres")
+    p.add_argument("--vision", action="store_true",
+                   help="also check VISION_POSITION_ESTIMATE parameters (VISO_TYPE)")
+    p.add_argument("--signing-key", default=None, help="MAVLink 2 signing key file")
+    p.add_argument("--timeout", type=float, default=5.0,
+                   help="seconds to wait for the autopilot heartbeat (default 5)")
+    p.set_defaults(handler=run)
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    from drivers.mavlink_settings import MavlinkSettings
+
+    values: dict[str, Any] = {
+        "url": args.url,
+        "baud": args.baud,
+        "source_system": args.source_system,
+        "orientation": args.orientation,
+        "vision_enabled": args.vision,
+        "signing_key_file": args.signing_key,
+    }
+    for key, value in (
+        ("source_component", args.source_component),
+        ("min_distance_m", args.min_distance),
+        ("max_distance_m", args.max_distance),
+    ):
+        if value is not None:
+            values[key] = value
+    return MavlinkSettings(**values)
+
+
+def _enum_name(enum: str, value: int) -> str:
+    from drivers.mavlink_link import import_mavutil
+
+    entry = import_mavutil().mavlink.enums.get(enum, {}).get(value)
+    return f"{entry.name} ({value})" if entry is not None else str(value)
+
+
+def run(args: argparse.Namespace) -> int:
+    from drivers.mavlink_probe import RANGEFINDER_PARAMS, VISION_PARAMS, advise, probe_autopilot
+
+    if not args.timeout > 0:
+        raise ConfigError("--timeout", f"must be > 0, got {args.timeout}")
+    settings = _settings(args)
+    print(f"Connecting to {settings.url} as {settings.source_system}/"
+          f"{settings.source_component} ...", flush=True)
+    report = probe_autopilot(settings, timeout_s=args.timeout)
+    firmware = report.firmware or "unknown (no AUTOPILOT_VERSION)"
+    print(f"Autopilot: system {report.sysid} component {report.compid}, "
+          f"{_enum_name('MAV_TYPE', report.mav_type)}, "
+          f"{_enum_name('MAV_AUTOPILOT', report.autopilot)}, MAVLink {report.mavlink_version}, "
+          f"firmware {firmware}")
+    print("Parameters:")
+    names = RANGEFINDER_PARAMS + (VISION_PARAMS if settings.vision_enabled else ())
+    for name in names:
+        value = report.params.get(name)
+        shown = "(not on this firmware)" if value is None else f"{value:g}"
+        print(f"  {name:<16} {shown}")
+    advice = advise(report, settings)
+    for note in advice.notes:
+        print(f"Note: {note}")
+    if not advice.changes:
+        print("Ready: the autopilot will use netpose's DISTANCE_SENSOR.")
+        return 0
+    print("To change:")
+    for change in advice.changes:
+        print(f"  - {change}")
+    return EXIT_CHANGES_NEEDED

@@ -1,0 +1,106 @@
+"""`netpose mavlink-check` against the recording fake autopilot over loopback UDP and TCP."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from drivers.mavlink_probe import RANGEFINDER_PARAMS, AutopilotReport, advise
+from drivers.mavlink_settings import MavlinkSettings
+from service.cli import main
+from tests.fake_autopilot import FakeAutopilot, TcpServerTransport, UdpServerTransport
+
+pytestmark = pytest.mark.timeout(60)
+
+ARDUSUB_45_DEFAULTS = {  # cm naming, rangefinder off, SURFTRAK's quality threshold
+    "RNGFND1_TYPE": 0, "RNGFND1_ORIENT": 25, "RNGFND1_MIN_CM": 50, "RNGFND1_MAX_CM": 700,
+    "RNGFND_SQ_MIN": 90, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 3,
+}
+READY_47 = {  # metre naming, set up for a forward MAVLink rangefinder
+    "RNGFND1_TYPE": 10, "RNGFND1_ORIENT": 0, "RNGFND1_MIN": 0.2, "RNGFND1_MAX": 10,
+    "RNGFND_SQ_MIN": 0, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 3,
+}
+
+
+def test_reports_identity_and_what_to_change(capsys: pytest.CaptureFixture[str]) -> None:
+    with FakeAutopilot(UdpServerTransport(), params=ARDUSUB_45_DEFAULTS) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1"])
+        requests = autopilot.received("PARAM_REQUEST_READ")
+    out = capsys.readouterr().out
+    assert code == 3
+    assert "MAV_TYPE_SUBMARINE (12)" in out and "firmware 4.5.3" in out
+    assert "RNGFND1_MIN_CM   50" in out and "RNGFND1_MIN      (not on this firmware)" in out
+    assert "set RNGFND1_TYPE = 10" in out
+    assert "set RNGFND1_ORIENT = 0 (forward; now 25)" in out
+    assert "set RNGFND1_MIN_CM = 30 (now 50 cm)" in out  # default minimum 0.3 m
+    assert "set RNGFND1_MAX_CM = 800 (now 700 cm)" in out  # default maximum 8 m
+    assert "VISO_TYPE" not in out  # vision not asked for
+    # Every parameter was asked for by name, from netpose's own identity.
+    assert {r.msg.param_id for r in requests} >= set(RANGEFINDER_PARAMS)
+    assert {r.src for r in requests} == {(1, 197)}
+
+
+def test_ready_vehicle_with_metre_parameters_over_tcp(capsys: pytest.CaptureFixture[str]) -> None:
+    with FakeAutopilot(TcpServerTransport(), params=READY_47) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "2", "--vision"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "RNGFND1_MAX      10" in out and "VISO_TYPE        1" in out
+    assert "Ready" in out and "To change" not in out
+
+
+def test_downward_and_vision_advice(capsys: pytest.CaptureFixture[str]) -> None:
+    params = {**ARDUSUB_45_DEFAULTS, "RNGFND1_TYPE": 10, "RNGFND1_MIN_CM": 20,
+              "RNGFND1_MAX_CM": 1000}
+    with FakeAutopilot(UdpServerTransport(), params=params) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1",
+                     "--orientation", "25", "--vision"])
+    out = capsys.readouterr().out
+    assert code == 3
+    assert "set VISO_TYPE = 1" in out
+    assert "RNGFND1_ORIENT" not in out.split("To change:")[1]  # 25 is what we send
+    assert "confidence below 0.90 is not used" in out
+
+
+def test_vehicle_with_another_system_id(capsys: pytest.CaptureFixture[str]) -> None:
+    with FakeAutopilot(UdpServerTransport(), sysid=2, params=READY_47) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1"])
+    assert code == 3
+    assert "set mavlink.source_system = 2" in capsys.readouterr().out
+
+
+def test_no_autopilot_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with FakeAutopilot(UdpServerTransport()) as silent:
+        silent.heartbeats_enabled = False
+        code = main(["mavlink-check", "--url", silent.url, "--timeout", "0.5"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "no autopilot heartbeat" in err and err.count("\n") == 1
+
+
+def test_bad_arguments_are_configuration_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["mavlink-check", "--source-system", "255"]) == 78
+    assert "mavlink.source_system" in capsys.readouterr().err
+    assert main(["mavlink-check", "--url", "serial0"]) == 78
+
+
+def test_advice_on_missing_rangefinder_support() -> None:
+    report = AutopilotReport(1, 1, 12, 3, 2, None, params={})
+    advice = advise(report, MavlinkSettings())
+    assert any("did not report RNGFND1_TYPE" in c for c in advice.changes)
+    assert any("range limits not checked" in n for n in advice.notes)
+    assert report.firmware is None
+
+
+def test_command_line_entry_point(tmp_path: Path) -> None:
+    with FakeAutopilot(UdpServerTransport(), params=ARDUSUB_45_DEFAULTS) as autopilot:
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli", "mavlink-check", "--url", autopilot.url,
+             "--timeout", "1"],
+            capture_output=True, text=True, timeout=30, cwd=Path(__file__).parents[1],
+        )
+    assert done.returncode == 3, done.stderr
+    assert "set RNGFND1_TYPE = 10" in done.stdout
