@@ -63,15 +63,23 @@ def load_daemon_config(path: str | None, overrides: Iterable[str] = ()) -> Confi
 
 # -- the frame source, as the daemon sees it ----------------------------------------------------
 class Frame(Protocol):
-    image: npt.NDArray[Any]
-    t_capture: float  # time.monotonic() at capture
-    seq: int
+    """What the loop uses of drivers.sources.Frame."""
+
+    @property
+    def image(self) -> npt.NDArray[Any]: ...  # uint8 grey
+    @property
+    def index(self) -> int: ...  # frame number from the source: gaps are skipped frames
+    @property
+    def t_monotonic(self) -> float: ...  # capture time, time.monotonic()
+    @property
+    def t_wall(self) -> float: ...  # capture time, time.time()
 
 
 class FrameSource(Protocol):
-    camera: CameraModel | None
+    """What the loop uses of drivers.sources.FrameSource."""
 
-    def read(self, timeout: float) -> Frame | None: ...
+    def open(self) -> None: ...
+    def read(self, timeout_s: float) -> Frame | None: ...
     def close(self) -> None: ...
 
 
@@ -328,16 +336,16 @@ class Daemon:
             h, w = frame.image.shape[:2]
             log.info("frame source up: %dx%d from %s", w, h, _redact_url(self.config.camera.url))
         self._last_frame_at = now
-        if self._last_seq is not None and frame.seq > self._last_seq + 1:
-            skipped = frame.seq - self._last_seq - 1
+        if self._last_seq is not None and frame.index > self._last_seq + 1:
+            skipped = frame.index - self._last_seq - 1
             self._period.skipped += skipped
             self._total.skipped += skipped
-        self._last_seq = frame.seq
+        self._last_seq = frame.index
         self._period.frames += 1
         self._total.frames += 1
 
         estimate = self._estimate(frame)
-        out = self.tracker.step(frame.t_capture, estimate)
+        out = self.tracker.step(frame.t_monotonic, estimate)
         if estimate is not None and estimate.detected:
             self._period.detected += 1
             self._total.detected += 1
@@ -348,9 +356,9 @@ class Daemon:
             self._period.accepted += 1
         elif out.measurement == "rejected":
             self._period.rejected += 1
-        self._publish_track(out, frame.t_capture, estimate)
+        self._publish_track(out, frame.t_monotonic, estimate)
         handed_over = time.monotonic()
-        latency_ms = (handed_over - frame.t_capture) * 1e3
+        latency_ms = (handed_over - frame.t_monotonic) * 1e3
         self._period.latencies_ms.append(latency_ms)
         self._publish_estimate(frame, estimate, out, handed_over)
         self._last_estimate = estimate
@@ -434,38 +442,44 @@ class Daemon:
         filtered["state"] = out.state.value
         filtered["measurement"] = out.measurement
         wall = time.time()
-        tel.publish_estimate(
-            estimate_payload(
-                vehicle=tel.settings.vehicle,
-                seq=self._seq,
-                estimate=est,
-                now_unix=wall,
-                now_mono=now,
-                frame_time_unix=wall - (now - frame.t_capture),
-                frame_time_mono=frame.t_capture,
-                filtered=filtered,
-            )
+        payload = estimate_payload(
+            vehicle=tel.settings.vehicle,
+            seq=self._seq,
+            estimate=est,
+            now_unix=wall,
+            now_mono=now,
+            frame_time_unix=frame.t_wall,
+            frame_time_mono=frame.t_monotonic,
+            filtered=filtered,
         )
+        truth = _truth_dict(getattr(frame, "truth", None))
+        if truth is not None:
+            # Synthetic frames know the answer: publish it so a topside (or a test) can score
+            # the estimate and the filter live. Extra keys are allowed by the schema.
+            payload["truth"] = truth
+        tel.publish_estimate(payload)
         if tel.wants_preview(now):
-            self._publish_preview(frame, wall)
+            self._publish_preview(frame, estimate, wall)
 
-    def _publish_preview(self, frame: Frame, wall: float) -> None:
+    def _publish_preview(self, frame: Frame, estimate: NetEstimate | None, wall: float) -> None:
+        """Downscaled frame with ROIs and mesh drawn (service.preview), a few times a minute."""
         assert self._telemetry is not None
-        import cv2
-
+        from service.preview import encode_jpeg, estimate_caption, render_preview
         from service.telemetry_schema import preview_meta
 
-        image = frame.image
+        settings = self._telemetry.settings
+        try:
+            caption = estimate_caption(estimate.to_json_dict()) if estimate is not None else []
+            rois = estimate.rois if estimate is not None else ()
+            image = render_preview(frame.image, rois, caption, width=settings.preview_width)
+            jpeg = encode_jpeg(image, settings.preview_quality)
+        except NetposeError as exc:
+            self._once.problem("preview", "cannot draw the preview: %s", exc)
+            return
         h, w = image.shape[:2]
-        width = min(self._telemetry.settings.preview_width, w)
-        height = max(1, round(h * width / w))
-        small = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-        quality = int(self._telemetry.settings.preview_quality)
-        ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        if ok:
-            meta = preview_meta(vehicle=self._telemetry.settings.vehicle, seq=self._seq,
-                                now_unix=wall, width=width, height=height)
-            self._telemetry.publish_preview(jpeg.tobytes(), meta)
+        meta = preview_meta(vehicle=settings.vehicle, seq=self._seq, now_unix=wall, width=w,
+                            height=h)
+        self._telemetry.publish_preview(jpeg, meta)
 
     # -- status, summaries -----------------------------------------------------------------
     def _status(self, now: float) -> None:
@@ -632,6 +646,21 @@ def _digest(effective: dict[str, Any]) -> str:
     from service.config import config_digest
 
     return config_digest(effective)
+
+
+def _truth_dict(truth: Any) -> dict[str, Any] | None:
+    """Ground truth of a synthetic frame (drivers.synthetic_net.GroundTruth) as JSON values."""
+    if truth is None:
+        return None
+    out: dict[str, Any] = {}
+    for name in ("net_present", "range_m", "distance_m", "tilt_deg"):
+        value = getattr(truth, name, None)
+        if isinstance(value, bool | int | float):
+            out[name] = value if isinstance(value, bool) or math.isfinite(value) else None
+    normal = getattr(truth, "normal", None)
+    if normal is not None:
+        out["normal"] = [round(float(v), 6) for v in normal]
+    return out or None
 
 
 def _tilt(out: TrackOutput) -> float:

@@ -1,0 +1,334 @@
+"""End-to-end: the real daemon process (`netpose run`) on the synthetic source, with a recording
+MAVLink autopilot on loopback UDP (real pymavlink decoding), a real Zenoh subscriber on
+loopback, and a datagram socket standing in for systemd's NOTIFY_SOCKET.
+
+One daemon run (module fixture) serves the trajectory, dropout, watchdog and SIGTERM checks, so
+the module stays well under a minute on two cores.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.soak_bench import TelemetryRecorder
+from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
+
+REPO = Path(__file__).resolve().parents[1]
+DEMO = REPO / "config" / "demo.toml"
+
+# The scripted scene (synthetic source options, docs/sources.md): the ROV sweeps between two
+# ranges; the net is absent between GAP_START and GAP_END seconds of source time.
+FPS = 10.0
+GAP_START, GAP_END = 9.0, 12.0
+RUN_S = 16.0
+REPORT_COASTING_S = 0.3
+WATCHDOG_USEC = 1_000_000  # the daemon must ping every 0.5 s
+
+
+def synthetic_url() -> str:
+    return (f"synthetic:?width=640&height=360&fps={FPS:g}&realtime=1&trajectory=sweep"
+            f"&gap={GAP_START:g}-{GAP_END:g}&seed=3")
+
+
+class NotifyRecorder:
+    """The service manager's end of NOTIFY_SOCKET: records (monotonic time, message)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.bind(str(path))
+        self._sock.settimeout(0.1)
+        self.messages: list[tuple[float, str]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with self._lock:
+                self.messages.append((time.monotonic(), data.decode()))
+
+    def snapshot(self) -> list[tuple[float, str]]:
+        with self._lock:
+            return list(self.messages)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._sock.close()
+
+
+@dataclass
+class DaemonRun:
+    returncode: int
+    stderr: str
+    stop_latency_s: float
+    started: float
+    distances: list[tuple[float, float]]  # (monotonic arrival, metres) of DISTANCE_SENSOR
+    estimates: list[dict[str, Any]]
+    statuses: list[dict[str, Any]]
+    notify: list[tuple[float, str]]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def daemon_command(config: Path, overrides: list[str]) -> list[str]:
+    cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(config)]
+    for o in overrides:
+        cmd += ["--set", o]
+    return cmd
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonRun]:
+    tmp = tmp_path_factory.mktemp("daemon")
+    notify = NotifyRecorder(tmp / "notify.sock")
+    tel = TelemetryRecorder(vehicle="e2e")
+    autopilot = FakeAutopilot(UdpServerTransport()).start()
+    overrides = [
+        f"camera.url={synthetic_url()}",
+        f"mavlink.url={autopilot.url}",
+        "mavlink.rate_hz=20",
+        "telemetry.vehicle=e2e",
+        f"filter.report_coasting_s={REPORT_COASTING_S}",
+        "service.status_interval_s=0.5",
+        *tel.daemon_overrides(),
+    ]
+    env = dict(os.environ, NOTIFY_SOCKET=str(notify.path), WATCHDOG_USEC=str(WATCHDOG_USEC),
+               PYTHONUNBUFFERED="1")
+    env.pop("WATCHDOG_PID", None)
+    started = time.monotonic()
+    proc = subprocess.Popen(daemon_command(DEMO, overrides), cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        # Wait for READY (imports and start-up), then let the scene play.
+        deadline = time.monotonic() + 30.0
+        while not any("READY=1" in m for _, m in notify.snapshot()):
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline, "no READY=1 within 30 s"
+            time.sleep(0.05)
+        time.sleep(RUN_S)
+        assert proc.poll() is None, "daemon died: " + proc.communicate()[1]
+        t_term = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=10.0)
+        stop_latency = time.monotonic() - t_term
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        autopilot.close()
+        estimates, statuses = tel.snapshot()
+        tel.close()
+        notify.close()
+    distances = [(r.t, r.msg.current_distance / 100.0)
+                 for r in autopilot.received("DISTANCE_SENSOR")]
+    yield DaemonRun(proc.returncode, stderr, stop_latency, started, distances, estimates,
+                    statuses, notify.snapshot())
+
+
+def _truth(e: dict[str, Any]) -> dict[str, Any] | None:
+    truth = e.get("truth")
+    return truth if isinstance(truth, dict) else None
+
+
+def test_sigterm_exits_cleanly_within_a_second(run: DaemonRun) -> None:
+    assert run.returncode == 0, run.stderr
+    assert run.stop_latency_s < 1.0 + 0.5  # 1 s budget; 0.5 s for interpreter teardown
+    assert "Traceback" not in run.stderr
+    assert "SIGTERM received: stopping" in run.stderr
+    assert any(m == "STOPPING=1" for _, m in run.notify)
+
+
+def test_ready_then_regular_watchdog(run: DaemonRun) -> None:
+    kinds = [m.split("\n")[0] for _, m in run.notify]
+    assert kinds[0] == "READY=1"
+    pings = [t for t, m in run.notify if m == "WATCHDOG=1"]
+    assert len(pings) >= RUN_S / 0.5 * 0.8
+    gaps = np.diff(pings)
+    # Half of WATCHDOG_USEC between pings, never close to the full interval.
+    assert float(np.max(gaps)) < 0.8 * WATCHDOG_USEC / 1e6
+    statuses = [m for _, m in run.notify if m.startswith("STATUS=")]
+    assert len(statuses) >= RUN_S / 0.5 * 0.5
+    assert any(" m |" in s for s in statuses), statuses[-3:]
+
+
+def test_autopilot_distance_follows_ground_truth(run: DaemonRun) -> None:
+    """The filtered distance the autopilot receives, compared with the ground truth of the
+    frame it came from, outside the gap and after acquisition."""
+    est = [e for e in run.estimates if _truth(e) and _truth(e).get("net_present")]  # type: ignore[union-attr]
+    assert len(est) > FPS * 5
+    detected = [e for e in est if e["detected"]]
+    assert len(detected) / len(est) > 0.8
+    # Estimates: raw and filtered against truth (the range along the optical axis).
+    rel_raw, rel_filt = [], []
+    for e in detected:
+        truth = _truth(e)
+        assert truth is not None
+        rel_raw.append(e["range_m"] / truth["range_m"] - 1.0)
+        f = e["filtered"]
+        if f["valid"]:
+            rel_filt.append(f["range_m"] / truth["range_m"] - 1.0)
+    assert np.median(np.abs(rel_raw)) < 0.05
+    assert np.median(np.abs(rel_filt)) < 0.05
+    assert np.percentile(np.abs(rel_filt), 95) < 0.10
+    # MAVLink: each DISTANCE_SENSOR against the truth of the newest frame captured before it.
+    table = sorted((e["frame_time_mono"], _truth(e)["range_m"]) for e in est)  # type: ignore[index]
+    t_frames = np.array([t for t, _ in table])
+    errors = []
+    for t_rx, d in run.distances:
+        i = int(np.searchsorted(t_frames, t_rx)) - 1
+        if i >= 0 and t_rx - t_frames[i] < 0.5:
+            errors.append(d / table[i][1] - 1.0)
+    assert len(errors) > 20
+    assert np.median(np.abs(errors)) < 0.05
+    assert np.percentile(np.abs(errors), 95) < 0.12
+
+
+def test_distance_stops_when_the_net_disappears_and_resumes(run: DaemonRun) -> None:
+    # Source time 0 = the first frame's capture time.
+    t0 = min(e["frame_time_mono"] for e in run.estimates)
+    gap_start, gap_end = t0 + GAP_START, t0 + GAP_END
+    before = [t for t, _ in run.distances if t < gap_start]
+    inside = [t for t, _ in run.distances if gap_start <= t < gap_end]
+    after = [t for t, _ in run.distances if t >= gap_end]
+    assert before, "no distance before the gap"
+    # The last message in the gap may come at most report_coasting_s after the last frame with
+    # the net, plus one frame period, the processing latency and one link period.
+    limit = REPORT_COASTING_S + 1.0 / FPS + 0.3 + 1.0 / 20
+    late = [t - gap_start for t in inside if t - gap_start > limit]
+    assert not late, f"distance still sent {max(late):.2f} s into the gap (limit {limit:.2f})"
+    assert after, "distance did not resume after the net came back"
+    assert any("net lost" in line for line in run.stderr.splitlines())
+    assert sum("net acquired" in line for line in run.stderr.splitlines()) >= 2
+
+
+def test_logs_are_state_changes_not_frames(run: DaemonRun) -> None:
+    lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    frames = len(run.estimates)
+    assert frames > 50
+    assert len(lines) < 30, "\n".join(lines)
+
+
+def test_telemetry_estimates_and_status_match_the_schema(run: DaemonRun) -> None:
+    from service.telemetry_schema import schema_problems
+
+    assert run.estimates and run.statuses
+    assert not schema_problems(run.estimates[-1])
+    assert not schema_problems(run.statuses[-1])
+    status = run.statuses[-1]
+    assert status["config_digest"].startswith("sha256:")
+    assert status["frame_source"]["state"] == "streaming"
+    assert status["autopilot"]["state"] == "connected"
+    filtered = [e["filtered"] for e in run.estimates if e["filtered"]["valid"]]
+    assert filtered and all(f["state"] in ("tracking", "coasting") for f in filtered)
+
+
+def _run_briefly(args: list[str], timeout: float = 60.0,
+                 env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=timeout,
+                          env=env)
+
+
+def test_bad_configuration_exits_78_naming_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(DEMO.read_text().replace("[mavlink]", "[mavlink]\nrate_hzz = 10.0", 1))
+    sock_path = tmp_path / "n.sock"
+    notify = NotifyRecorder(sock_path)
+    try:
+        env = dict(os.environ, NOTIFY_SOCKET=str(sock_path))
+        proc = _run_briefly(daemon_command(bad, []), env=env)
+    finally:
+        notify.close()
+    assert proc.returncode == 78
+    assert proc.stderr.strip().splitlines()[-1].startswith(
+        "netpose: configuration error: mavlink.rate_hzz: unknown key")
+    assert not any("READY=1" in m for _, m in notify.snapshot())
+
+
+def test_missing_calibration_file_exits_78(tmp_path: Path) -> None:
+    proc = _run_briefly(daemon_command(DEMO, ["camera.url=rtsp://127.0.0.1:1/none",
+                                              "camera.calibration=absent.yaml"]))
+    assert proc.returncode == 78
+    assert "camera.calibration: file not found" in proc.stderr
+
+
+def test_sighup_reloads_filter_settings(tmp_path: Path) -> None:
+    cfg = tmp_path / "netpose.toml"
+    cfg.write_text(DEMO.read_text())
+    sock_path = tmp_path / "n.sock"
+    notify = NotifyRecorder(sock_path)
+    overrides = ["camera.url=synthetic:?width=320&height=180&fps=5&realtime=1",
+                 "mavlink.url=udpout:127.0.0.1:9", "telemetry.enabled=false"]
+    env = dict(os.environ, NOTIFY_SOCKET=str(sock_path))
+    proc = subprocess.Popen(daemon_command(cfg, overrides), cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not any("READY=1" in m for _, m in notify.snapshot()):
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        cfg.write_text(DEMO.read_text().replace("[filter]", "[filter]\ngate_sigma = 6.0", 1))
+        proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 10.0
+        while not any(m.startswith("RELOADING=1") for _, m in notify.snapshot()):
+            assert time.monotonic() < deadline, "no RELOADING=1 after SIGHUP"
+            time.sleep(0.05)
+        # A broken file is rejected and the daemon keeps running on the previous one.
+        time.sleep(0.5)
+        cfg.write_text("[filter\n")
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        notify.close()
+    assert proc.returncode == 0, stderr
+    assert "configuration reloaded" in stderr and "changed: filter" in stderr
+    assert "configuration reload rejected, keeping the running one" in stderr
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze absent")
+def test_unit_file_passes_systemd_analyze_verify(tmp_path: Path) -> None:
+    unit = (REPO / "systemd" / "netpose.service").read_text()
+    netpose = Path(sys.executable).with_name("netpose")
+    assert "/opt/netpose/venv/bin/netpose" in unit
+    # verify needs the ExecStart binary to exist: point it at this venv's entry point.
+    (tmp_path / "netpose.service").write_text(
+        unit.replace("/opt/netpose/venv/bin/netpose", str(netpose)))
+    proc = _run_briefly(["systemd-analyze", "verify", str(tmp_path / "netpose.service")])
+    assert proc.returncode == 0, proc.stderr
+    assert "netpose.service" not in proc.stderr, proc.stderr  # no warnings about our unit
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure",
+                 "RestartPreventExitStatus=78", "User=netpose", "DevicePolicy=closed"):
+        assert line in unit
+    assert "PrivateDevices" not in unit and "PrivateNetwork" not in unit
+
+
+def test_install_script_is_valid_shell() -> None:
+    proc = _run_briefly(["sh", "-n", str(REPO / "systemd" / "install.sh")])
+    assert proc.returncode == 0, proc.stderr
