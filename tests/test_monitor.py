@@ -1,0 +1,226 @@
+"""`netpose monitor`: the view's bookkeeping, and the command run as a subprocess against a real
+Zenoh publisher on loopback (explicit endpoints, scouting off, ports chosen at runtime)."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.telemetry import TelemetrySettings, ZenohPublisher
+from service import telemetry_schema as ts
+from service.monitor_view import MonitorState
+
+pytestmark = pytest.mark.timeout(90)
+
+VEHICLE = "rov5"
+
+
+def free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def estimate_json(seq: int, distance: float = 1.5, detected: bool = True) -> dict[str, Any]:
+    now = time.monotonic()
+    estimate = {"detected": detected, "confidence": 0.8 if detected else 0.1,
+                "distance_m": distance if detected else None, "sigma_distance_m": 0.02,
+                "range_m": distance * 1.02, "tilt_deg": 11.0, "reason": "" if detected else "x",
+                "timings_ms": {"spectrum": 20.0}}
+    return ts.estimate_payload(
+        vehicle=VEHICLE, seq=seq, estimate=estimate, now_unix=time.time(), now_mono=now,
+        frame_time_mono=now - 0.03,
+        filtered=ts.filtered_payload(valid=detected, distance_m=distance, sigma_distance_m=0.01),
+    )
+
+
+def status_json() -> dict[str, Any]:
+    return ts.status_payload(
+        vehicle=VEHICLE, version="0.1.0", state="running", uptime_s=3.0,
+        config_digest="sha256:00", now_unix=time.time(), now_mono=time.monotonic(),
+        frame_source=ts.frame_source_status(state="streaming", fps=10.0, dropped=0),
+        autopilot=ts.autopilot_status(state="connected"),
+        estimator=ts.estimator_status(fps=10.0), cpu=ts.cpu_status(cores=2),
+    )
+
+
+def encode(payload: dict[str, Any]) -> bytes:
+    return json.dumps(payload).encode()
+
+
+# --- the view ------------------------------------------------------------------------------
+
+
+def test_rates_link_state_and_values_from_received_messages() -> None:
+    state = MonitorState(stale_after_s=2.0, window_s=5.0)
+    assert state.link_state(0.0) == "waiting"
+    assert "waiting" in state.summary(0.0)
+    t = 100.0
+    for seq in range(60):  # 6 s of estimates at 10 Hz and status at 1 Hz
+        t = 100.0 + seq * 0.1
+        state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(seq, 1.0 + seq / 100)), t)
+        if seq % 10 == 0:
+            state.ingest(f"netpose/{VEHICLE}/status", encode(status_json()), t)
+    assert state.rate_hz(VEHICLE, "estimate", t) == pytest.approx(10.0, rel=1e-6)
+    assert state.rate_hz(VEHICLE, "status", t) == pytest.approx(1.0, rel=1e-6)
+    assert state.link_state(t + 1.9) == "live"
+    assert state.link_state(t + 2.1) == "stale"
+    assert state.link_state(t, "other") == "waiting"
+    view = state.vehicles[VEHICLE]
+    assert view.estimate is not None and view.estimate["seq"] == 59
+    assert view.problems == set()
+    summary = state.summary(t)
+    assert f"{VEHICLE} live" in summary and "d 1.59+/-0.02 m" in summary and "10.0Hz" in summary
+    screen = "\n".join(state.render(t))
+    assert "estimate" in screen and "cam streaming" in screen and "filtered" in screen
+    # After the window the stream has no rate any more.
+    assert state.rate_hz(VEHICLE, "estimate", t + 6.0) == 0.0
+
+
+def test_bad_and_foreign_payloads_are_flagged_not_fatal() -> None:
+    state = MonitorState()
+    assert state.ingest(f"netpose/{VEHICLE}/estimate", b"\x00not json", 1.0) is None
+    broken = estimate_json(1)
+    del broken["confidence"]
+    broken["schema"] = 2
+    received = state.ingest(f"netpose/{VEHICLE}/estimate", encode(broken), 2.0)
+    assert received is not None
+    problems = " ".join(state.vehicles[VEHICLE].problems)
+    assert "not a JSON object" in problems and "confidence" in problems and "schema 2" in problems
+    assert state.ingest("netpose/x", b"{}", 3.0) is None  # too short to be ours
+    assert state.ingest(f"netpose/{VEHICLE}/unknown", b"{}", 3.0) is None
+    meta = ts.preview_meta(vehicle=VEHICLE, seq=3, now_unix=1.0, width=320, height=180)
+    preview = state.ingest(f"netpose/{VEHICLE}/preview", b"\xff\xd8" * 50, 4.0, encode(meta))
+    assert preview is not None
+    record = preview.record(1234.5)
+    assert record["bytes"] == 100 and record["meta"] == meta and "payload" not in record
+    assert "320x180" in "\n".join(state.render(4.0))
+
+
+# --- the command against a real publisher --------------------------------------------------
+
+
+@pytest.fixture
+def publisher() -> Iterator[tuple[ZenohPublisher, str]]:
+    listen = free_endpoint()
+    pub = ZenohPublisher(TelemetrySettings(vehicle=VEHICLE, mode="peer", listen=(listen,),
+                                           connect=()))
+    pub.start()
+    deadline = time.monotonic() + 10
+    while not pub.online:
+        assert time.monotonic() < deadline, "publisher session did not open"
+        time.sleep(0.02)
+    yield pub, listen
+    pub.close(timeout=10.0)
+
+
+def monitor(*args: str) -> subprocess.Popen[str]:
+    env = dict(os.environ, MPLBACKEND="Agg")
+    return subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "monitor", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )
+
+
+def feed(pub: ZenohPublisher, proc: subprocess.Popen[str], jpeg: bytes) -> int:
+    """Publish 20 Hz estimates, 1 Hz status, previews until the monitor exits; returns count."""
+    seq = 0
+    deadline = time.monotonic() + 30
+    while proc.poll() is None:
+        assert time.monotonic() < deadline, "monitor did not stop after --duration"
+        pub.publish_estimate(estimate_json(seq, 1.0 + 0.5 * np.sin(seq / 20)))
+        if seq % 20 == 0:
+            pub.publish_status(status_json())
+            meta = ts.preview_meta(vehicle=VEHICLE, seq=seq, now_unix=time.time(), width=64,
+                                   height=48)
+            pub.publish_preview(jpeg, meta)
+        seq += 1
+        time.sleep(0.05)
+    return seq
+
+
+def test_monitor_saves_prints_plots_and_keeps_the_preview(
+    publisher: tuple[ZenohPublisher, str], tmp_path: Path
+) -> None:
+    import cv2
+
+    pub, endpoint = publisher
+    image = np.zeros((48, 64, 3), np.uint8)
+    image[:, 32:] = (0, 0, 255)
+    ok, jpeg = cv2.imencode(".jpg", image)
+    assert ok
+    save, png, preview = tmp_path / "stream.jsonl", tmp_path / "plot.png", tmp_path / "p.jpg"
+    duration = 4.0
+    proc = monitor("--connect", endpoint, "--vehicle", VEHICLE, "--duration", str(duration),
+                   "--save", str(save), "--plot-png", str(png), "--save-preview", str(preview))
+    published = feed(pub, proc, jpeg.tobytes())
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+
+    records = [json.loads(line) for line in save.read_text().splitlines()]
+    estimates = [r for r in records if r["kind"] == "estimate"]
+    statuses = [r for r in records if r["kind"] == "status"]
+    previews = [r for r in records if r["kind"] == "preview"]
+    # The monitor connects while we publish: allow for its start-up, not for losses after it.
+    assert len(estimates) >= 0.5 * duration / 0.05 and len(estimates) <= published
+    seqs = [r["payload"]["seq"] for r in estimates]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # nothing lost once subscribed
+    assert statuses and previews
+    for record in estimates + statuses:
+        assert record["key"] == f"netpose/{VEHICLE}/{record['kind']}"
+        assert ts.schema_problems(record["payload"]) == []
+    assert previews[0]["bytes"] == len(jpeg) and previews[0]["meta"]["width"] == 64
+
+    # Not a terminal: one summary line per second.
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert duration - 1 <= len(lines) <= duration + 1
+    assert any(f"{VEHICLE} live" in line and "est " in line for line in lines)
+
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    plotted = cv2.imread(str(png))
+    assert plotted is not None and plotted.shape[1] == 800  # 8 in x 100 dpi
+    kept = cv2.imread(str(preview))
+    assert kept is not None and kept.shape == (48, 64, 3)
+    assert kept[:, 40:, 2].mean() > 200 and kept[:, :24, 2].mean() < 40  # red half survived
+
+
+def test_monitor_query_prints_state_with_redacted_config(
+    publisher: tuple[ZenohPublisher, str],
+) -> None:
+    pub, endpoint = publisher
+    pub.set_query_state(status_json(), {"camera": {"url": "rtsp://a:b@cam/"}, "x": 1})
+    proc = monitor("--connect", endpoint, "--vehicle", VEHICLE, "--query", "--duration", "5")
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    answers = [json.loads(line) for line in out.splitlines() if line.strip()]
+    assert len(answers) == 1
+    state = answers[0]
+    assert ts.schema_problems(state) == []
+    assert state["config"] == {"camera": {"url": "rtsp://a:<redacted>@cam/"}, "x": 1}
+    assert state["status"]["frame_source"]["state"] == "streaming"
+
+
+def test_monitor_without_a_router_gives_up_with_a_clear_message() -> None:
+    proc = monitor("--connect", free_endpoint(), "--duration", "1.5")
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1
+    assert "no Zenoh link" in err and "Traceback" not in err
+
+
+def test_monitor_rejects_bad_options_as_configuration_errors() -> None:
+    proc = monitor("--connect", "not-an-endpoint", "--duration", "1")
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 78 and "--connect" in err and "Traceback" not in err
+    proc = monitor("--vehicle", "a/b", "--duration", "1")
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 78 and "--vehicle" in err
