@@ -4,6 +4,7 @@ TCP and a pseudo-terminal, and optionally against ArduSub SITL (NETPOSE_ARDUSUB_
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import math
 import os
@@ -187,6 +188,7 @@ def test_heartbeat_and_distance_sensor_over_udp() -> None:
     assert statistics.median(gaps) == pytest.approx(0.1, abs=0.02)
     assert status["state"] == "connected"
     assert status["autopilot"]["type"] == 12 and status["autopilot"]["sysid"] == 1
+    assert json.loads(json.dumps(status)) == status  # ready for telemetry as it is
 
 
 def test_nothing_sent_without_a_valid_distance() -> None:
