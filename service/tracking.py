@@ -63,8 +63,11 @@ class FilterSettings:
     report_coasting_s: float = 0.3
     # Estimates below this confidence are treated as no detection.
     min_confidence: float = 0.3
-    # Floors on the estimator's own sigmas: its uncertainty never looks better than this.
+    # Floors on the estimator's own sigmas: its uncertainty never looks better than this. The
+    # relative floor covers frame-to-frame scatter the estimator's sigma does not see (mesh
+    # deformation, perspective inside a ROI), which grows with distance.
     min_sigma_distance_m: float = 0.005
+    min_sigma_distance_frac: float = 0.01
     min_sigma_angle_deg: float = 0.5
     # Used when the estimator reports a detection without sigmas.
     fallback_sigma_distance_frac: float = 0.05
@@ -80,6 +83,7 @@ class FilterSettings:
             "gate_sigma",
             "coast_timeout_s",
             "min_sigma_distance_m",
+            "min_sigma_distance_frac",
             "min_sigma_angle_deg",
             "fallback_sigma_distance_frac",
             "fallback_sigma_angle_deg",
@@ -150,7 +154,9 @@ def measurement_from_estimate(
         distance_m=d,
         yaw_deg=yaw,
         pitch_deg=pitch,
-        sigma_distance_m=max(float(sd), settings.min_sigma_distance_m),
+        sigma_distance_m=max(
+            float(sd), settings.min_sigma_distance_m, settings.min_sigma_distance_frac * d
+        ),
         sigma_angle_deg=max(float(sa), settings.min_sigma_angle_deg),
         facing_sign=sign,
     )
