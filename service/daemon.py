@@ -410,6 +410,9 @@ class Daemon:
         if out.state is TrackState.TRACKING and previous is TrackState.LOST:
             log.info("net acquired at %.2f m (tilt %.1f deg)", out.distance_m or math.nan,
                      _tilt(out))
+        elif out.state is TrackState.LOST and out.measurement == "reset":
+            log.info("net track restarted at %.2f m: measurements left the gate %d times in a "
+                     "row", out.distance_m or math.nan, self.config.filter.max_consecutive_rejects)
         elif out.state is TrackState.LOST:
             log.info("net lost (no accepted measurement for %.1f s)",
                      self.config.filter.coast_timeout_s)
