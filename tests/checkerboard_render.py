@@ -136,3 +136,24 @@ def varied_poses(camera: CameraModel, board_width_m: float, count: int = 14) -> 
         rvec = cv2.Rodrigues(rot)[0].ravel()
         poses.append(BoardPose(rvec=(float(rvec[0]), float(rvec[1]), float(rvec[2])), tvec=tvec))
     return poses
+
+
+# A 640x480 camera with barrel distortion of the size seen behind flat underwater ports, and
+# fx != fy so that an estimator which assumes square pixels is caught.
+TEST_CAMERA = CameraModel(
+    width=640, height=480, fx=520.0, fy=516.0, cx=323.5, cy=236.0,
+    distortion=(-0.28, 0.09, 0.0012, -0.0008, -0.01), name="rendered",
+)
+# The paper's board: 7x4 inner corners, 3.11 cm squares.
+PAPER_BOARD = (7, 4, 0.0311)
+
+
+def render_views(
+    camera: CameraModel = TEST_CAMERA, columns: int = 7, rows: int = 4, square: float = 0.0311,
+    count: int = 14, supersample: int = 2,
+) -> tuple[list[npt.NDArray[np.uint8]], list[FloatArray]]:
+    """`count` rendered views (grey images) and their true corner positions."""
+    renderer = CheckerboardRenderer(camera, columns, rows, square, supersample=supersample)
+    poses = varied_poses(camera, (columns + 1) * square, count)
+    images = [renderer.render(pose, seed=i) for i, pose in enumerate(poses)]
+    return images, [renderer.true_corners(pose) for pose in poses]
