@@ -155,7 +155,7 @@ def test_face_on_views_warn_about_focal_length() -> None:
         t = np.array([ray[0] * 0.35, ray[1] * 0.35, 0.35])
         rvec = np.array([0.03 * i, -0.02 * i, 0.1 * i])
         img, _ = cv2.projectPoints(obj, rvec, t, cam.matrix, cam.dist_coeffs)
-        views.append(BoardView(f"flat{i}", img.reshape(-1, 2)))
+        views.append(BoardView(f"flat{i}", np.asarray(img, dtype=np.float64).reshape(-1, 2)))
     result = calibrate(views, BOARD, SIZE, fix_k3=True)
     assert any("nearly face-on" in w for w in result.warnings)
 
