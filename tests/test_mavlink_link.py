@@ -319,6 +319,28 @@ def test_serial_link_through_a_pseudo_terminal() -> None:
     assert all(r.msg.current_distance == 235 for r in sensors)
 
 
+def test_unplugged_serial_device_is_retried_and_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
+    autopilot = FakeAutopilot(PtyTransport()).start()
+    link = MavlinkLink(settings(autopilot.url))
+    with link, feeding(link):
+        try:
+            wait_status(link, "state", "connected")
+        finally:
+            autopilot.close()  # both ends of the pty vanish, like a USB autopilot unplugged
+        status = wait_status(link, "transport", "down")
+        deadline = time.monotonic() + 5.0
+        while link.status()["errors"] < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        status = link.status()
+    assert status["state"] == "lost" and status["errors"] >= 3
+    assert "could not open port" in status["last_error"]
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and "lost" in warnings[0].getMessage()
+
+
 def test_udpin_answers_the_autopilot() -> None:
     with FakeAutopilot(UdpClientTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
