@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 from drivers.errors import MavlinkLinkError
@@ -36,7 +37,7 @@ VISION_PARAMS = ("VISO_TYPE", "EK3_SRC1_POSXY")
 
 RNGFND_TYPE_MAVLINK = 10
 VISO_TYPE_MAVLINK = 1
-ORIENTATION_NAMES = {0: "forward", 4: "backward", 24: "up", 25: "down"}
+ORIENTATION_NAMES = MappingProxyType({0: "forward", 4: "backward", 24: "up", 25: "down"})
 _MAV_CMD_REQUEST_MESSAGE = 512
 _MSG_ID_AUTOPILOT_VERSION = 148
 
