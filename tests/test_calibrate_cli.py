@@ -80,7 +80,8 @@ def test_video_is_sampled_skipping_blurred_and_duplicate_frames(
     images: list[np.ndarray], tmp_path: Path
 ) -> None:
     video = tmp_path / "board.avi"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (640, 480))
+    fourcc = cv2.VideoWriter.fourcc(*"MJPG")
+    writer = cv2.VideoWriter(str(video), fourcc, 10.0, (640, 480))
     assert writer.isOpened()
     # Eight distinct poses, each held for 4 frames (duplicates), each followed by 2 blurred frames
     # (camera moving): 48 frames of which 8 are worth keeping.
@@ -196,6 +197,7 @@ def test_undistort_makes_board_rows_straight(images: list[np.ndarray], tmp_path:
     assert proc.returncode == 0, proc.stderr
     before = detect_board(images[1], board)
     after_image = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    assert after_image is not None
     after = detect_board(after_image, board)
     assert before is not None and after is not None
     bent, straight = _row_straightness(before, board), _row_straightness(after, board)
