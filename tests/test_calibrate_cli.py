@@ -201,9 +201,10 @@ def test_undistort_makes_board_rows_straight(images: list[np.ndarray], tmp_path:
     after = detect_board(after_image, board)
     assert before is not None and after is not None
     bent, straight = _row_straightness(before, board), _row_straightness(after, board)
-    # Corner noise is ~0.06 px; the barrel distortion bends the rows by well over a pixel.
-    assert bent > 1.0
-    assert straight < 0.25
+    # Measured: rows bent by 1.1 px before, straight within 0.06 px (the corner noise) after.
+    assert bent > 0.8
+    assert straight < 0.2
+    assert straight < bent / 5
 
 
 def test_undistort_errors(tmp_path: Path, capsys) -> None:
