@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -85,8 +86,13 @@ class _RoiMeasurement:
     fit: LatticeFit | None
     peaks: int
     reciprocal_px: F64 | None = None  # cycles per full-res pixel, columns k1 k2
-    area_norm: float = math.nan
+    area_norm: float = math.nan  # mesh cell area in normalised units of the frame of `ray`
     valid: bool = False
+    ray: F64 = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        if not self.ray.any():
+            self.ray = self.geometry.ray
 
 
 class NetEstimator:
@@ -126,11 +132,18 @@ class NetEstimator:
             if kind == "probe":
                 xs = [(lw - n) // 2, (lw - n) // 4, 3 * (lw - n) // 4]
                 corners = [(x, (lh - n) // 2) for x in xs]
-            else:
+            elif kind == "grid":
                 cols, rows = self.settings.grid_cols, self.settings.grid_rows
                 xs = np.linspace(0, lw - n, cols).round().astype(int)
                 ys = np.linspace(0, lh - n, rows).round().astype(int)
                 corners = sorted({(int(x), int(y)) for y in ys for x in xs}, key=lambda c: c[::-1])
+            else:  # "grid@L": level L's grid, re-centred at this level, ROI for ROI
+                source = self._layout(width, height, int(kind.split("@")[1]), "grid")
+                corners = []
+                for g in source:
+                    x = round((g.center_full[0] + 0.5) / scale - n / 2)
+                    y = round((g.center_full[1] + 0.5) / scale - n / 2)
+                    corners.append((min(max(x, 0), lw - n), min(max(y, 0), lh - n)))
             cam = self._camera_for(width, height)
             centres = np.array(
                 [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
@@ -218,47 +231,113 @@ class NetEstimator:
         timings["scale_search"] = (t2 - t1) * 1e3
         best: NetEstimate | None = None
         for level in order[:2]:
-            result = self._estimate_at(level_image(level), level, w, h, timings)
+            result = self._estimate_at(level_image, level, w, h, timings)
             if best is None or result.confidence > best.confidence:
                 best = result
             if result.detected:
                 break
-        assert best is not None
+        if best is None:
+            best = NetEstimate(
+                detected=False, confidence=0.0, reason="no lattice at any scale in the probe ROIs"
+            )
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return NetEstimate(**{**best.__dict__, "timings_ms": timings})
 
     def _level_order(
-        self, levels: list[int], hint: int | None, level_image: object, w: int, h: int
+        self, levels: list[int], hint: int | None, level_image: Callable[[int], Image],
+        w: int, h: int,
     ) -> list[int]:
-        """Levels to try, best first: the hint, else the probes' verdict."""
+        """Levels to try, best first: the hint, else the finest level where the probes see a
+        lattice whose period is not too coarse. Finest first because a coarser level can only
+        lose harmonics and gain aliases, and a wrong lattice there can mimic a good period."""
         if hint is not None and hint in levels:
-            return [hint] + sorted((lv for lv in levels if lv != hint), key=lambda v: abs(v - hint))
-        preferred = self.settings.preferred_period_px
-        scored: list[tuple[float, int]] = []
-        get = level_image  # typed loosely to keep the closure simple
+            return [hint, *sorted((lv for lv in levels if lv != hint), key=lambda v: abs(v - hint))]
+        hi = self.settings.preferred_period_px * 1.8
+        coarse: list[int] = []
         for level in levels:
-            img = get(level)  # type: ignore[operator]
-            probes = [self._measure(img, g, level) for g in self._layout(w, h, level, "probe")]
+            probes = [
+                self._measure(level_image(level), g, level)
+                for g in self._layout(w, h, level, "probe")
+            ]
             period = self._median_period(probes)
-            if period is not None:
-                scored.append((abs(math.log(period / preferred)), level))
-        if not scored:
-            return []
-        scored.sort()
-        return [lv for _, lv in scored]
+            if period is None:
+                continue
+            if period > hi and level != levels[-1]:
+                coarse.append(level)
+                continue
+            return [level, *coarse[::-1]]
+        return coarse[::-1]
+
+    def _measure_grid(
+        self, level_image: Callable[[int], Image], level: int, w: int, h: int
+    ) -> list[_RoiMeasurement]:
+        """Measure the grid at `level`; ROIs whose period sits badly there (the far side of a
+        tilted net is finer, the near side coarser) are re-measured one level finer or coarser,
+        keeping the better measurement."""
+        s = self.settings
+        n = s.roi_size
+        grid = self._layout(w, h, level, "grid")
+        measurements = [self._measure(level_image(level), g, level) for g in grid]
+        top = s.levels - 1
+        lo, hi = s.preferred_period_px / 1.8, s.preferred_period_px * 1.8
+        for i, m in enumerate(measurements):
+            period = n / math.sqrt(m.fit.det) if m.fit is not None else None
+            if period is not None and lo <= period <= hi and m.valid:
+                continue
+            if period is None or period < lo:
+                alt = level - 1
+            else:
+                alt = level + 1
+            if not 0 <= alt <= top or not self._layout(w, h, alt, "grid"):
+                continue
+            geom = self._layout(w, h, alt, f"grid@{level}")[i]
+            other = self._measure(level_image(alt), geom, alt)
+            if other.valid and other.fit is not None and (
+                not m.valid or abs(math.log(n / math.sqrt(other.fit.det) / s.preferred_period_px))
+                < abs(math.log(period / s.preferred_period_px))  # type: ignore[operator]
+            ):
+                measurements[i] = other
+        return measurements
 
     def _estimate_at(
-        self, image: Image, level: int, w: int, h: int, timings: dict[str, float]
+        self,
+        level_image: Callable[[int], Image],
+        level: int,
+        w: int,
+        h: int,
+        timings: dict[str, float],
     ) -> NetEstimate:
         t0 = time.perf_counter()
-        grid = self._layout(w, h, level, "grid")
-        measurements = [self._measure(image, g, level) for g in grid]
+        measurements = self._measure_grid(level_image, level, w, h)
+        timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
+        first = self._conclude(measurements, level, np.eye(3), timings)
+        if first.normal is None or first.distance_m is None:
+            return first
+        # Second pass on perspective-rectified ROIs: removes the chirp that biases tilted views.
         t1 = time.perf_counter()
-        timings["rois"] = timings.get("rois", 0.0) + (t1 - t0) * 1e3
+        rotation = _rotation_to_z(-np.asarray(first.normal))
+        rect = [
+            self._measure_rectified(level_image, m.geometry, rotation, first.distance_m)
+            for m in measurements
+        ]
+        timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t1) * 1e3
+        second = self._conclude(rect, level, rotation, timings)
+        return second if second.detected else first
+
+    def _conclude(
+        self,
+        measurements: list[_RoiMeasurement],
+        level: int,
+        rotation: F64,
+        timings: dict[str, float],
+    ) -> NetEstimate:
+        """Plane fit over the valid ROIs and the verdict. `rotation` maps camera rays to the
+        frame the measurements' rays and areas are expressed in."""
+        t1 = time.perf_counter()
         valid = [m for m in measurements if m.valid and m.fit is not None]
         plane = None
         if len(valid) >= self.settings.min_rois:
-            rays = np.array([m.geometry.ray for m in valid])
+            rays = np.array([m.ray for m in valid])
             areas = np.array([m.area_norm for m in valid])
             sigmas = np.array([m.fit.relative_area_sigma for m in valid if m.fit is not None])
             plane = fit_plane(
@@ -268,7 +347,9 @@ class NetEstimator:
         used_ids = set()
         if plane is not None:
             used_ids = {id(m) for m, u in zip(valid, plane.used, strict=True) if u}
-        rois = tuple(_roi_result(m, self.settings.roi_size, id(m) in used_ids) for m in measurements)
+        rois = tuple(
+            _roi_result(m, self.settings.roi_size, id(m) in used_ids) for m in measurements
+        )
         # Confidence: the share of the grid that shows one consistent net, weighted by how
         # cleanly each ROI's peaks sit on its lattice and how well the ROIs agree on a plane.
         scores = [
@@ -281,35 +362,108 @@ class NetEstimator:
         if plane is None:
             reason = (
                 f"{len(valid)} of {len(measurements)} ROIs show a lattice"
-                if valid
-                else "no lattice in any ROI"
+                if len(valid) < self.settings.min_rois
+                else "ROI lattices do not agree on a plane"
             )
             return NetEstimate(
-                detected=False,
-                confidence=min(coverage, 0.2),
-                rois=rois,
-                level=level,
-                reason=reason if len(valid) < self.settings.min_rois else
-                "ROI lattices do not agree on a plane",
+                detected=False, confidence=min(coverage, 0.2), rois=rois, level=level,
+                reason=reason,
             )
         consistency = math.exp(-plane.relative_rms / 0.03)
         confidence = float(np.clip(math.sqrt(coverage) * consistency, 0.0, 1.0))
         detected = confidence >= self.settings.min_confidence
-        n = -plane.normal_away
+        n_away = rotation.T @ plane.normal_away
+        n = -n_away / np.linalg.norm(n_away)
+        range_m = plane.distance_m / float(n_away[2])
+        # The range's sigma follows the same first-order propagation as in the fitted frame,
+        # rescaled by the change of the normal's z component.
+        sigma_range = plane.sigma_range_m * range_m / plane.range_m
         return NetEstimate(
             detected=detected,
             confidence=confidence,
             normal=(float(n[0]), float(n[1]), float(n[2])) if detected else None,
             distance_m=plane.distance_m if detected else None,
-            range_m=plane.range_m if detected else None,
+            range_m=range_m if detected else None,
             sigma_distance_m=plane.sigma_distance_m if detected else None,
-            sigma_range_m=plane.sigma_range_m if detected else None,
+            sigma_range_m=sigma_range if detected else None,
             sigma_normal_deg=plane.sigma_normal_deg if detected else None,
             rois=rois,
             rois_used=int(plane.used.sum()),
             level=level,
             reason="" if detected else f"confidence {confidence:.2f} below threshold",
         )
+
+    def _measure_rectified(
+        self,
+        level_image: Callable[[int], Image],
+        geom: _RoiGeometry,
+        rotation: F64,
+        distance_m: float,
+    ) -> _RoiMeasurement:
+        """Measure one ROI in a virtual camera that faces the net squarely.
+
+        The patch is resampled through the homography of a camera rotated by `rotation` (so the
+        net plane becomes fronto-parallel and its lattice uniform), scaled so the mesh period is
+        the preferred one. Lens distortion enters through its local affine approximation at the
+        ROI centre. The lattice found is then the local lattice at the ROI centre, without the
+        perspective chirp across the ROI.
+        """
+        import cv2
+
+        s = self.settings
+        n = s.roi_size
+        virt = rotation @ geom.ray
+        virt = virt / virt[2]
+        # Normalised virtual units per output pixel so the mesh period is preferred_period_px.
+        period_norm = math.sqrt(self.mesh.cell_area_m2) / distance_m
+        t = period_norm / s.preferred_period_px
+        half = (n - 1) / 2.0
+        to_virtual = np.array(
+            [[t, 0.0, virt[0] - t * half], [0.0, t, virt[1] - t * half], [0.0, 0.0, 1.0]]
+        )
+        jinv = np.linalg.inv(geom.jacobian)
+        centre = np.asarray(geom.center_full)
+        to_pixel = np.eye(3)
+        to_pixel[:2, :2] = jinv
+        to_pixel[:2, 2] = centre - jinv @ geom.ray[:2]
+        full = to_pixel @ rotation.T @ to_virtual  # output pixel -> full-res pixel (homogeneous)
+        # Source pixels per output pixel at the centre decide the pyramid level to sample from.
+        c0 = full @ np.array([half, half, 1.0])
+        c1 = full @ np.array([half + 1.0, half, 1.0])
+        c2 = full @ np.array([half, half + 1.0, 1.0])
+        jm = np.stack([c1[:2] / c1[2] - c0[:2] / c0[2], c2[:2] / c2[2] - c0[:2] / c0[2]], axis=1)
+        step = math.sqrt(abs(float(np.linalg.det(jm))))
+        level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
+        scale = 2**level
+        to_level = np.array(
+            [[1 / scale, 0, -(scale - 1) / (2 * scale)], [0, 1 / scale, -(scale - 1) / (2 * scale)],
+             [0, 0, 1]]
+        )
+        patch = cv2.warpPerspective(
+            level_image(level), to_level @ full, (n, n),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
+        )
+        peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
+        fit = self._lattice.fit(peaks)
+        rect_geom = _RoiGeometry(
+            x0=geom.x0, y0=geom.y0, center_full=geom.center_full, ray=geom.ray,
+            jacobian=geom.jacobian,
+        )
+        meas = _RoiMeasurement(geometry=rect_geom, level=level, fit=fit, peaks=len(peaks))
+        meas.ray = virt
+        if fit is None:
+            return meas
+        lengths = np.linalg.norm(fit.basis, axis=0)
+        period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
+        quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
+            s.min_inlier_fraction
+        )
+        k_out = fit.basis / n  # cycles per output pixel
+        meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
+        # For reporting: the lattice in full-resolution image pixels through the local map.
+        meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
+        meas.valid = bool(period_ok and quality_ok)
+        return meas
 
 
 def _level_size(size: int, level: int) -> int:
@@ -358,3 +512,17 @@ def _roi_result(m: _RoiMeasurement, size: int, used: bool) -> RoiResult:
         peaks=m.peaks,
         used_in_fit=used,
     )
+
+
+def _rotation_to_z(direction: F64) -> F64:
+    """The smallest rotation taking the unit vector `direction` onto +z."""
+    v = direction / np.linalg.norm(direction)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(v, z)
+    sin = float(np.linalg.norm(axis))
+    cos = float(v @ z)
+    if sin < 1e-12:
+        return np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / sin
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.asarray(np.eye(3) + sin * kx + (1 - cos) * (kx @ kx), dtype=np.float64)

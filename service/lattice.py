@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from itertools import combinations
 
 import numpy as np
 import numpy.typing as npt
@@ -95,12 +94,44 @@ def generated_lattice(indices: I64) -> I64 | None:
     return np.array([[a, 0], [b % c, c]], dtype=np.int64)
 
 
+# The sub-lattices of index 2 and 3 of a 2D lattice, as integer bases in its coordinates.
+_SUBLATTICES = (
+    np.array([[2.0, 0.0], [0.0, 1.0]]),
+    np.array([[1.0, 0.0], [0.0, 2.0]]),
+    np.array([[1.0, 0.0], [1.0, 2.0]]),
+    np.array([[3.0, 0.0], [0.0, 1.0]]),
+    np.array([[1.0, 0.0], [0.0, 3.0]]),
+    np.array([[1.0, 0.0], [1.0, 3.0]]),
+    np.array([[1.0, 0.0], [2.0, 3.0]]),
+)
+
+
+def _inv2(m: F64) -> F64:
+    """Inverse of a 2x2 matrix without LAPACK's per-call overhead (this runs per hypothesis)."""
+    a, b, c, d = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
+    det = a * d - b * c
+    return np.array([[d, -b], [-c, a]]) / det
+
+
+def _basis_observed(basis: F64, k: F64, tol: F64) -> bool:
+    """Is k1 a peak, and is k2 (or k2 +- k1, for a rhombic mesh's weak cross term) one too?"""
+
+    def seen(v: F64) -> bool:
+        d_plus = np.hypot(k[:, 0] - v[0], k[:, 1] - v[1])
+        d_minus = np.hypot(k[:, 0] + v[0], k[:, 1] + v[1])
+        return bool(((d_plus < tol) | (d_minus < tol)).any())
+
+    b1, b2 = basis[:, 0], basis[:, 1]
+    return seen(b1) and (seen(b2) or seen(b2 + b1) or seen(b2 - b1))
+
+
 def _assign(basis: F64, k: F64, tol: F64) -> tuple[npt.NDArray[np.bool_], I64]:
-    coords = np.linalg.solve(basis, k.T).T
+    coords = k @ _inv2(basis).T
     idx = np.rint(coords).astype(np.int64)
-    resid = np.linalg.norm(k - idx @ basis.T, axis=1)
-    nonzero = np.any(idx != 0, axis=1)
-    return (resid < tol) & nonzero, idx
+    diff = k - idx @ basis.T
+    resid2 = diff[:, 0] ** 2 + diff[:, 1] ** 2
+    nonzero = (idx[:, 0] != 0) | (idx[:, 1] != 0)
+    return (resid2 < tol * tol) & nonzero, idx
 
 
 class LatticeFinder:
@@ -124,57 +155,124 @@ class LatticeFinder:
         k, w = peaks.k, peaks.snr
         tol = np.maximum(self.tolerance_bins, self.tolerance_relative * np.linalg.norm(k, axis=1))
         total = float(w.sum())
-        best: tuple[float, int, F64] | None = None
-        top = min(len(peaks), self.hypothesis_peaks)
-        for i, j in combinations(range(top), 2):
-            a, b = k[i], k[j]
-            cross = abs(a[0] * b[1] - a[1] * b[0])
-            if cross < self.min_sin * float(np.linalg.norm(a) * np.linalg.norm(b)):
-                continue
-            basis = np.stack([a, b], axis=1)
+        candidates = self._hypotheses(k, w, tol)
+        best: tuple[float, int, F64, npt.NDArray[np.bool_]] | None = None
+        for basis in candidates:
             inl, idx = _assign(basis, k, tol)
             gen = generated_lattice(idx[inl])
             if gen is None:
                 continue
-            if abs(int(round(np.linalg.det(gen)))) != 1:
+            if abs(round(np.linalg.det(gen))) != 1:
+                # Too fine a basis (a sub-harmonic): use the lattice the peaks really generate.
                 basis = basis @ gen.astype(np.float64)
                 inl, idx = _assign(basis, k, tol)
             score = float(w[inl].sum())
             count = int(inl.sum())
             if best is None or (score, count) > (best[0], best[1]):
-                best = (score, count, basis)
+                best = (score, count, basis, inl)
         if best is None:
             return None
-        return self._refine(best[2], k, w, tol, total)
+        basis, inl = self._admit_fractional(best[2], k, w, tol, best[3])
+        basis = self._coarsen(basis, k, w, tol, inl)
+        return self._refine(basis, k, w, tol, total)
+
+    def _hypotheses(self, k: F64, w: F64, tol: F64, keep: int = 3) -> list[F64]:
+        """Score every basis made of two strong peaks at once (vectorised); keep the best few."""
+        top = min(len(k), self.hypothesis_peaks)
+        ii, jj = np.triu_indices(top, 1)
+        a, b = k[ii], k[jj]
+        det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        ok = np.abs(det) >= self.min_sin * np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+        if not ok.any():
+            return []
+        a, b, det = a[ok], b[ok], det[ok]
+        kx, ky = k[None, :, 0], k[None, :, 1]
+        n1 = np.rint((b[:, 1:2] * kx - b[:, 0:1] * ky) / det[:, None])
+        n2 = np.rint((-a[:, 1:2] * kx + a[:, 0:1] * ky) / det[:, None])
+        rx = kx - n1 * a[:, 0:1] - n2 * b[:, 0:1]
+        ry = ky - n1 * a[:, 1:2] - n2 * b[:, 1:2]
+        inl = (np.hypot(rx, ry) < tol[None, :]) & ((n1 != 0) | (n2 != 0))
+        scores = inl.astype(np.float64) @ w
+        order = np.argsort(-scores)[:keep]
+        return [np.stack([a[h], b[h]], axis=1) for h in order]
+
+    @staticmethod
+    def _coarsen(
+        basis: F64, k: F64, w: F64, tol: F64, inl: npt.NDArray[np.bool_]
+    ) -> F64:
+        """Prefer a super-lattice (index 2 or 3) that explains nearly all the weight.
+
+        A lattice twice as dense always explains at least as many peaks (noise and chirp-smeared
+        harmonics find a point nearby), so density must pay: the coarser lattice wins unless the
+        extra points carry real weight.
+        """
+        weight = float(w[inl].sum())
+        for _ in range(3):
+            for m in _SUBLATTICES:
+                candidate = basis @ m
+                cand_inl, _ = _assign(candidate, k, tol)
+                cand_weight = float(w[cand_inl].sum())
+                if cand_weight >= 0.9 * weight:
+                    basis, weight = candidate, cand_weight
+                    break
+            else:
+                return basis
+        return basis
+
+    @staticmethod
+    def _admit_fractional(
+        basis: F64, k: F64, w: F64, tol: F64, inl: npt.NDArray[np.bool_]
+    ) -> tuple[F64, npt.NDArray[np.bool_]]:
+        """Peaks at half- or third-integer coordinates mean the basis is too coarse: refine it."""
+        outliers = ~inl
+        if not outliers.any():
+            return basis, inl
+        coords = k @ _inv2(basis).T
+        for denom in (2, 3):
+            scaled = coords * denom
+            idx = np.rint(scaled).astype(np.int64)
+            fine = np.linalg.norm(k - (idx @ basis.T) / denom, axis=1) < tol
+            if not (fine & outliers).any():
+                continue
+            gen = generated_lattice(idx[fine | inl])
+            if gen is None:
+                continue
+            candidate = reduce_basis((basis / denom) @ gen.astype(np.float64))
+            # Aliased harmonics (beyond Nyquist, folded back) also sit at fractional
+            # coordinates, but a real finer lattice has peaks at its own basis vectors.
+            if not _basis_observed(candidate, k, tol):
+                continue
+            new_inl, _ = _assign(candidate, k, tol)
+            if float(w[new_inl].sum()) > 1.2 * float(w[inl].sum()):
+                return candidate, new_inl
+        return basis, inl
 
     def _refine(self, basis: F64, k: F64, w: F64, tol: F64, total: float) -> LatticeFit | None:
         basis = reduce_basis(basis)
         for _ in range(2):
             inl, idx = _assign(basis, k, tol)
             n = idx[inl].astype(np.float64)
-            if n.shape[0] < 2 or np.linalg.matrix_rank(n) < 2:
+            nw = n * w[inl][:, None]
+            normal = n.T @ nw
+            # Fewer than two independent peaks cannot pin a 2D lattice.
+            if abs(normal[0, 0] * normal[1, 1] - normal[0, 1] * normal[1, 0]) < 1e-9:
                 return None
-            ww = w[inl]
             # Weighted least squares for B in k = B n: B^T = (N^T W N)^-1 N^T W K.
-            nw = n * ww[:, None]
-            basis = np.linalg.solve(n.T @ nw, nw.T @ k[inl]).T
-            basis = reduce_basis(basis)
+            basis = reduce_basis((_inv2(normal) @ (nw.T @ k[inl])).T)
         inl, idx = _assign(basis, k, tol)
         n = idx[inl].astype(np.float64)
-        if n.shape[0] < 2 or np.linalg.matrix_rank(n) < 2:
+        gram = n.T @ n
+        if n.shape[0] < 2 or abs(gram[0, 0] * gram[1, 1] - gram[0, 1] * gram[1, 0]) < 1e-9:
             return None
         resid = k[inl] - n @ basis.T
         dof = max(1, 2 * n.shape[0] - 4)
         rms = float(np.sqrt((resid**2).sum() / dof)) if n.shape[0] > 2 else 0.0
         # Interpolated peaks are good to ~0.05 bin even when the fit is exact (2 peaks).
         sigma_bins = max(rms, 0.05)
-        cov = np.linalg.inv(n.T @ n) * sigma_bins**2  # per-component covariance of B rows
-        # d|det B|/|det B| = trace(B^-1 dB); B rows share cov -> var = sum over rows.
-        binv = np.linalg.inv(basis)
-        var = 0.0
-        for r in range(2):
-            g = binv[:, r]  # derivative of log det w.r.t. row r of B
-            var += float(g @ cov @ g)
+        cov = _inv2(gram) * sigma_bins**2  # covariance of each row of B
+        # d log|det B| = trace(B^-1 dB): row r of B enters through column r of B^-1.
+        binv = _inv2(basis)
+        var = float(sum(binv[:, r] @ cov @ binv[:, r] for r in range(2)))
         return LatticeFit(
             basis=basis,
             inliers=int(inl.sum()),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 import numpy.typing as npt
@@ -39,6 +40,7 @@ def fit_plane(
     min_rois: int = 4,
     outlier_sigma: float = 3.5,
     min_relative_tolerance: float = 0.01,
+    consensus_tolerance: float = 0.03,
 ) -> PlaneFit | None:
     """Robust weighted plane fit; None when too few consistent ROIs or a degenerate layout."""
     if rays.shape[0] < min_rois:
@@ -47,32 +49,32 @@ def fit_plane(
     # sigma of c: one third of the relative area sigma (c ~ a^(1/3)), with a model floor for
     # net deformation and the perspective chirp inside a ROI.
     rel_sigma_c = np.sqrt((relative_area_sigma / 3.0) ** 2 + 0.002**2)
-    used = np.ones(rays.shape[0], dtype=bool)
+    used = _consensus(rays, c, consensus_tolerance)
+    if used is None:
+        return None
     m = np.zeros(3)
     cov = np.eye(3)
-    for _ in range(6):
-        if int(used.sum()) < min_rois:
+    # Backward elimination: drop the worst ROI while it is an outlier against the robust spread
+    # of the rest (a fish, a wrong lattice), then re-admit any ROI the final plane explains.
+    for _ in range(rays.shape[0]):
+        fitted = _solve(rays[used], c[used], rel_sigma_c[used])
+        if fitted is None:
             return None
-        # Rows scaled so each residual is (r.m - c) / (sigma_rel * c).
-        a = rays[used] / (rel_sigma_c[used] * c[used])[:, None]
-        b = 1.0 / rel_sigma_c[used]
-        ata = a.T @ a
-        if np.linalg.cond(ata) > 1e9:
-            return None
-        m = np.linalg.solve(ata, a.T @ b)
+        m, cov = fitted
         rel = (rays @ m - c) / c
-        normalised = rel / rel_sigma_c
-        dof = int(used.sum()) - 3
-        chi2 = float((normalised[used] ** 2).sum())
-        scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
-        cov = np.linalg.inv(ata) * scale
-        # Robust spread estimate from the used ROIs (MAD), never below the tolerance floor.
         spread = 1.4826 * float(np.median(np.abs(rel[used] - np.median(rel[used]))))
         limit = max(outlier_sigma * spread, min_relative_tolerance)
-        new_used = np.abs(rel) <= np.maximum(limit, outlier_sigma * rel_sigma_c)
-        if np.array_equal(new_used, used):
+        candidates = np.where(used, np.abs(rel), -1.0)
+        worst = int(np.argmax(candidates))
+        if candidates[worst] <= limit:
+            readmit = used | (np.abs(rel) <= limit)
+            if not np.array_equal(readmit, used):
+                used = readmit
+                continue
             break
-        used = new_used
+        used[worst] = False
+        if int(used.sum()) < min_rois:
+            return None
     if int(used.sum()) < min_rois:
         return None
     norm = float(np.linalg.norm(m))
@@ -97,3 +99,44 @@ def fit_plane(
         used=used,
         relative_rms=float(np.sqrt(np.mean(rel**2))),
     )
+
+
+def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64] | None:
+    """Weighted least squares for c = r . m; covariance scaled by the reduced chi-square."""
+    # Rows scaled so each residual is (r.m - c) / (sigma_rel * c).
+    a = rays / (rel_sigma_c * c)[:, None]
+    b = 1.0 / rel_sigma_c
+    ata = a.T @ a
+    if np.linalg.cond(ata) > 1e9:
+        return None
+    m = np.linalg.solve(ata, a.T @ b)
+    dof = rays.shape[0] - 3
+    chi2 = float(((a @ m - b) ** 2).sum())
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    return m, np.linalg.inv(ata) * scale
+
+
+def _consensus(rays: F64, c: F64, tolerance: float, max_triples: int = 600) -> Bools | None:
+    """Exhaustive RANSAC over ROI triples: the plane most ROIs agree with seeds the fit.
+
+    A wrong lattice in one ROI (a sub- or super-lattice, a fish) is off by a factor of at least
+    2^(1/3) in c, far outside the tolerance, so it cannot join a consensus of correct ROIs.
+    """
+    k = rays.shape[0]
+    triples = np.array(list(combinations(range(k), 3)), dtype=np.int64)
+    if triples.shape[0] > max_triples:
+        step = triples.shape[0] / max_triples
+        triples = triples[(np.arange(max_triples) * step).astype(np.int64)]
+    a = rays[triples]  # (t, 3, 3)
+    b = c[triples]  # (t, 3)
+    dets = np.linalg.det(a)
+    ok = np.abs(dets) > 1e-6
+    if not ok.any():
+        return None
+    m = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]  # (t, 3)
+    rel = np.abs(m @ rays.T - c[None, :]) / c[None, :]  # (t, k)
+    inliers = rel < tolerance
+    counts = inliers.sum(axis=1)
+    # Among the largest consensus sets, the one with the smallest total residual.
+    best = int(np.argmin(np.where(counts == counts.max(), (rel * inliers).sum(axis=1), np.inf)))
+    return np.asarray(inliers[best], dtype=bool)

@@ -1,0 +1,1 @@
+"""Benchmarks behind `netpose bench`: accuracy on rendered nets with ground truth, and speed."""

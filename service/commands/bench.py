@@ -1,0 +1,41 @@
+"""`netpose bench accuracy|speed|soak`: the numbers the project's targets are judged by."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+
+def add_parser(subparsers: Any) -> None:
+    p = subparsers.add_parser("bench", help="accuracy and speed benchmarks on rendered nets")
+    sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+
+    acc = sub.add_parser("accuracy", help="paper Table-1 protocol, occlusion and net-free sets")
+    acc.add_argument("--frames", type=int, default=20, help="frames per Table-1 cell (default 20)")
+    acc.add_argument("--occluded-frames", type=int, default=10,
+                     help="frames per cell with fish covering a third of the frame (default 10)")
+    acc.add_argument("--netfree-frames", type=int, default=200,
+                     help="frames without a net for the false-positive rate (default 200)")
+    acc.add_argument("--seed", type=int, default=1)
+    acc.add_argument("--out", type=Path, default=Path("bench/out"),
+                     help="folder for accuracy.csv and accuracy.png (default bench/out)")
+    acc.set_defaults(handler=_accuracy)
+
+    speed = sub.add_parser("speed", help="frames per second and per-stage time on one core")
+    speed.add_argument("--frames", type=int, default=60, help="timed frames per case (default 60)")
+    speed.add_argument("--seed", type=int, default=1)
+    speed.set_defaults(handler=_speed)
+
+
+def _accuracy(args: argparse.Namespace) -> int:
+    from service.benchmarks import accuracy
+
+    return accuracy.run(args.frames, args.occluded_frames, args.netfree_frames, args.seed,
+                        args.out)
+
+
+def _speed(args: argparse.Namespace) -> int:
+    from service.benchmarks import speed
+
+    return speed.run(args.frames, args.seed)
