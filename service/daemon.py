@@ -212,6 +212,8 @@ class Daemon:
         self._estimator = self._make_estimator(cfg, self._camera)
         self._link = self._link_override or self._make_link(cfg)
         self._telemetry = self._telemetry_override or self._make_telemetry(cfg)
+        # Everything is built (and every setting checked); now touch the outside world.
+        self._source.open()
         self._link.start()
         self._telemetry.start()
         self._telemetry.set_query_state(None, cfg.effective)
