@@ -37,6 +37,8 @@ OUTLIER_FACTOR = 3.0
 OUTLIER_FLOOR_PX = 0.5
 # At most this fraction of the views is ever rejected: beyond it the data, not a view, is bad.
 MAX_REJECTED_FRACTION = 0.34
+# Largest cornerSubPix half-window (px): OpenCV's customary 23x23 window.
+REFINE_MAX_HALF_WINDOW = 11
 # A solve worse than this is not a calibration of this camera with this board (wrong square size
 # does not do it; wrong board size, a bent board or mixed cameras do): refuse to write it.
 MAX_ACCEPTABLE_RMS_PX = 2.0
@@ -189,14 +191,41 @@ def _to_gray(image: npt.NDArray[Any]) -> GrayImage:
     return np.ascontiguousarray(image)
 
 
-def _refine_window(corners: FloatArray, board: BoardSpec) -> int:
-    """Half-size of the cornerSubPix window: under half the smallest corner spacing."""
+def _corner_spacing(corners: FloatArray, board: BoardSpec) -> float:
+    """Smallest distance between neighbouring corners along the board's rows and columns."""
     grid = corners.reshape(board.rows, board.columns, 2)
-    spacing = min(
+    return min(
         float(np.min(np.linalg.norm(np.diff(grid, axis=1), axis=2))),
         float(np.min(np.linalg.norm(np.diff(grid, axis=0), axis=2))),
     )
-    return int(max(2, min(11, spacing * 0.4)))
+
+
+def _refine_corners(gray: GrayImage, corners: FloatArray, board: BoardSpec) -> FloatArray:
+    """cornerSubPix with the largest safe window, retried smaller where a corner wandered off.
+
+    The half-window is half the corner spacing (at most 11 px, OpenCV's customary 23x23 window):
+    larger windows average more edge pixels. On a steeply tilted view the window can reach the next
+    grid line and drag a corner onto it (seen: 7.6 px on OpenCV's left02.jpg), so a corner that
+    moved by more than max(1 px, 10 % of the spacing) from the detector's estimate is refined
+    again with half the window.
+    """
+    import cv2
+
+    spacing = _corner_spacing(corners, board)
+    start = corners.astype(np.float32).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
+    half = int(max(2, min(REFINE_MAX_HALF_WINDOW, 0.5 * spacing)))
+    refined = cv2.cornerSubPix(gray, start.copy(), (half, half), (-1, -1), criteria)
+    limit = max(1.0, 0.1 * spacing)
+    wandered = np.linalg.norm((refined - start).reshape(-1, 2), axis=1) > limit
+    while wandered.any() and half > 2:
+        half = max(2, half // 2)
+        refined[wandered] = cv2.cornerSubPix(
+            gray, start[wandered].copy(), (half, half), (-1, -1), criteria
+        )
+        wandered = np.linalg.norm((refined - start).reshape(-1, 2), axis=1) > limit
+    refined[wandered] = start[wandered]  # no window agreed: keep the detector's own estimate
+    return np.asarray(refined, dtype=np.float64).reshape(-1, 2)
 
 
 def detect_board(image: npt.NDArray[Any], board: BoardSpec) -> FloatArray | None:
@@ -222,11 +251,7 @@ def detect_board(image: npt.NDArray[Any], board: BoardSpec) -> FloatArray | None
     # Refine with the gradient-orthogonality criterion even after the SB detector: on rendered
     # boards its own corners are ~0.07 px scattered with a bias that moves the focal length by
     # ~0.4 %; cornerSubPix brings that below 0.1 %.
-    corners = np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2)
-    half = _refine_window(corners.reshape(-1, 2).astype(np.float64), board)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
-    refined = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), criteria)
-    return np.asarray(refined, dtype=np.float64).reshape(-1, 2)
+    return _refine_corners(gray, np.asarray(corners, dtype=np.float64).reshape(-1, 2), board)
 
 
 def guess_board_size(image: npt.NDArray[Any]) -> tuple[int, int] | None:

@@ -150,7 +150,7 @@ PAPER_BOARD = (7, 4, 0.0311)
 
 def render_views(
     camera: CameraModel = TEST_CAMERA, columns: int = 7, rows: int = 4, square: float = 0.0311,
-    count: int = 14, supersample: int = 2,
+    count: int = 14, supersample: int = 3,
 ) -> tuple[list[npt.NDArray[np.uint8]], list[FloatArray]]:
     """`count` rendered views (grey images) and their true corner positions."""
     renderer = CheckerboardRenderer(camera, columns, rows, square, supersample=supersample)
