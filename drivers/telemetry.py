@@ -252,12 +252,16 @@ class TelemetryPublisher(ABC):
         return False
 
     def wants_preview(self, now_mono: float) -> bool:
-        """True once per 1/preview_hz while online, so no JPEG is drawn for nobody."""
+        """True at most once per 1/preview_hz, and only while someone can receive a preview,
+        so the frame loop draws and encodes no JPEG for nobody."""
         if self.settings.preview_hz <= 0 or not self.online:
             return False
         if now_mono - self._last_preview_at < 1.0 / self.settings.preview_hz:
             return False
         self._last_preview_at = now_mono
+        return self._preview_has_audience()
+
+    def _preview_has_audience(self) -> bool:
         return True
 
     def __enter__(self) -> TelemetryPublisher:
@@ -396,6 +400,7 @@ class ZenohPublisher(TelemetryPublisher):
         self._open_attempts = 0
         self._last_error = ""
         self._session_info: zenoh.SessionInfo | None = None
+        self._preview_publisher: zenoh.Publisher | None = None
         self._query_status: Mapping[str, Any] | None = None
         self._query_config: dict[str, Any] | None = None
         self._last_estimate: Mapping[str, Any] | None = None
@@ -442,6 +447,19 @@ class ZenohPublisher(TelemetryPublisher):
         with self._lock:
             self._query_status = status
             self._query_config = redacted
+
+    def _preview_has_audience(self) -> bool:
+        """Whether a subscriber matches the preview key (Zenoh tracks this, also through a
+        router): about a microsecond, checked once per preview period."""
+        publisher = self._preview_publisher
+        if publisher is None:
+            return False
+        try:
+            status: Any = publisher.matching_status
+        except Exception:  # unknown: err on the side of sending
+            return True
+        # Typed as bool in the stubs; zenoh 1.10 returns a MatchingStatus with `.matching`.
+        return bool(getattr(status, "matching", status))
 
     def status(self) -> dict[str, Any]:
         routers = peers = links = None
@@ -495,6 +513,7 @@ class ZenohPublisher(TelemetryPublisher):
             if session is None:
                 return
             declared = self._declare(session)
+            self._preview_publisher = declared[0][PREVIEW_SUFFIX]
             self._online = True
             self._state = "online"
             self._drain_until_stopped(*declared)
@@ -506,6 +525,7 @@ class ZenohPublisher(TelemetryPublisher):
             self._state = "failed"
         finally:
             self._online = False
+            self._preview_publisher = None
             if session is not None:
                 try:
                     session.close()

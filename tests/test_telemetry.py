@@ -545,18 +545,60 @@ def test_unserialisable_payload_is_counted_and_the_stream_goes_on(
             "netpose/rov9/estimate",
             lambda sample: received.append(json.loads(sample.payload.to_bytes())["seq"]),
         )
-        wait_for(lambda: publisher.status()["links"] == 1, 5, "the subscriber's link")
+
+        warm_ups = []
+
+        def warm_up() -> bool:  # seq -1 until one arrives: the subscription has reached us
+            publisher.publish_estimate({"seq": -1})
+            warm_ups.append(-1)
+            return bool(received)
+
+        wait_for(warm_up, 10, "the subscription to reach the publisher")
         caplog.set_level("WARNING", logger="drivers.telemetry")
-        time.sleep(0.3)  # let the subscription reach the publisher before the first put
         publisher.publish_estimate({"seq": 0, "bad": float("nan")})  # bypasses the builders
         publisher.publish_estimate({"seq": 1, "bad": object()})
         publisher.publish_estimate({"seq": 2, "bad": float("inf")})
         for seq in range(3, 8):
             publisher.publish_estimate({"seq": seq})
-        wait_for(lambda: len(received) >= 5, 5, "the good estimates")
+        wait_for(lambda: received[-1:] == [7], 5, "the good estimates")
         subscriber.undeclare()
-    assert received == [3, 4, 5, 6, 7]
+    assert [seq for seq in received if seq >= 0] == [3, 4, 5, 6, 7]
     status = publisher.status()
-    assert status["errors"] == 3 and status["sent"]["estimate"] == 5
+    # Every warm-up and good one was put (the first warm-ups to nobody); the bad ones never.
+    assert status["errors"] == 3 and status["sent"]["estimate"] == len(warm_ups) + 5
     messages = [r.getMessage() for r in caplog.records if "cannot publish" in r.getMessage()]
     assert len(messages) == 2  # once per kind of failure (ValueError, TypeError), not per message
+
+
+def test_preview_is_wanted_only_when_someone_subscribes_to_it(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    import zenoh
+
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=(), preview_hz=2.0)
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    now = [0.0]
+
+    def wanted_a_period_later() -> bool:
+        now[0] += 10.0  # a fake monotonic clock, far beyond the 0.5 s preview period
+        return publisher.wants_preview(now[0])
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as session:
+        estimates_only = session.declare_subscriber("netpose/rov9/estimate", lambda s: None)
+        wait_for(lambda: publisher.status()["links"] == 1, 5, "the subscriber's link")
+        time.sleep(0.3)  # let the subscription propagate
+        assert not wanted_a_period_later()  # linked, but nobody asked for pictures
+        previews = session.declare_subscriber("netpose/*/preview", lambda s: None)
+        wait_for(wanted_a_period_later, 5, "the preview subscriber to be seen")
+        granted = now[0]
+        assert not publisher.wants_preview(granted + 0.4)  # 2 Hz at most
+        assert publisher.wants_preview(granted + 0.5)
+        previews.undeclare()
+        wait_for(lambda: not wanted_a_period_later(), 5, "the preview subscriber to leave")
+        estimates_only.undeclare()
