@@ -29,6 +29,8 @@ BLUR_FRACTION = 0.5
 # Mean absolute grey-level difference (0-255) of 64-px thumbnails below which frames are duplicates.
 DUPLICATE_DIFFERENCE = 2.0
 THUMBNAIL_WIDTH = 64
+# Frames scored per segment of a long video (a segment is 1/max_frames of the video).
+CANDIDATES_PER_SEGMENT = 8
 
 Progress = Callable[[int, int], None]
 
@@ -121,8 +123,8 @@ def sample_video(
 ) -> tuple[list[Frame], int, int]:
     """Up to `max_frames` sharp, distinct frames spread over the video.
 
-    Returns (frames, frames decoded, frames skipped as blurred or duplicate). One decoding pass;
-    memory holds one candidate frame per segment.
+    Returns (frames, frames read, segment picks skipped as blurred or duplicate). One decoding
+    pass; memory holds one candidate frame per segment.
     """
     import cv2
 
@@ -137,7 +139,15 @@ def sample_video(
         best: dict[int, _Candidate] = {}
         scores: list[float] = []
         decoded = 0
+        # Judge at most CANDIDATES_PER_SEGMENT frames per segment; the others are only grabbed
+        # (demuxed and decoded, not converted or scored), which keeps long videos cheap.
+        stride = max(1, total // (segments * CANDIDATES_PER_SEGMENT))
         while True:
+            if decoded % stride:
+                if not capture.grab():
+                    break
+                decoded += 1
+                continue
             ok, frame = capture.read()
             if not ok:
                 break
@@ -154,6 +164,8 @@ def sample_video(
             decoded += 1
             if progress is not None:
                 progress(decoded, max(total, decoded))
+        if progress is not None:
+            progress(decoded, decoded)
     finally:
         capture.release()
     if decoded == 0:

@@ -239,3 +239,19 @@ def test_opencv_filestorage_calibrations_are_read(tmp_path: Path, suffix: str) -
     assert (cam.width, cam.height) == (640, 480)
     assert cam.fx == TEST_CAMERA.fx and cam.cy == TEST_CAMERA.cy
     assert cam.distortion == pytest.approx(TEST_CAMERA.distortion)
+
+
+def test_frames_of_another_size_are_skipped_and_reported(
+    board_folder: Path, tmp_path: Path, capsys
+) -> None:
+    small = tmp_path / "thumb.png"
+    full = cv2.imread(str(board_folder / "view00.png"))
+    assert full is not None
+    cv2.imwrite(str(small), cv2.resize(full, (320, 240)))
+    out = tmp_path / "cam.yaml"
+    code = main(["calibrate", str(board_folder), str(small), "-o", str(out), "--json"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["image_width"], summary["image_height"]) == (640, 480)
+    assert len(summary["views_used"]) == 14
+    assert any("thumb.png (320x240)" in w for w in summary["warnings"])
