@@ -281,7 +281,10 @@ class LivePlot:
     """
 
     def __init__(self, png: Path | None) -> None:
-        import matplotlib
+        try:
+            import matplotlib
+        except ImportError as exc:  # an optional extra; say how to get it
+            raise NetposeError("--plot needs matplotlib: pip install 'netpose[plot]'") from exc
 
         self.png = png
         if png is not None:
