@@ -491,6 +491,34 @@ def test_client_without_router_runs_then_recovers_when_the_router_appears(
         router.communicate(timeout=10)
 
 
+def test_client_reconnects_when_the_router_restarts(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    # BlueOS restarts its router on updates: the same endpoint goes away and comes back.
+    router_endpoint = endpoint()
+    router = start_router(router_endpoint)
+    publisher = publisher_factory(mode="client", connect=(router_endpoint,))
+    try:
+        publisher.start()
+        wait_for(lambda: publisher.online, 10, "the publisher to open via the router")
+        wait_for(lambda: publisher.status()["routers"] == 1, 5, "the router link")
+        router.kill()
+        router.communicate(timeout=10)
+        wait_for(lambda: publisher.status()["routers"] == 0, 30, "the router loss to be noticed")
+        for seq in range(20):  # publishing while the router is away is harmless
+            publisher.publish_estimate(estimate_at(seq))
+        router = start_router(router_endpoint)
+        wait_for(lambda: publisher.status()["routers"] == 1, 20, "the publisher to reconnect")
+        subscriber = start_subscriber(router_endpoint, "netpose/rov9", want=10)
+        lines = feed_until_exit(publisher, subscriber)
+        assert sum(1 for line in lines if line.get("key", "").endswith("/estimate")) >= 10
+        status = publisher.status()
+        assert status["open_attempts"] == 1 and status["errors"] == 0  # Zenoh reconnected
+    finally:
+        router.kill()
+        router.communicate(timeout=10)
+
+
 def test_frame_loop_never_waits_for_a_hanging_zenoh_open(tmp_path: Path) -> None:
     # A TCP listener that never speaks: the kernel accepts the connection, Zenoh's handshake
     # waits for an answer until its open timeout (set through the pass-through config file).
