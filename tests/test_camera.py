@@ -1,0 +1,258 @@
+"""Camera model: calibration files (ROS camera_info YAML), lens model and resolution scaling."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from service.camera import (
+    CameraModel,
+    camera_from_ros_dict,
+    load_camera,
+    save_camera,
+)
+from service.errors import CalibrationError
+
+REAL_DIR = Path("/work/shared/data/real-net-frame")
+REAL_CALIBRATION = REAL_DIR / "camera_solaqua_1280x720.yaml"
+REAL_FRAME = REAL_DIR / "net_1280x720.jpg"
+needs_real_data = pytest.mark.skipif(
+    not REAL_CALIBRATION.exists(), reason="real-net-frame data set not present"
+)
+
+
+def _valid_doc() -> dict[str, object]:
+    return {
+        "image_width": 640,
+        "image_height": 480,
+        "camera_name": "unit",
+        "camera_matrix": {
+            "rows": 3, "cols": 3, "data": [500.0, 0, 319.5, 0, 502.0, 239.5, 0, 0, 1]
+        },
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": {"rows": 1, "cols": 5, "data": [-0.1, 0.02, 0.001, -0.002, 0]},
+    }
+
+
+def _write(tmp_path: Path, doc: object, name: str = "cam.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    return path
+
+
+# -- files ----------------------------------------------------------------------------------------
+
+
+def test_save_then_load_gives_the_same_camera(tmp_path: Path) -> None:
+    camera = CameraModel(
+        width=1920, height=1080, fx=1012.25, fy=1010.5, cx=955.125, cy=541.75,
+        distortion=(-0.21, 0.083, 0.0012, -0.0007, -0.013), name="front", skew=0.25,
+    )
+    path = tmp_path / "front.yaml"
+    save_camera(camera, path)
+    assert load_camera(path) == camera
+    # The file is plain ROS camera_info: a ROS tool reads these keys.
+    doc = yaml.safe_load(path.read_text())
+    assert doc["distortion_model"] == "plumb_bob"
+    assert doc["camera_matrix"]["data"][0] == pytest.approx(1012.25)
+    assert len(doc["projection_matrix"]["data"]) == 12
+
+
+def test_rational_polynomial_round_trip(tmp_path: Path) -> None:
+    camera = CameraModel(
+        width=800, height=600, fx=600.0, fy=600.0, cx=400.0, cy=300.0,
+        distortion=(0.1, -0.05, 0.0, 0.0, 0.01, 0.02, -0.01, 0.003),
+    )
+    path = tmp_path / "rational.yaml"
+    save_camera(camera, path)
+    assert yaml.safe_load(path.read_text())["distortion_model"] == "rational_polynomial"
+    assert load_camera(path) == camera
+
+
+@needs_real_data
+def test_real_calibration_file_loads() -> None:
+    camera = load_camera(REAL_CALIBRATION)
+    assert (camera.width, camera.height) == (1280, 720)
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (882.0, 821.0, 680.0, 360.0)
+    assert camera.distortion == pytest.approx((0.2037, 0.85736, 0.013247, -0.004259, -0.940367))
+    assert camera.has_distortion
+
+
+def test_camera_from_ros_dict_defaults_to_no_distortion() -> None:
+    doc = _valid_doc()
+    del doc["distortion_coefficients"]
+    del doc["distortion_model"]
+    camera = camera_from_ros_dict(doc)
+    assert not camera.has_distortion
+    assert camera.fy == 502.0
+
+
+# -- lens model -----------------------------------------------------------------------------------
+
+
+@needs_real_data
+def test_undistort_and_project_are_inverse_over_the_whole_frame() -> None:
+    camera = load_camera(REAL_CALIBRATION)
+    u, v = np.meshgrid(np.linspace(0, 1279, 33), np.linspace(0, 719, 19))
+    pixels = np.stack([u, v], axis=-1)
+    normalized = camera.undistort_pixels(pixels)
+    assert normalized.shape == pixels.shape
+    # The lens is strong: the corners move by tens of pixels, so the inverse test means something.
+    pinhole = normalized * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    assert np.abs(pinhole - pixels).max() > 20.0
+    # Measured 1e-12 px with the iterative undistortion; 1e-6 px is the required accuracy.
+    assert np.abs(camera.project_normalized(normalized) - pixels).max() < 1e-6
+
+
+def test_pinhole_undistort_is_the_matrix_inverse() -> None:
+    camera = CameraModel(width=640, height=480, fx=500.0, fy=400.0, cx=320.0, cy=240.0)
+    out = camera.undistort_pixels([[820.0, 40.0], [320.0, 240.0]])
+    np.testing.assert_allclose(out, [[1.0, -0.5], [0.0, 0.0]], atol=1e-15)
+    np.testing.assert_allclose(camera.project_normalized(out), [[820.0, 40.0], [320.0, 240.0]])
+
+
+def test_scaled_to_half_resolution_uses_pixel_centres() -> None:
+    camera = CameraModel(width=1280, height=720, fx=882.0, fy=821.0, cx=680.0, cy=360.0)
+    half = camera.scaled_to(640, 360)
+    assert (half.fx, half.fy) == (441.0, 410.5)
+    # Pixel i's centre is at i, so full-res pixels 0 and 1 average into half-res pixel 0 whose
+    # centre is full-res 0.5: x_half = (x_full + 0.5) / 2 - 0.5.
+    assert half.cx == pytest.approx((680.0 + 0.5) / 2 - 0.5)
+    assert half.cy == pytest.approx((360.0 + 0.5) / 2 - 0.5)
+    # Same ray through corresponding points of both images.
+    full_px = np.array([[100.5, 50.5], [1200.5, 700.5]])
+    half_px = (full_px + 0.5) / 2 - 0.5
+    np.testing.assert_allclose(
+        half.undistort_pixels(half_px), camera.undistort_pixels(full_px), atol=1e-12
+    )
+    assert camera.scaled_to(1280, 720) is camera
+
+
+def test_scaled_to_another_aspect_ratio_is_refused() -> None:
+    camera = CameraModel(width=1280, height=720, fx=882.0, fy=821.0, cx=680.0, cy=360.0)
+    with pytest.raises(CalibrationError, match="aspect ratio"):
+        camera.scaled_to(640, 480)
+
+
+# -- bad files: a clear CalibrationError naming the problem ---------------------------------------
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationError, match="not found") as err:
+        load_camera(tmp_path / "nope.yaml")
+    assert "nope.yaml" in str(err.value)
+
+
+def test_invalid_yaml_names_the_line(tmp_path: Path) -> None:
+    path = tmp_path / "broken.yaml"
+    path.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: [1, 2\n  : ]\n")
+    with pytest.raises(CalibrationError, match=r"invalid YAML at line \d+") as err:
+        load_camera(path)
+    line = int(str(err.value).split("line ")[1].split()[0])
+    assert 3 <= line <= 4  # the unclosed flow sequence starts on line 3
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        (lambda d: d.pop("camera_matrix"), "missing key 'camera_matrix'"),
+        (lambda d: d.pop("image_width"), "missing key 'image_width'"),
+        (
+            lambda d: d["camera_matrix"].update(data=[500.0, 0, 319.5, 0, 502.0, 239.5, 0, 0]),
+            "'camera_matrix' must have 9 values, got 8",
+        ),
+        (
+            lambda d: d["camera_matrix"].update(data=[-500.0, 0, 319.5, 0, 502.0, 239.5, 0, 0, 1]),
+            "fx must be positive",
+        ),
+        (lambda d: d.update(distortion_model="fisheye"), "distortion_model 'fisheye'"),
+        (
+            lambda d: d["distortion_coefficients"].update(data=[0.1, 0.2, 0.3]),
+            "4, 5, 8, 12 or 14 values, got 3",
+        ),
+        (lambda d: d["camera_matrix"].update(data="wide"), "not a list of numbers"),
+        (lambda d: d.update(image_width="big"), "must be integers"),
+    ],
+    ids=[
+        "no-camera-matrix", "no-width", "eight-values", "negative-fx", "fisheye",
+        "three-distortion-values", "matrix-not-numbers", "width-not-integer",
+    ],
+)
+def test_bad_content_is_a_clear_calibration_error(
+    tmp_path: Path, edit: object, expected: str
+) -> None:
+    doc = _valid_doc()
+    edit(doc)  # type: ignore[operator]
+    path = _write(tmp_path, doc)
+    with pytest.raises(CalibrationError) as err:
+        load_camera(path)
+    message = str(err.value)
+    assert expected in message
+    assert str(path) in message  # which file, for a user with several calibrations
+
+
+def test_a_yaml_list_is_not_a_calibration(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationError, match="not a YAML mapping"):
+        load_camera(_write(tmp_path, [1, 2, 3]))
+
+
+# -- netpose command line: a bad calibration is one line on stderr, exit 78 ----------------------
+
+
+def _netpose(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", *args],
+        capture_output=True, text=True, timeout=60, check=False,
+    )
+
+
+def _assert_one_line_calibration_error(result: subprocess.CompletedProcess[str], what: str) -> None:
+    assert result.returncode == 78, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr  # no traceback
+    assert lines[0].startswith("netpose: calibration error:")
+    assert what in lines[0]
+
+
+def _calibration_option(command: str) -> str:
+    """The command's calibration-file option, whatever its author named it (--camera, --calib)."""
+    import argparse
+
+    from service.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for action in sub.choices[command]._actions:
+        if any(s.startswith(("--cam", "--calib")) for s in action.option_strings):
+            return next(s for s in action.option_strings if s.startswith("--"))
+    pytest.fail(f"netpose {command} has no --camera/--calibration option")
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("service.commands.estimate") is None,
+    reason="netpose estimate is not part of this build yet",
+)
+@needs_real_data
+def test_estimate_cli_reports_a_bad_calibration_in_one_line(tmp_path: Path) -> None:
+    doc = _valid_doc()
+    doc["camera_matrix"] = {"rows": 3, "cols": 3, "data": [1.0, 2.0]}
+    bad = _write(tmp_path, doc)
+    result = _netpose("estimate", str(REAL_FRAME), _calibration_option("estimate"), str(bad))
+    _assert_one_line_calibration_error(result, "must have 9 values")
+
+
+@needs_real_data
+def test_undistort_cli_reports_a_bad_calibration_in_one_line(tmp_path: Path) -> None:
+    doc = _valid_doc()
+    doc["distortion_model"] = "equidistant"
+    bad = _write(tmp_path, doc)
+    out = tmp_path / "out.png"
+    result = _netpose("undistort", str(REAL_FRAME), "--camera", str(bad), "-o", str(out))
+    _assert_one_line_calibration_error(result, "distortion_model 'equidistant'")
+    assert not out.exists()
