@@ -19,3 +19,12 @@ class NotifyError(DriverError):
 
 class MavlinkLinkError(DriverError):
     """The MAVLink link to the autopilot cannot be opened or was closed by the other side."""
+
+
+class SourceError(DriverError):
+    """A frame source cannot be opened (or re-opened); `url` names it, `reason` says why."""
+
+    def __init__(self, url: str, reason: str) -> None:
+        super().__init__(f"frame source {url}: {reason}")
+        self.url = url
+        self.reason = reason

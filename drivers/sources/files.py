@@ -1,0 +1,199 @@
+"""Recorded frames: a video file (`file:`) or a folder of images (`images:`).
+
+    file:dive.mp4?loop=1&realtime=1     replay a recording, endlessly, at its own frame rate
+    images:frames/?fps=10               every image in frames/, in name order, as 10 fps
+    images:frames/*.png                 a glob pattern instead of a whole folder
+
+Options: `loop` (start again after the last frame), `realtime` (pace to the frame rate and drop
+what the consumer misses; default: as fast as the consumer reads, nothing lost), `fps` (the
+rate of an image folder, default 10; for a video, only used when the file does not say).
+A frame that cannot be decoded is counted as corrupt and skipped; a file that cannot be opened
+at all, or has no decodable frame, is an error naming the URL.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import SourceError
+from drivers.sources.base import SourceOptions
+from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
+from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
+from drivers.sources.url import SourceUrl, parse_source_url, url_error
+
+log = logging.getLogger(__name__)
+
+FILE_OPTIONS = ("loop", "realtime", "fps")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+DEFAULT_IMAGE_FPS = 10.0
+# Failed reads in a row that mean "end of file" rather than "a damaged frame". OpenCV's FFmpeg
+# backend returns False both for a frame the decoder rejects (and goes on with the next one) and
+# at the end, so failures only count as corrupt frames once a good frame follows them.
+END_AFTER_FAILED_READS = 8
+
+
+def _parse(url: str, scheme: str) -> SourceUrl:
+    parsed = parse_source_url(url)
+    if parsed.scheme != scheme:
+        raise url_error(url, f"not a {scheme}: URL")
+    parsed.check_options(FILE_OPTIONS)
+    if not parsed.path:
+        raise url_error(url, f"{scheme}: needs a path")
+    return parsed
+
+
+class VideoFileSource(PacedSource):
+    """A video file decoded by OpenCV's FFmpeg backend."""
+
+    def __init__(self, url: str, options: SourceOptions | None = None) -> None:
+        parsed = _parse(url, "file")
+        super().__init__(
+            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
+        )
+        self.path = Path(parsed.path).expanduser()
+        self._fps_option = parsed.number("fps", None, 0.1, 1000.0)
+        self._fps = self._fps_option or 25.0
+        self._cap: VideoCaptureLike | None = None
+        self._first: MediaFrame | None = None
+        self._decoded = 0
+        self._origin_ms: float | None = None
+
+    @property
+    def frame_period_s(self) -> float:
+        return 1.0 / self._fps
+
+    def _open_capture(self) -> VideoCaptureLike:
+        if not self.path.is_file():
+            raise SourceError(self.url, f"no such file: {self.path.resolve()}")
+        return open_ffmpeg_capture(
+            self.url,
+            str(self.path),
+            options=None,
+            open_timeout_s=self._options.open_timeout_s,
+            read_timeout_s=max(self._options.stall_timeout_s, 5.0),
+            failure="OpenCV's FFmpeg backend cannot read it (damaged, truncated, or not a video "
+            "format it knows)",
+        )
+
+    def _start(self) -> None:
+        import cv2
+
+        self._cap = self._open_capture()
+        file_fps = self._cap.get(cv2.CAP_PROP_FPS)
+        if self._fps_option is None:
+            if 0.1 <= file_fps <= 1000.0:
+                self._fps = file_fps
+            else:
+                log.warning("%s does not state its frame rate; assuming %g fps", self.path,
+                            self._fps)
+        try:
+            self._first = self._next_media()
+        except EndOfMediaError:
+            self._stop()
+            raise SourceError(self.url, "the file opens but holds no decodable frame") from None
+
+    def _next_media(self) -> MediaFrame:
+        if self._first is not None:
+            first, self._first = self._first, None
+            return first
+        import cv2
+
+        cap = self._cap
+        if cap is None:
+            raise EndOfMediaError
+        failed = 0
+        while True:
+            ok, image = cap.read()
+            if ok and image is not None:
+                break
+            failed += 1
+            if failed >= END_AFTER_FAILED_READS:
+                raise EndOfMediaError
+        media_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+        number = self._decoded + failed
+        if self._origin_ms is None:
+            # Containers such as MPEG-TS start at a non-zero time; the first frame is frame 0.
+            self._origin_ms = media_ms - 1000.0 * number / self._fps
+        if media_ms >= 0.0:
+            # The frame's own presentation time gives its true number, across skipped frames.
+            number = max(number, round((media_ms - self._origin_ms) / 1000.0 * self._fps))
+        self._decoded = number + 1
+        return MediaFrame(
+            image=image,
+            number=number,
+            media_time_s=number / self._fps,
+            skipped_before=failed,
+        )
+
+    def _rewind(self) -> None:
+        # Re-opening is the one rewind every container and codec supports.
+        self._stop()
+        self._decoded = 0
+        self._origin_ms = None
+        self._cap = self._open_capture()
+
+    def _stop(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class ImageFolderSource(PacedSource):
+    """Every image of a folder (or glob pattern), in name order, at a nominal frame rate."""
+
+    def __init__(self, url: str, options: SourceOptions | None = None) -> None:
+        parsed = _parse(url, "images")
+        super().__init__(
+            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
+        )
+        self.pattern = parsed.path
+        fps = parsed.number("fps", DEFAULT_IMAGE_FPS, 0.01, 1000.0)
+        assert fps is not None
+        self._fps = fps
+        self._files: list[Path] = []
+        self._position = 0
+
+    @property
+    def frame_period_s(self) -> float:
+        return 1.0 / self._fps
+
+    @property
+    def files(self) -> list[Path]:
+        return list(self._files)
+
+    def _start(self) -> None:
+        path = Path(self.pattern).expanduser()
+        if glob.has_magic(self.pattern):
+            candidates = [Path(p) for p in glob.glob(str(path))]
+        elif path.is_dir():
+            candidates = list(path.iterdir())
+        else:
+            raise SourceError(self.url, f"no such folder: {path.resolve()}")
+        self._files = sorted(
+            p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        )
+        if not self._files:
+            raise SourceError(
+                self.url, f"no images ({', '.join(IMAGE_SUFFIXES)}) in {self.pattern}"
+            )
+
+    def _next_media(self) -> MediaFrame:
+        import cv2
+
+        if self._position >= len(self._files):
+            raise EndOfMediaError
+        number = self._position
+        self._position += 1
+        flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
+        image: Any = cv2.imread(str(self._files[number]), flags)
+        return MediaFrame(image=image, number=number, media_time_s=number / self._fps)
+
+    def _rewind(self) -> None:
+        self._position = 0
+
+    def _stop(self) -> None:
+        self._files = []
+        self._position = 0

@@ -1,0 +1,217 @@
+"""Sources that produce frames on demand (files, image folders, the renderer), optionally paced.
+
+Without pacing, read() returns the next frame at once: a recording is replayed as fast as the
+consumer goes and no frame is lost (tests, benchmarks, offline replay). With `realtime`, frames
+become due at their media time after open(), as from a camera: read() waits for the next due
+frame and skips (counts as drops) every frame whose successor is already due, so a slow
+consumer sees the newest frame, just as from a live source. No thread is involved: decoding
+happens in the caller.
+
+Timestamps are media time on the clocks of open(): t_monotonic = (monotonic at open) + media
+time, so a replay keeps the recording's frame spacing whatever the processing speed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from abc import abstractmethod
+from dataclasses import dataclass
+
+from drivers.sources.base import (
+    Frame,
+    FrameSource,
+    RateMeter,
+    SourceOptions,
+    SourceState,
+    SourceStats,
+    split_gray_color,
+)
+from drivers.sources.url import redact
+
+log = logging.getLogger(__name__)
+
+
+class EndOfMediaError(Exception):
+    """Raised by _next_media() after the last frame."""
+
+
+@dataclass(frozen=True, eq=False)
+class MediaFrame:
+    """One frame as the medium holds it. `image` None: this frame cannot be decoded."""
+
+    image: object | None
+    number: int  # position in the medium, 0-based
+    media_time_s: float
+    truth: object | None = None
+    skipped_before: int = 0  # unreadable frames passed over just before this one
+
+
+class PacedSource(FrameSource):
+    """Base of the file, image-folder and synthetic sources."""
+
+    def __init__(
+        self,
+        url: str,
+        options: SourceOptions | None = None,
+        *,
+        loop: bool = False,
+        realtime: bool = False,
+    ) -> None:
+        super().__init__(url)
+        self._options = options or SourceOptions()
+        self.loop = loop
+        self.realtime = realtime
+        self._state = SourceState.OPENING
+        self._t0_mono = 0.0
+        self._t0_wall = 0.0
+        self._loop_time_s = 0.0  # media time added per completed loop
+        self._loop_index = 0  # frame numbers added per completed loop
+        self._last: MediaFrame | None = None
+        self._good_since_rewind = 0
+        self._pending: tuple[MediaFrame, Frame] | None = None
+        self._frames = 0
+        self._drops = 0
+        self._corrupt = 0
+        self._rate = RateMeter()
+
+    # -- what a subclass provides -----------------------------------------------------------
+    @abstractmethod
+    def _start(self) -> None:
+        """Open the medium; raise SourceError naming the URL if that is impossible."""
+
+    @abstractmethod
+    def _next_media(self) -> MediaFrame:
+        """The next frame of the medium; raise EndOfMediaError after the last."""
+
+    @abstractmethod
+    def _rewind(self) -> None:
+        """Go back to the first frame (for `loop`)."""
+
+    @abstractmethod
+    def _stop(self) -> None:
+        """Release the medium."""
+
+    @property
+    @abstractmethod
+    def frame_period_s(self) -> float:
+        """Nominal time between frames (1 / fps)."""
+
+    # -- FrameSource ------------------------------------------------------------------------
+    def open(self) -> None:
+        if self._state is not SourceState.OPENING:
+            return
+        self._start()
+        self._t0_mono = time.monotonic()
+        self._t0_wall = time.time()
+        self._state = SourceState.UP
+        log.info(
+            "frame source %s up: %.4g fps%s%s",
+            redact(self.url),
+            1.0 / self.frame_period_s,
+            ", looping" if self.loop else "",
+            ", paced in real time" if self.realtime else "",
+        )
+
+    def read(self, timeout_s: float) -> Frame | None:
+        if self._state is not SourceState.UP:
+            return None
+        if not self.realtime:
+            item = self._next_frame()
+            return None if item is None else self._deliver(item[1])
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        if self._pending is None:
+            self._pending = self._next_frame()
+        while self._pending is not None:
+            frame = self._pending[1]
+            now = time.monotonic()
+            if frame.t_monotonic + self.frame_period_s <= now:
+                # Its successor is due already: the consumer missed this one.
+                self._drops += 1
+                self._pending = self._next_frame()
+                continue
+            if frame.t_monotonic > now:
+                if frame.t_monotonic > deadline:
+                    time.sleep(max(0.0, deadline - now))
+                    return None
+                time.sleep(frame.t_monotonic - now)
+            self._pending = None
+            return self._deliver(frame)
+        return None
+
+    @property
+    def state(self) -> SourceState:
+        return self._state
+
+    def stats(self) -> SourceStats:
+        return SourceStats(
+            state=self._state,
+            frames=self._frames,
+            captured=self._frames + self._drops,
+            drops=self._drops,
+            corrupt=self._corrupt,
+            reconnects=0,
+            fps=self._rate.rate(time.monotonic()),
+        )
+
+    def close(self) -> None:
+        if self._state is SourceState.CLOSED:
+            return
+        if self._state is not SourceState.OPENING:
+            self._stop()
+        self._state = SourceState.CLOSED
+        self._pending = None
+
+    # -- internals --------------------------------------------------------------------------
+    def _deliver(self, frame: Frame) -> Frame:
+        self._frames += 1
+        self._rate.tick(time.monotonic())
+        return frame
+
+    def _count_corrupt(self, count: int) -> None:
+        if count <= 0:
+            return
+        if self._corrupt == 0:
+            log.warning(
+                "frame source %s: skipped an undecodable frame (further ones are only counted)",
+                redact(self.url),
+            )
+        self._corrupt += count
+
+    def _next_frame(self) -> tuple[MediaFrame, Frame] | None:
+        """The next decodable frame (looping if asked), or None at the end (state ENDED)."""
+        while True:
+            try:
+                media = self._next_media()
+            except EndOfMediaError:
+                if self.loop and self._good_since_rewind > 0 and self._last is not None:
+                    self._loop_time_s += self._last.media_time_s + self.frame_period_s
+                    self._loop_index += self._last.number + 1
+                    self._good_since_rewind = 0
+                    self._rewind()
+                    continue
+                if self.loop:
+                    log.warning("frame source %s: no decodable frame to loop", redact(self.url))
+                self._state = SourceState.ENDED
+                log.info("frame source %s ended after %d frames", redact(self.url), self._frames)
+                return None
+            self._count_corrupt(media.skipped_before)
+            converted = (
+                None if media.image is None
+                else split_gray_color(media.image, self._options.keep_color)
+            )
+            if converted is None:
+                self._count_corrupt(1)
+                continue
+            self._last = media
+            self._good_since_rewind += 1
+            offset = self._loop_time_s + media.media_time_s
+            frame = Frame(
+                image=converted[0],
+                index=self._loop_index + media.number,
+                t_monotonic=self._t0_mono + offset,
+                t_wall=self._t0_wall + offset,
+                color=converted[1],
+                truth=media.truth,
+            )
+            return media, frame

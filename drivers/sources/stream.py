@@ -1,0 +1,68 @@
+"""Network video streams (RTSP, MPEG-TS over UDP/TCP, RTP via an SDP file, HTTP...) via FFmpeg.
+
+On a BlueOS vehicle the camera manager owns the camera and serves H.264 over RTSP (port 8554)
+and RTP/UDP (port 5600); netpose reads one of those instead of the device. OpenCV's FFmpeg
+backend does the demuxing and decoding. What matters for a pose estimator is latency: FFmpeg's
+default probing and buffering add frames of delay, so the capture is opened with
+`fflags;nobuffer|flags;low_delay` (plus `rtsp_transport;tcp` for RTSP: on a tether, lost UDP
+packets smear H.264 frames for a whole GOP, TCP only delays them) and the grabber thread of
+LiveSource keeps only the newest decoded frame.
+
+`sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
+payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
+"""
+
+from __future__ import annotations
+
+from drivers.sources.base import SourceOptions
+from drivers.sources.live import LiveSource
+from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
+
+# Low-latency demuxer/decoder flags for every network stream.
+LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay"
+
+
+def default_ffmpeg_options(url: str) -> str:
+    """The FFmpeg capture options netpose uses for `url` (see the module docstring)."""
+    options = LOW_LATENCY_OPTIONS
+    if url.startswith(("rtsp://", "rtsps://")):
+        options += "|rtsp_transport;tcp"
+    elif url.startswith("sdp:"):
+        # An SDP file is read from disk, then points FFmpeg at UDP/RTP sockets.
+        options += "|protocol_whitelist;file,udp,rtp,crypto,data"
+    return options
+
+
+def ffmpeg_target(url: str) -> str:
+    """What FFmpeg opens for `url`: the URL itself, or the file behind `sdp:`."""
+    if url.startswith("sdp:"):
+        path = url[len("sdp:") :]
+        return path[2:] if path.startswith("//") else path
+    return url
+
+
+class StreamSource(LiveSource):
+    """A live network stream, re-opened with backoff when it stalls or ends."""
+
+    def __init__(self, url: str, options: SourceOptions | None = None) -> None:
+        super().__init__(url, options)
+        opts = self._options
+        self._ffmpeg_options = (
+            opts.ffmpeg_options if opts.ffmpeg_options is not None else default_ffmpeg_options(url)
+        )
+
+    @property
+    def ffmpeg_options(self) -> str:
+        return self._ffmpeg_options
+
+    def _connect(self) -> VideoCaptureLike:
+        opts = self._options
+        # The read time limit is the stall timeout: a stream that sends nothing for that long
+        # makes read() fail instead of blocking, and the grabber re-opens it.
+        return open_ffmpeg_capture(
+            self.url,
+            ffmpeg_target(self.url),
+            options=self._ffmpeg_options,
+            open_timeout_s=opts.open_timeout_s,
+            read_timeout_s=opts.stall_timeout_s,
+        )
