@@ -88,12 +88,12 @@ class LiveSource(FrameSource):
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:
             while True:
+                if self._state is SourceState.CLOSED:
+                    return None
                 if self._latest_seq > self._consumed_seq and self._latest is not None:
                     self._consumed_seq = self._latest_seq
                     self._frames += 1
                     return self._latest
-                if self._state is SourceState.CLOSED:
-                    return None
                 remaining = deadline - time.monotonic()
                 if remaining <= 0.0:
                     return None
@@ -121,6 +121,7 @@ class LiveSource(FrameSource):
         self._stop.set()
         with self._cond:
             self._state = SourceState.CLOSED
+            self._latest = None
             self._cond.notify_all()
         thread, self._thread = self._thread, None
         if thread is None:
