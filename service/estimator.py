@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -130,8 +130,10 @@ class NetEstimator:
         grid: list[_RoiGeometry] = []
         if lw >= n and lh >= n:
             if kind == "probe":
-                xs = [(lw - n) // 2, (lw - n) // 4, 3 * (lw - n) // 4]
-                corners = [(x, (lh - n) // 2) for x in xs]
+                # Centre and four quadrant points: a school of fish rarely covers all five.
+                cx, cy = (lw - n) // 2, (lh - n) // 2
+                qx, qy = (lw - n) // 4, (lh - n) // 4
+                corners = [(cx, cy), (qx, qy), (3 * qx, qy), (qx, 3 * qy), (3 * qx, 3 * qy)]
             elif kind == "grid":
                 cols, rows = self.settings.grid_cols, self.settings.grid_rows
                 xs = np.linspace(0, lw - n, cols).round().astype(int)
@@ -201,10 +203,12 @@ class NetEstimator:
         return float(np.median(periods)) if periods else None
 
     # -- per frame -------------------------------------------------------------------------------
-    def estimate(self, frame: Image, level_hint: int | None = None) -> NetEstimate:
+    def estimate(self, frame: Image, prior: NetEstimate | None = None) -> NetEstimate:
         """Estimate the net plane in one frame (grayscale, or BGR which is converted).
 
-        `level_hint` (the previous estimate's `level`) skips the scale search while tracking.
+        `prior` (the previous frame's estimate, while tracking) lets the estimator skip the
+        scale search and the unrectified pass: the ROIs are rectified with the prior plane
+        straight away. Without a detection that way it falls back to the full search.
         """
         import cv2
 
@@ -225,12 +229,41 @@ class NetEstimator:
             raise EstimatorInputError(
                 f"frame {w}x{h} is smaller than one {self.settings.roi_size}px ROI"
             )
+        if prior is not None and prior.detected and prior.normal is not None and (
+            prior.distance_m is not None and prior.level in levels
+        ):
+            tracked = self._rectified_pass(
+                level_image, prior.level, np.asarray(prior.normal), prior.distance_m, w, h,
+                timings,
+            )
+            if _agrees(tracked, prior):
+                timings["total"] = (time.perf_counter() - t0) * 1e3
+                return replace(tracked, timings_ms=timings)
         t1 = time.perf_counter()
-        order = self._level_order(levels, level_hint, level_image, w, h)
+        order, probes = self._level_order(levels, level_image, w, h)
         t2 = time.perf_counter()
         timings["scale_search"] = (t2 - t1) * 1e3
+        if order:
+            # The probes are spread over the frame: when they agree on a plane, that plane
+            # seeds the rectified pass and the unrectified grid pass is not needed.
+            seed = self._conclude(probes, order[0], np.eye(3), timings)
+            # Only a unanimous seed: with 5 probes, 4 leave a single redundant check, and a fish
+            # in one probe can then tilt the seed enough to mislead the rectification.
+            if seed.normal is not None and seed.distance_m is not None and (
+                seed.rois_used == len(probes)
+            ):
+                quick = self._rectified_pass(
+                    level_image, order[0], np.asarray(seed.normal), seed.distance_m, w, h,
+                    timings,
+                )
+                if _agrees(quick, seed):
+                    timings["total"] = (time.perf_counter() - t0) * 1e3
+                    return replace(quick, timings_ms=timings)
+        # Normally the two best levels at most; when the probes saw nothing (no net, or fish
+        # over every probe) the full grid at every level.
+        searched = order[:2] if order else levels
         best: NetEstimate | None = None
-        for level in order[:2]:
+        for level in searched:
             result = self._estimate_at(level_image, level, w, h, timings)
             if best is None or result.confidence > best.confidence:
                 best = result
@@ -241,19 +274,17 @@ class NetEstimator:
                 detected=False, confidence=0.0, reason="no lattice at any scale in the probe ROIs"
             )
         timings["total"] = (time.perf_counter() - t0) * 1e3
-        return NetEstimate(**{**best.__dict__, "timings_ms": timings})
+        return replace(best, timings_ms=timings)
 
     def _level_order(
-        self, levels: list[int], hint: int | None, level_image: Callable[[int], Image],
-        w: int, h: int,
-    ) -> list[int]:
-        """Levels to try, best first: the hint, else the finest level where the probes see a
-        lattice whose period is not too coarse. Finest first because a coarser level can only
-        lose harmonics and gain aliases, and a wrong lattice there can mimic a good period."""
-        if hint is not None and hint in levels:
-            return [hint, *sorted((lv for lv in levels if lv != hint), key=lambda v: abs(v - hint))]
+        self, levels: list[int], level_image: Callable[[int], Image], w: int, h: int
+    ) -> tuple[list[int], list[_RoiMeasurement]]:
+        """Levels to try, best first: the finest level where the probes see a lattice whose
+        period is not too coarse. Finest first because a coarser level can only lose harmonics
+        and gain aliases, and a wrong lattice there can mimic a good period."""
         hi = self.settings.preferred_period_px * 1.8
         coarse: list[int] = []
+        coarse_probes: list[_RoiMeasurement] = []
         for level in levels:
             probes = [
                 self._measure(level_image(level), g, level)
@@ -264,9 +295,10 @@ class NetEstimator:
                 continue
             if period > hi and level != levels[-1]:
                 coarse.append(level)
+                coarse_probes = probes
                 continue
-            return [level, *coarse[::-1]]
-        return coarse[::-1]
+            return [level, *coarse[::-1]], probes
+        return coarse[::-1], coarse_probes
 
     def _measure_grid(
         self, level_image: Callable[[int], Image], level: int, w: int, h: int
@@ -311,18 +343,57 @@ class NetEstimator:
         measurements = self._measure_grid(level_image, level, w, h)
         timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
         first = self._conclude(measurements, level, np.eye(3), timings)
-        if first.normal is None or first.distance_m is None:
-            return first
-        # Second pass on perspective-rectified ROIs: removes the chirp that biases tilted views.
-        t1 = time.perf_counter()
-        rotation = _rotation_to_z(-np.asarray(first.normal))
+        return self._refine_rectified(first, level_image, level, w, h, timings)
+
+    def _refine_rectified(
+        self,
+        seed: NetEstimate,
+        level_image: Callable[[int], Image],
+        level: int,
+        w: int,
+        h: int,
+        timings: dict[str, float],
+        iterations: int = 3,
+    ) -> NetEstimate:
+        """Rectified passes until one lands on the plane it was rectified with.
+
+        The unrectified pass is biased by the perspective chirp and can be wrong outright on
+        extreme views; only a self-consistent rectified result is reported as a detection.
+        """
+        current = seed
+        for _ in range(iterations):
+            if not current.detected or current.normal is None or current.distance_m is None:
+                break
+            result = self._rectified_pass(
+                level_image, level, np.asarray(current.normal), current.distance_m, w, h,
+                timings,
+            )
+            if _agrees(result, current):
+                return result
+            current = result
+        return _undetected(
+            seed if not current.detected else current,
+            "the ROIs do not converge on one plane (rectified passes disagree)",
+        )
+
+    def _rectified_pass(
+        self,
+        level_image: Callable[[int], Image],
+        level: int,
+        normal: F64,
+        distance_m: float,
+        w: int,
+        h: int,
+        timings: dict[str, float],
+    ) -> NetEstimate:
+        t0 = time.perf_counter()
+        rotation = _rotation_to_z(-normal)
         rect = [
-            self._measure_rectified(level_image, m.geometry, rotation, first.distance_m)
-            for m in measurements
+            self._measure_rectified(level_image, g, rotation, distance_m)
+            for g in self._layout(w, h, level, "grid")
         ]
-        timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t1) * 1e3
-        second = self._conclude(rect, level, rotation, timings)
-        return second if second.detected else first
+        timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t0) * 1e3
+        return self._conclude(rect, level, rotation, timings)
 
     def _conclude(
         self,
@@ -458,11 +529,15 @@ class NetEstimator:
         quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
             s.min_inlier_fraction
         )
+        # The rectification was designed to show the mesh at the preferred period; a lattice far
+        # from it means the seed plane was wrong or the ROI shows something else.
+        period_out = n / math.sqrt(fit.det)
+        on_target = abs(math.log(period_out / s.preferred_period_px)) < math.log(1.35)
         k_out = fit.basis / n  # cycles per output pixel
         meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
         # For reporting: the lattice in full-resolution image pixels through the local map.
         meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
-        meas.valid = bool(period_ok and quality_ok)
+        meas.valid = bool(period_ok and quality_ok and on_target)
         return meas
 
 
@@ -526,3 +601,34 @@ def _rotation_to_z(direction: F64) -> F64:
     k = axis / sin
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.asarray(np.eye(3) + sin * kx + (1 - cos) * (kx @ kx), dtype=np.float64)
+
+
+def _undetected(result: NetEstimate, reason: str) -> NetEstimate:
+    return replace(
+        result,
+        detected=False,
+        confidence=min(result.confidence, 0.2),
+        normal=None,
+        distance_m=None,
+        range_m=None,
+        sigma_distance_m=None,
+        sigma_range_m=None,
+        sigma_normal_deg=None,
+        reason=result.reason or reason,
+    )
+
+
+def _agrees(result: NetEstimate, seed: NetEstimate) -> bool:
+    """A rectified pass is trusted only when it lands near the plane it was rectified with.
+
+    Rectifying with a badly wrong plane stretches the ROIs anisotropically (aliasing in one
+    direction) and can produce a self-consistent but wrong plane; the seed check catches that.
+    """
+    if not result.detected or result.normal is None or seed.normal is None:
+        return False
+    if result.distance_m is None or seed.distance_m is None:
+        return False
+    cos = float(np.dot(result.normal, seed.normal))
+    return cos > math.cos(math.radians(8.0)) and abs(
+        result.distance_m / seed.distance_m - 1.0
+    ) < 0.08

@@ -121,8 +121,13 @@ def _basis_observed(basis: F64, k: F64, tol: F64) -> bool:
         d_minus = np.hypot(k[:, 0] + v[0], k[:, 1] + v[1])
         return bool(((d_plus < tol) | (d_minus < tol)).any())
 
+    def seen_odd(v: F64) -> bool:
+        # The fundamental may drown in the low-frequency background of a short ROI while its
+        # third harmonic stands clear; folded aliases do not line up like that.
+        return seen(v) or seen(3.0 * v)
+
     b1, b2 = basis[:, 0], basis[:, 1]
-    return seen(b1) and (seen(b2) or seen(b2 + b1) or seen(b2 - b1))
+    return seen_odd(b1) and (seen_odd(b2) or seen_odd(b2 + b1) or seen_odd(b2 - b1))
 
 
 def _assign(basis: F64, k: F64, tol: F64) -> tuple[npt.NDArray[np.bool_], I64]:

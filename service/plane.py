@@ -40,7 +40,7 @@ def fit_plane(
     min_rois: int = 4,
     outlier_sigma: float = 3.5,
     min_relative_tolerance: float = 0.01,
-    consensus_tolerance: float = 0.03,
+    consensus_tolerance: float = 0.02,
 ) -> PlaneFit | None:
     """Robust weighted plane fit; None when too few consistent ROIs or a degenerate layout."""
     if rays.shape[0] < min_rois:
