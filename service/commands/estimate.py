@@ -1,0 +1,80 @@
+"""`netpose estimate IMAGE... --calibration CAMERA.yaml --mesh-size METRES [--json]`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from service.results import NetEstimate
+
+
+def add_parser(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "estimate",
+        help="detect the net and estimate distance and orientation in still images",
+        description="One line per image, in input order. Unreadable images are reported and "
+        "skipped; the exit status is then 1.",
+    )
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE")
+    p.add_argument("--calibration", "-c", required=True, type=Path,
+                   help="camera calibration (ROS camera_info YAML or OpenCV FileStorage)")
+    p.add_argument("--mesh-size", required=True, type=float, metavar="METRES",
+                   help="bar length of the mesh, knot to knot (side of a square mesh), in metres")
+    p.add_argument("--opening-angle", type=float, default=90.0, metavar="DEG",
+                   help="mesh opening angle in degrees (90 = square, default)")
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+    p.set_defaults(handler=run)
+
+
+def describe(name: str, est: NetEstimate) -> str:
+    """The human-readable line for one image."""
+    if not est.detected or est.range_m is None or est.normal is None:
+        return f"{name}: no net ({est.reason or 'not detected'}; confidence {est.confidence:.2f})"
+    nx, ny, nz = est.normal
+    sigma = f" +- {est.sigma_range_m:.3f}" if est.sigma_range_m is not None else ""
+    return (
+        f"{name}: net detected, confidence {est.confidence:.2f}: range {est.range_m:.3f} m{sigma}"
+        f", distance {est.distance_m:.3f} m, tilt {est.tilt_deg:.1f} deg "
+        f"(normal {nx:+.3f} {ny:+.3f} {nz:+.3f}), {est.rois_used}/{len(est.rois)} ROIs, "
+        f"{est.timings_ms.get('total', 0.0):.0f} ms"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from service.camera import load_camera
+    from service.estimator import NetEstimator
+    from service.mesh import MeshGeometry
+
+    camera = load_camera(args.calibration)
+    mesh = MeshGeometry(args.mesh_size, args.opening_angle)
+    estimator = NetEstimator(camera, mesh)
+    failures = 0
+    for path in args.images:
+        name = str(path)
+        try:
+            if not path.is_file():
+                raise ValueError("no such file")
+            image = cv2.imread(name, cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise ValueError("cannot read image (missing, unreadable or not an image)")
+            est = estimator.estimate(image)
+        except Exception as exc:  # one bad image must not lose the rest
+            failures += 1
+            if args.json:
+                print(json.dumps({"image": name, "error": str(exc)}), flush=True)
+            else:
+                print(f"{name}: error: {exc}", flush=True)
+            continue
+        if args.json:
+            print(json.dumps({"image": name, **est.to_json_dict()}), flush=True)
+        else:
+            print(describe(name, est), flush=True)
+    if failures:
+        print(f"netpose: {failures} of {len(args.images)} images could not be processed",
+              file=sys.stderr)
+    return 1 if failures else 0
