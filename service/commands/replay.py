@@ -1,0 +1,521 @@
+"""`netpose replay`: run the estimator over a recording and write what it saw.
+
+    netpose replay dive.mp4 --calibration camera.yaml --mesh-size 0.025 --out dive-replay/
+
+Writes to the output folder: estimates.csv (one row per processed frame), annotated.mp4 (each
+frame with ROIs, mesh cells, the back-projected net axes and the distance), summary.json and
+PNG plots. Frames come from drivers.sources, so INPUT is a video file, an image folder or any
+frame-source URL. Ctrl-C (or SIGTERM) stops after the frame in hand and still writes a valid
+video, summary and plots for what was processed (exit status 130).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING, Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from service.errors import ConfigError, NetposeError
+
+if TYPE_CHECKING:
+    from drivers.sources import FrameSource
+    from service.annotate import FrameAnnotator
+    from service.estimator import EstimatorSettings
+    from service.replay import FrameResult, ReplayFrame, ReplayStats, Truth
+    from service.tracking import FilterSettings
+
+log = logging.getLogger(__name__)
+
+EXIT_INTERRUPTED = 130
+DEFAULT_VIDEO_WIDTH = 1280
+DEFAULT_IMAGE_FPS = 10.0
+# How long one read waits; a live source that stays silent longer is reported (once).
+READ_TIMEOUT_S = 1.0
+VIDEO_NAME = "annotated.mp4"
+FALLBACK_VIDEO_NAME = "annotated.avi"
+
+
+def add_parser(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "replay",
+        help="evaluate a recording: estimates CSV, annotated video, summary and plots",
+        description=(
+            "Run the net estimator (and with --filter the tracking filter) over every frame of "
+            "a recording and write estimates.csv, annotated.mp4, summary.json and PNG plots to "
+            "the output folder. With ground truth (synthetic: source, or --truth CSV) the "
+            "summary and plots include the error against it."
+        ),
+    )
+    p.add_argument(
+        "input", metavar="INPUT",
+        help="video file, image folder, or frame-source URL (file:, images:, synthetic:, "
+        "rtsp://, ...)",
+    )
+    p.add_argument("--calibration", type=Path, required=True, metavar="CAMERA.yaml",
+                   help="camera calibration (ROS camera_info YAML or OpenCV FileStorage)")
+    p.add_argument("--mesh-size", type=float, required=True, metavar="M",
+                   help="mesh bar length knot to knot in metres (side of a square mesh)")
+    p.add_argument("--opening-angle", type=float, default=90.0, metavar="DEG",
+                   help="mesh opening angle in degrees (default 90: square mesh)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="output folder (created; files of an earlier replay are replaced)")
+    p.add_argument("--filter", action="store_true",
+                   help="also run the tracking filter and write its output")
+    p.add_argument("--every", type=int, default=1, metavar="N",
+                   help="process every N-th frame only (default 1: all)")
+    p.add_argument("--truth", type=Path, default=None, metavar="CSV",
+                   help="ground truth per frame number (columns frame, range_m, distance_m, "
+                   "nx, ny, nz, net_present; see docs/replay.md)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="stop after N processed frames (needed for endless sources)")
+    p.add_argument("--fps", type=float, default=None,
+                   help=f"frame rate of an image folder (default {DEFAULT_IMAGE_FPS:g}), or of a "
+                   "video that does not state one")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="netpose configuration whose [estimator] and [filter] tuning to use")
+    p.add_argument("--video-width", type=int, default=DEFAULT_VIDEO_WIDTH, metavar="PX",
+                   help=f"annotated video at most this wide (default {DEFAULT_VIDEO_WIDTH})")
+    p.add_argument("--no-video", action="store_true", help="do not write the annotated video")
+    p.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
+                   help="progress bar on stderr (auto: when stderr is a terminal)")
+    p.set_defaults(handler=run)
+
+
+# -- input ----------------------------------------------------------------------------------
+def source_url(text: str, fps: float | None) -> str:
+    """The frame-source URL for INPUT: a folder -> images:, a file -> file:, URLs as given.
+
+    A synthetic: URL is read as fast as the replay goes (realtime=0) unless it says otherwise.
+    """
+    path = Path(text).expanduser()
+    if path.is_dir():
+        rate = fps if fps is not None else DEFAULT_IMAGE_FPS
+        return f"images:{path}?fps={rate:g}"
+    if path.is_file():
+        return f"file:{path}" + (f"?fps={fps:g}" if fps is not None else "")
+    scheme = text.partition(":")[0]
+    if "://" in text or scheme in ("file", "images", "synthetic", "v4l2", "sdp"):
+        if scheme == "synthetic" and "realtime=" not in text:
+            return text + ("&" if "?" in text else "?") + "realtime=0"
+        return text
+    if text.startswith("/dev/"):
+        return text
+    raise NetposeError(f"{text}: no such file or folder, and not a frame-source URL")
+
+
+def _open_source(url: str, keep_color: bool) -> FrameSource:
+    from drivers.sources import SourceOptions, open_source
+
+    try:
+        return open_source(url, SourceOptions(keep_color=keep_color))
+    except ConfigError as exc:
+        # URL mistakes name the daemon's configuration key; here the URL is the INPUT argument.
+        raise NetposeError(f"INPUT: {exc.problem}") from None
+
+
+def _frame_count(source: FrameSource) -> int | None:
+    """Frames in a recording, when it is cheap to know (image folder, video file)."""
+    files = getattr(source, "files", None)
+    if isinstance(files, list):
+        return len(files)
+    path = getattr(source, "path", None)
+    if isinstance(path, Path) and path.is_file():
+        import cv2
+
+        cap = cv2.VideoCapture(str(path))
+        try:
+            count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else -1.0
+        finally:
+            cap.release()
+        return int(count) if math.isfinite(count) and count > 0 else None
+    return None
+
+
+def replay_frames(
+    source: FrameSource, every: int, stop: threading.Event
+) -> Iterator[ReplayFrame]:
+    """ReplayFrames from an opened source until it ends or `stop` is set.
+
+    Every `every`-th frame by the source's frame numbers (so frames the source could not
+    decode do not shift the choice); times are relative to the first frame read.
+    """
+    from drivers.sources import SourceState
+    from service.replay import ReplayFrame, truth_from_object
+
+    t0: float | None = None
+    next_index = 0
+    waiting_logged = False
+    while not stop.is_set():
+        frame = source.read(READ_TIMEOUT_S)
+        if frame is None:
+            if source.state in (SourceState.ENDED, SourceState.CLOSED):
+                return
+            if not waiting_logged:
+                log.warning("no frame from the source for %.0f s (%s), still waiting",
+                            READ_TIMEOUT_S, source.state.value)
+                waiting_logged = True
+            continue
+        waiting_logged = False
+        if frame.index < next_index:
+            continue
+        next_index = frame.index + every
+        if t0 is None:
+            t0 = frame.t_monotonic
+        yield ReplayFrame(
+            image=frame.image,
+            index=frame.index,
+            time_s=round(frame.t_monotonic - t0, 6),
+            color=frame.color,
+            truth=truth_from_object(frame.truth),
+        )
+
+
+# -- progress -------------------------------------------------------------------------------
+class RateProgress:
+    """`replay [#####.....] 12/30 40%  8.3 fps  ETA 0:02` redrawn in place on a stream.
+
+    Without a known total: `replay 12 frames  8.3 fps`. Redraws at most 5 times a second.
+    """
+
+    def __init__(self, total: int | None, stream: TextIO, label: str = "replay",
+                 width: int = 24) -> None:
+        self._total = total
+        self._stream = stream
+        self._label = label
+        self._width = width
+        self._start = time.monotonic()
+        self._last_draw = -math.inf
+        self._drawn = False
+
+    def update(self, done: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last_draw < 0.2:
+            return
+        self._last_draw = now
+        elapsed = max(now - self._start, 1e-9)
+        rate = done / elapsed
+        if self._total:
+            fraction = min(1.0, done / self._total)
+            filled = round(self._width * fraction)
+            bar = "#" * filled + "." * (self._width - filled)
+            eta = (self._total - done) / rate if rate > 0 else math.inf
+            text = (f"{self._label} [{bar}] {done}/{self._total} {100 * fraction:3.0f}%  "
+                    f"{rate:.1f} fps  ETA {_clock(eta)}")
+        else:
+            text = f"{self._label} {done} frames  {rate:.1f} fps  {_clock(elapsed)} elapsed"
+        self._stream.write("\r" + text + "\x1b[K")
+        self._stream.flush()
+        self._drawn = True
+
+    def close(self) -> None:
+        if self._drawn:
+            self._stream.write("\n")
+            self._stream.flush()
+            self._drawn = False
+
+
+def _clock(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    s = round(seconds)
+    if s >= 3600:
+        return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+    return f"{s // 60}:{s % 60:02d}"
+
+
+# -- stop requests ----------------------------------------------------------------------------
+class StopRequest:
+    """SIGINT/SIGTERM set `event` so the frame in hand is finished and the outputs closed;
+    a second Ctrl-C interrupts at once. Handlers are restored on exit."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signal_name: str | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is not threading.main_thread():
+            return self  # signals can only be handled in the main thread
+
+        def handler(signum: int, _frame: FrameType | None) -> None:
+            if self.event.is_set() and signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            self.signal_name = signal.Signals(signum).name
+            self.event.set()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()
+
+
+# -- outputs ----------------------------------------------------------------------------------
+class AnnotatedVideo:
+    """annotated.mp4 (MPEG-4 Part 2, which every OpenCV build with FFmpeg writes), opened at
+    the first frame; falls back to MJPG in annotated.avi if that writer is unavailable."""
+
+    def __init__(self, out_dir: Path, fps: float) -> None:
+        self._dir = out_dir
+        self._fps = fps
+        self._writer: Any = None
+        self._size: tuple[int, int] | None = None
+        self.path: Path | None = None
+        self.frames = 0
+
+    def write(self, image: npt.NDArray[np.uint8]) -> None:
+        import cv2
+
+        h, w = image.shape[:2]
+        if self._writer is None:
+            self._open(w, h)
+        assert self._size is not None
+        if (w, h) != self._size:
+            image = np.asarray(cv2.resize(image, self._size, interpolation=cv2.INTER_AREA),
+                               dtype=np.uint8)
+        self._writer.write(image)
+        self.frames += 1
+
+    def _open(self, width: int, height: int) -> None:
+        import cv2
+
+        # Even sizes: some encoders refuse odd ones.
+        size = (width - width % 2, height - height % 2)
+        for name, fourcc in ((VIDEO_NAME, "mp4v"), (FALLBACK_VIDEO_NAME, "MJPG")):
+            path = self._dir / name
+            writer = cv2.VideoWriter(str(path), _fourcc(fourcc), self._fps, size)
+            if writer.isOpened():
+                if name != VIDEO_NAME:
+                    log.warning("this OpenCV cannot write MPEG-4; annotated video is %s", name)
+                self._writer, self._size, self.path = writer, size, path
+                return
+            writer.release()
+            path.unlink(missing_ok=True)
+        raise NetposeError("OpenCV can write neither MPEG-4 nor MJPG video here (use --no-video)")
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.release()  # writes the index: the file is playable from here on
+            self._writer = None
+
+
+def _fourcc(code: str) -> int:
+    """cv2.VideoWriter_fourcc without depending on where each OpenCV version exposes it."""
+    return sum(ord(c) << (8 * i) for i, c in enumerate(code))
+
+
+@dataclass
+class ReplayRun:
+    """What one replay produced, for the summary."""
+
+    frames_read: int = 0
+    interrupted: bool = False
+    stop_reason: str = ""
+    outputs: list[str] = field(default_factory=list)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.camera import load_camera
+    from service.mesh import MeshGeometry
+    from service.replay import load_truth_csv
+
+    if args.every < 1:
+        raise NetposeError(f"--every must be at least 1, got {args.every}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise NetposeError(f"--max-frames must be at least 1, got {args.max_frames}")
+    if args.fps is not None and not (math.isfinite(args.fps) and 0.01 <= args.fps <= 1000):
+        raise NetposeError(f"--fps must be 0.01..1000, got {args.fps}")
+    if args.video_width < 16:
+        raise NetposeError(f"--video-width must be at least 16 px, got {args.video_width}")
+    camera = load_camera(args.calibration)
+    try:
+        mesh = MeshGeometry(args.mesh_size, args.opening_angle)
+    except ConfigError as exc:
+        option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
+        raise ConfigError(option, exc.problem) from None
+    estimator_settings, filter_settings = _tuning(args.config)
+    truth = load_truth_csv(args.truth) if args.truth is not None else None
+    url = source_url(args.input, args.fps)
+    write_video = not args.no_video
+    with _open_source(url, keep_color=write_video) as source:
+        total = _frame_count(source)
+        if total is not None:
+            total = -(-total // args.every)
+            if args.max_frames is not None:
+                total = min(total, args.max_frames)
+        return _replay(args, source, url, camera, mesh, estimator_settings, filter_settings,
+                       truth, total)
+
+
+def _tuning(path: Path | None) -> tuple[EstimatorSettings | None, FilterSettings | None]:
+    if path is None:
+        return None, None
+    from service.daemon import load_daemon_config
+    from service.estimator import EstimatorSettings
+    from service.tracking import FilterSettings
+
+    config = load_daemon_config(str(path))
+    estimator = config.sections.get("estimator")
+    return (
+        estimator if isinstance(estimator, EstimatorSettings) else None,
+        config.section("filter", FilterSettings),
+    )
+
+
+def _replay(
+    args: argparse.Namespace,
+    source: FrameSource,
+    url: str,
+    camera: Any,
+    mesh: Any,
+    estimator_settings: EstimatorSettings | None,
+    filter_settings: FilterSettings | None,
+    truth: dict[int, Truth] | None,
+    total: int | None,
+) -> int:
+    from service.annotate import FrameAnnotator
+    from service.estimator import NetEstimator
+    from service.replay import EstimatesCsv, ReplayPipeline, ReplayStats
+    from service.tracking import FilterSettings, NetTracker
+
+    tracker = NetTracker(filter_settings or FilterSettings()) if args.filter else None
+    pipeline = ReplayPipeline(NetEstimator(camera, mesh, estimator_settings), tracker, truth)
+    show = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
+    progress = RateProgress(total, sys.stderr) if show else None
+    fps = _video_fps(source, args.every)
+    annotator = None if args.no_video else FrameAnnotator(camera, width=args.video_width)
+    stats = ReplayStats()
+    outcome = ReplayRun()
+    out_dir: Path = args.out
+    csv_file: EstimatesCsv | None = None
+    video: AnnotatedVideo | None = None
+
+    with StopRequest() as stop:
+        frames = replay_frames(source, args.every, stop.event)
+        try:
+            for result in pipeline.run(frames):
+                if csv_file is None:
+                    # The first frame was accepted: only now is there something to write.
+                    out_dir.mkdir(parents=True, exist_ok=True)
+                    _remove_stale_outputs(out_dir)
+                    csv_file = EstimatesCsv(out_dir / "estimates.csv")
+                    video = None if annotator is None else AnnotatedVideo(out_dir, fps)
+                if video is not None and annotator is not None:
+                    video.write(_annotated(annotator, result))
+                csv_file.write(result)
+                stats.add(result)
+                outcome.frames_read += 1
+                if progress is not None:
+                    progress.update(outcome.frames_read)
+                if args.max_frames is not None and outcome.frames_read >= args.max_frames:
+                    break
+        except KeyboardInterrupt:
+            stop.event.set()
+            stop.signal_name = stop.signal_name or "SIGINT"
+        finally:
+            stats.finish()
+            if progress is not None:
+                progress.update(outcome.frames_read, force=True)
+                progress.close()
+            if video is not None:
+                video.close()
+            if csv_file is not None:
+                csv_file.close()
+        if stop.event.is_set():
+            outcome.interrupted = True
+            outcome.stop_reason = stop.signal_name or "stopped"
+
+    if csv_file is None:
+        if outcome.interrupted:
+            print("netpose replay: interrupted before the first frame; nothing written",
+                  file=sys.stderr)
+            return EXIT_INTERRUPTED
+        raise NetposeError(f"{args.input}: no frame could be read")
+    outcome.outputs = ["estimates.csv"]
+    if video is not None and video.path is not None:
+        outcome.outputs.append(video.path.name)
+    _finish(args, url, stats, outcome, out_dir, source)
+    if outcome.interrupted:
+        print(f"netpose replay: stopped by {outcome.stop_reason} after {outcome.frames_read} "
+              f"frames; outputs in {out_dir} cover those frames", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
+def _annotated(annotator: FrameAnnotator, result: FrameResult) -> npt.NDArray[np.uint8]:
+    frame = result.frame
+    return annotator.annotate(
+        frame.color if frame.color is not None else frame.image,
+        result.estimate,
+        track=result.track,
+        truth=result.truth,
+        label=f"frame {frame.index}  t={frame.time_s:.2f} s",
+        refused=result.error,
+    )
+
+
+def _video_fps(source: FrameSource, every: int) -> float:
+    period = getattr(source, "frame_period_s", None)
+    fps = 1.0 / period if isinstance(period, float) and period > 0 else 10.0
+    return max(0.5, min(120.0, fps / every))
+
+
+def _remove_stale_outputs(out_dir: Path) -> None:
+    """Files an earlier replay left there would be mistaken for this one's."""
+    from service.replay import PLOT_FILES
+
+    for name in ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES):
+        (out_dir / name).unlink(missing_ok=True)
+
+
+def _finish(
+    args: argparse.Namespace,
+    url: str,
+    stats: ReplayStats,
+    outcome: ReplayRun,
+    out_dir: Path,
+    source: FrameSource,
+) -> None:
+    from service import __version__
+    from service.replay import write_json, write_plots
+    from service.telemetry_schema import redact_secrets
+
+    try:
+        plots = write_plots(stats, out_dir)
+        outcome.outputs += [p.name for p in plots]
+    except Exception as exc:  # a plotting problem must not cost the CSV, video and summary
+        log.warning("plots not written: %s", exc)
+    source_stats = source.stats()
+    summary: dict[str, Any] = {
+        "netpose_version": __version__,
+        "input": str(redact_secrets({"url": url})["url"]),
+        "calibration": str(args.calibration),
+        "mesh": {"bar_length_m": args.mesh_size, "opening_angle_deg": args.opening_angle},
+        "every": args.every,
+        "filter_enabled": bool(args.filter),
+        "truth_file": None if args.truth is None else str(args.truth),
+        "interrupted": outcome.interrupted,
+        "stop_reason": outcome.stop_reason or None,
+        "source": {"corrupt_frames": source_stats.corrupt, "dropped_frames": source_stats.drops},
+        **stats.summary(),
+    }
+    summary["outputs"] = [*outcome.outputs, "summary.json"]
+    write_json(out_dir / "summary.json", summary)
+    detection = summary.get("detection_rate")
+    log.info("replay: %d frames, %s detected, written to %s", summary["frames"],
+             "-" if detection is None else f"{100 * detection:.0f} %", out_dir)
