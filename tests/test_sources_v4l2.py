@@ -16,7 +16,7 @@ import cv2
 import pytest
 
 from drivers.errors import SourceError
-from drivers.sources import SourceOptions, SourceState, open_source
+from drivers.sources import Frame, SourceOptions, SourceState, open_source
 from drivers.sources.fake_capture import CameraMode, FakeCamera, read_pattern_number
 from drivers.sources.v4l2 import V4l2Settings, V4l2Source, negotiate, parse_v4l2_url
 
@@ -92,7 +92,7 @@ def test_frames_arrive_grey_numbered_and_stamped_by_the_driver() -> None:
     with fast_source(camera) as source:
         assert source.state is SourceState.UP
         assert source.granted is not None and source.granted.fps == 200.0
-        frames = []
+        frames: list[tuple[Frame, float, float]] = []
         while len(frames) < 20:
             before = time.monotonic()
             frame = source.read(1.0)

@@ -83,12 +83,10 @@ class VideoFileSource(PacedSource):
 
         self._cap = self._open_capture()
         file_fps = self._cap.get(cv2.CAP_PROP_FPS)
-        if self._fps_option is None:
-            if 0.1 <= file_fps <= 1000.0:
-                self._fps = file_fps
-            else:
-                log.warning("%s does not state its frame rate; assuming %g fps", self.path,
-                            self._fps)
+        if 0.1 <= file_fps <= 1000.0:
+            self._fps = file_fps
+        else:
+            log.warning("%s does not state its frame rate; assuming %g fps", self.path, self._fps)
         try:
             self._first = self._next_media()
         except EndOfMediaError:

@@ -1,0 +1,235 @@
+"""`file:` and `images:` sources against real encoded videos and images, decoded by OpenCV.
+
+Each test frame shows its own number as big blocks (drivers.sources.fake_capture), so after a
+real encode/decode round trip the test can check that frame `index` really is frame `index`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers.errors import SourceError
+from drivers.sources import Frame, SourceOptions, SourceState, open_source
+from drivers.sources.fake_capture import numbered_pattern, read_pattern_number
+
+FRAMES = 30
+FPS = 20.0
+SIZE = (320, 240)
+
+
+def write_opencv_video(
+    path: Path, fourcc: str, frames: int = FRAMES, fps: float = FPS
+) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*fourcc), fps, SIZE)
+    assert writer.isOpened(), f"OpenCV cannot write {fourcc} here"
+    for n in range(frames):
+        writer.write(cv2.cvtColor(numbered_pattern(n, *SIZE), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    return path
+
+
+def write_h264_video(path: Path, frames: int = FRAMES) -> Path:
+    av = pytest.importorskip("av")
+    try:
+        av.codec.Codec("libx264", "w")
+    except Exception:  # PyAV built without an H.264 encoder
+        pytest.skip("no H.264 encoder in this PyAV")
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=int(FPS))
+        stream.width, stream.height, stream.pix_fmt = SIZE[0], SIZE[1], "yuv420p"
+        stream.options = {"preset": "ultrafast"}
+        for n in range(frames):
+            frame = av.VideoFrame.from_ndarray(numbered_pattern(n, *SIZE), format="gray")
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+@pytest.fixture(scope="module")
+def videos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("videos")
+    return {
+        "mjpg": write_opencv_video(folder / "mjpg.avi", "MJPG"),
+        "mp4v": write_opencv_video(folder / "mp4v.mp4", "mp4v"),
+    }
+
+
+def read_all(url: str, limit: int = 1000, options: SourceOptions | None = None) -> list[Frame]:
+    frames: list[Frame] = []
+    with open_source(url, options) as source:
+        while len(frames) < limit:
+            frame = source.read(1.0)
+            if frame is None:
+                break
+            frames.append(frame)
+        assert source.state in (SourceState.ENDED, SourceState.UP)
+    return frames
+
+
+@pytest.mark.parametrize("codec", ["mjpg", "mp4v", "h264"])
+def test_every_frame_comes_back_in_order_with_media_timestamps(
+    codec: str, videos: dict[str, Path], tmp_path: Path
+) -> None:
+    path = write_h264_video(tmp_path / "h264.mp4") if codec == "h264" else videos[codec]
+    with open_source(f"file:{path}") as source:
+        frames = []
+        while (frame := source.read(1.0)) is not None:
+            frames.append(frame)
+        assert source.state is SourceState.ENDED
+        stats = source.stats()
+    assert [f.index for f in frames] == list(range(FRAMES))
+    assert [read_pattern_number(f.image) for f in frames] == list(range(FRAMES))
+    assert all(f.image.shape == (SIZE[1], SIZE[0]) and f.image.dtype == np.uint8 for f in frames)
+    # Replay keeps the recording's spacing whatever the reading speed.
+    steps = np.diff([f.t_monotonic for f in frames])
+    assert np.allclose(steps, 1.0 / FPS, atol=1e-3)
+    assert np.allclose(np.diff([f.t_wall for f in frames]), steps, atol=1e-6)
+    assert (stats.frames, stats.drops, stats.corrupt) == (FRAMES, 0, 0)
+
+
+def test_colour_is_kept_only_when_asked(videos: dict[str, Path]) -> None:
+    plain = read_all(f"file:{videos['mjpg']}", limit=1)[0]
+    assert plain.color is None
+    colour = SourceOptions(keep_color=True)
+    coloured = read_all(f"file:{videos['mjpg']}", limit=1, options=colour)[0]
+    assert coloured.color is not None and coloured.color.shape == (SIZE[1], SIZE[0], 3)
+    assert np.array_equal(coloured.image, cv2.cvtColor(coloured.color, cv2.COLOR_BGR2GRAY))
+
+
+def corrupt_jpeg_frames(src: Path, dst: Path, frames: list[int]) -> None:
+    """Overwrite the table headers of the given MJPEG frames with garbage (damage to the
+    entropy-coded data itself is concealed by the decoder and comes out as a smeared frame)."""
+    data = bytearray(src.read_bytes())
+    starts = [i for i in range(len(data) - 2) if data[i : i + 3] == b"\xff\xd8\xff"]
+    assert len(starts) == FRAMES
+    rng = np.random.default_rng(7)
+    for n in frames:
+        begin = starts[n] + 100  # the quantisation and Huffman tables: undecodable
+        data[begin : begin + 300] = rng.integers(0, 256, 300, dtype=np.uint8).tobytes()
+    dst.write_bytes(bytes(data))
+
+
+def test_corrupt_frames_are_counted_and_skipped(videos: dict[str, Path], tmp_path: Path) -> None:
+    damaged = tmp_path / "damaged.avi"
+    bad = [7, 8, 19]
+    corrupt_jpeg_frames(videos["mjpg"], damaged, bad)
+    with open_source(f"file:{damaged}") as source:
+        frames = []
+        while (frame := source.read(1.0)) is not None:
+            frames.append(frame)
+        stats = source.stats()
+    good = [n for n in range(FRAMES) if n not in bad]
+    assert [f.index for f in frames] == good  # gaps where the damaged frames were
+    assert [read_pattern_number(f.image) for f in frames] == good
+    assert stats.corrupt == len(bad)
+    assert stats.frames == len(good)
+
+
+def test_truncated_recording_plays_what_is_there(videos: dict[str, Path], tmp_path: Path) -> None:
+    data = videos["mjpg"].read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    frames = read_all(f"file:{cut}")
+    assert 5 <= len(frames) < FRAMES
+    assert [read_pattern_number(f.image) for f in frames] == list(range(len(frames)))
+
+
+def test_unreadable_files_are_clear_errors(videos: dict[str, Path], tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match="no such file"):
+        open_source(f"file:{tmp_path / 'missing.mp4'}")
+    headless = tmp_path / "headless.mp4"  # an mp4 cut before its index: unreadable
+    headless.write_bytes(videos["mp4v"].read_bytes()[:2000])
+    with pytest.raises(SourceError) as err:
+        open_source(f"file:{headless}")
+    assert err.value.url == f"file:{headless}"
+    assert "truncated" in err.value.reason
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video\n" * 100)
+    with pytest.raises(SourceError, match=r"notes\.mp4"):
+        open_source(str(text))
+
+
+def test_loop_restarts_and_keeps_counting(videos: dict[str, Path]) -> None:
+    frames = read_all(f"file:{videos['mp4v']}?loop=1", limit=2 * FRAMES + 5)
+    assert [f.index for f in frames] == list(range(2 * FRAMES + 5))
+    assert [read_pattern_number(f.image) for f in frames] == [i % FRAMES for i in range(65)]
+    assert np.allclose(np.diff([f.t_monotonic for f in frames]), 1.0 / FPS, atol=1e-3)
+
+
+def test_realtime_pacing_drops_what_a_slow_consumer_misses(videos: dict[str, Path]) -> None:
+    with open_source(f"file:{videos['mjpg']}?realtime=1") as source:
+        frames = []
+        returned_at = []
+        while (frame := source.read(1.0)) is not None:
+            returned_at.append(time.monotonic())
+            frames.append(frame)
+            time.sleep(2.5 / FPS)  # a consumer that needs 2.5 frame periods per frame
+        stats = source.stats()
+    indices = [f.index for f in frames]
+    assert indices == sorted(set(indices))
+    assert stats.drops > 0 and stats.frames + stats.drops == FRAMES
+    assert [read_pattern_number(f.image) for f in frames] == indices
+    # A frame is handed out once due, and is then the newest due frame.
+    for frame, at in zip(frames, returned_at, strict=True):
+        assert frame.t_monotonic <= at + 1e-3
+        assert at - frame.t_monotonic < 1.0 / FPS + 0.05
+
+
+def test_realtime_read_returns_none_when_nothing_is_due(tmp_path: Path) -> None:
+    slow = write_opencv_video(tmp_path / "slow.avi", "MJPG", frames=3, fps=2.0)
+    with open_source(f"file:{slow}?realtime=1") as source:
+        first = source.read(1.0)
+        assert first is not None and first.index == 0
+        started = time.monotonic()
+        assert source.read(0.05) is None  # the next frame is due 0.5 s after the first
+        assert time.monotonic() - started < 0.4  # never much longer than the timeout
+        second = source.read(1.0)
+        assert second is not None and second.index == 1
+        assert second.t_monotonic - first.t_monotonic == pytest.approx(0.5, abs=1e-3)
+
+
+def write_images(folder: Path, count: int) -> None:
+    folder.mkdir()
+    for n in range(count):
+        cv2.imwrite(str(folder / f"frame_{n:04d}.png"), numbered_pattern(n, *SIZE))
+
+
+def test_image_folder_in_name_order_with_a_damaged_file(tmp_path: Path) -> None:
+    folder = tmp_path / "frames"
+    write_images(folder, 6)
+    (folder / "frame_0003.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    (folder / "notes.txt").write_text("ignored")
+    with open_source(f"images:{folder}?fps=4") as source:
+        frames = []
+        while (frame := source.read(1.0)) is not None:
+            frames.append(frame)
+        stats = source.stats()
+    assert [f.index for f in frames] == [0, 1, 2, 4, 5]
+    assert [read_pattern_number(f.image) for f in frames] == [0, 1, 2, 4, 5]
+    assert stats.corrupt == 1
+    assert np.allclose(np.diff([f.t_monotonic for f in frames]), [0.25, 0.25, 0.5, 0.25])
+
+
+def test_image_glob_and_bare_folder(tmp_path: Path) -> None:
+    folder = tmp_path / "frames"
+    write_images(folder, 4)
+    cv2.imwrite(str(folder / "zz_extra.jpg"), numbered_pattern(9, *SIZE))
+    assert [f.index for f in read_all(f"images:{folder}/*.png")] == [0, 1, 2, 3]
+    coloured = read_all(str(folder), options=SourceOptions(keep_color=True))
+    assert len(coloured) == 5 and coloured[-1].color is not None
+    assert read_pattern_number(coloured[-1].image) == 9  # "zz_extra.jpg" sorts last
+
+
+def test_empty_image_folder_is_an_error(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SourceError, match="no images"):
+        open_source(f"images:{tmp_path / 'empty'}")
+    with pytest.raises(SourceError, match="no such folder"):
+        open_source(f"images:{tmp_path / 'nowhere'}/")
