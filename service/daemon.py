@@ -189,7 +189,8 @@ class Daemon:
         self._total = Counters()
         self._seq = 0
         self._last_seq: int | None = None
-        self._level_hint: int | None = None
+        # The previous detection lets the estimator skip its scale search while tracking.
+        self._prior: NetEstimate | None = None
         self._last_frame_at: float | None = None
         self._source_up = False
         self._track_state = TrackState.LOST
@@ -351,9 +352,7 @@ class Daemon:
         if estimate is not None and estimate.detected:
             self._period.detected += 1
             self._total.detected += 1
-            self._level_hint = estimate.level
-        elif estimate is not None:
-            self._level_hint = None
+        self._prior = estimate if estimate is not None and estimate.detected else None
         if out.measurement == "accepted":
             self._period.accepted += 1
         elif out.measurement == "rejected":
@@ -362,12 +361,13 @@ class Daemon:
         handed_over = time.monotonic()
         latency_ms = (handed_over - frame.t_monotonic) * 1e3
         self._period.latencies_ms.append(latency_ms)
+        self._total.latencies_ms.append(latency_ms)
         self._publish_estimate(frame, estimate, out, handed_over)
         self._last_estimate = estimate
 
     def _estimate(self, frame: Frame) -> NetEstimate | None:
         try:
-            estimate: NetEstimate = self._estimator.estimate(frame.image, self._level_hint)
+            estimate: NetEstimate = self._estimator.estimate(frame.image, prior=self._prior)
         except NetposeError as exc:
             # A frame the estimator cannot use (size, calibration mismatch): keep running,
             # say it once, report nothing for this frame.
@@ -583,30 +583,27 @@ class Daemon:
         return f"{head} | {fps:.1f} fps, {det:.0f}% detected | MAVLink {self._link_state}"
 
     def _reset_period(self, now: float, cpu: float) -> None:
-        self._total.latencies_ms.extend(self._period.latencies_ms[-10000:])
-        del self._total.latencies_ms[:-100000]  # bounded: keep the newest 100k for the summary
+        # Memory must not grow with the run time: the summary's latency statistics cover the
+        # newest 20000 frames at most.
+        del self._total.latencies_ms[:-20000]
         self._period = Counters()
         self._period_started = now
         self._cpu_mark = cpu
 
     def _log_summary(self, now: float, final: bool = False) -> None:
         total = self._total
-        frames = total.frames + self._period.frames
-        detected = total.detected + self._period.detected
-        lat = Counters(latencies_ms=total.latencies_ms + self._period.latencies_ms)
-        mean, p99, _ = lat.latency_stats()
+        frames, detected = total.frames, total.detected
+        mean, p99, _ = total.latency_stats()
         uptime = now - self._started_at
         log.info(
             "%s: %.0f s up, %d frames (%.1f fps), %d skipped, %.0f%% detected, track %s, "
             "filter accepted %d rejected %d resets %d, latency mean %s p99 %s ms",
             "final summary" if final else "summary", uptime, frames,
-            frames / uptime if uptime > 0 else 0.0, total.skipped + self._period.skipped,
+            frames / uptime if uptime > 0 else 0.0, total.skipped,
             100.0 * detected / frames if frames else 0.0, self._track_state.value,
             self.tracker.accepted_total, self.tracker.rejected_total, self.tracker.resets_total,
             "-" if mean is None else f"{mean:.1f}", "-" if p99 is None else f"{p99:.1f}",
         )
-        # Summaries cover the whole run, but memory must not grow with it.
-        del total.latencies_ms[:-20000]
 
     # -- reload ----------------------------------------------------------------------------
     def reload(self) -> bool:
@@ -681,10 +678,12 @@ def _redact_url(url: str) -> str:
 
 
 def open_source(config: Config) -> FrameSource:
-    """The frame source for `camera.url` (drivers.sources)."""
-    from drivers.sources import open_source as open_driver_source  # type: ignore[import-not-found]
+    """The frame source for `camera.url` (drivers.sources), built but not yet opened."""
+    from drivers.sources import SourceOptions, create_source
 
-    source: FrameSource = open_driver_source(config.camera.url)
+    # A live source that delivers nothing for stale_after_s is re-opened by the source itself.
+    options = SourceOptions(stall_timeout_s=config.camera.stale_after_s)
+    source: FrameSource = create_source(config.camera.url, options)
     return source
 
 
