@@ -267,7 +267,7 @@ class ReplayPipeline:
             estimate = self._estimator.estimate(frame.image, prior=self._prior)
         except NetposeError as exc:
             if self._processed == 0:
-                raise NetposeError(f"frame {frame.index}: {exc}") from None
+                raise  # not even the first frame fits: the whole recording is unusable
             if not self._refusal_logged:
                 log.warning("frame %d: estimator refused the frame: %s (logged once)",
                             frame.index, exc)
