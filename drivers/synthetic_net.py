@@ -45,9 +45,8 @@ class NetPose:
     def rotation(self) -> FloatMap:
         """Rotation taking net-plane axes (u, v, n_away) into camera axes."""
         roll = math.radians(self.roll_deg)
-        rz = np.array(
-            [[math.cos(roll), -math.sin(roll), 0.0], [math.sin(roll), math.cos(roll), 0.0], [0, 0, 1]]
-        )
+        c, s = math.cos(roll), math.sin(roll)
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         phi = math.radians(self.tilt_axis_deg)
         axis = np.array([math.cos(phi), math.sin(phi), 0.0])
         tilt = math.radians(self.tilt_deg)
@@ -151,7 +150,7 @@ class NetRenderer:
         if style.fish_front_cover > 0:
             occluded = self._draw_front_fish(image, rng, style.fish_front_cover)
         image *= 1.0 - style.vignetting * self._radial2 * 2.0
-        image = self._camera_effects(image, style, rng)
+        frame = self._camera_effects(image, style, rng)
         normal = pose.normal_towards_camera()
         truth = GroundTruth(
             net_present=style.net_present,
@@ -163,7 +162,7 @@ class NetRenderer:
             occluded_fraction=occluded,
         )
         del h, w
-        return image, truth
+        return frame, truth
 
     # -- scene pieces ---------------------------------------------------------------------------
     def _smooth_field(self, rng: np.random.Generator, cells: int) -> FloatMap:
@@ -204,7 +203,7 @@ class NetRenderer:
 
     def _draw_fish(
         self, image: FloatMap, rng: np.random.Generator, count: int, dark: bool
-    ) -> FloatMap:
+    ) -> None:
         import cv2
 
         h, w = image.shape
@@ -212,10 +211,9 @@ class NetRenderer:
         shade = np.zeros((h, w), np.float32)
         for _ in range(count):
             self._one_fish(mask, shade, rng, rng.uniform(0.05, 0.25) * w)
-        mask = cv2.GaussianBlur(mask, (0, 0), 1.5)
+        soft = np.asarray(cv2.GaussianBlur(mask, (0, 0), 1.5), dtype=np.float64)
         level = 0.25 if dark else 0.5
-        image[:] = image * (1 - mask) + mask * (level + 0.25 * shade)
-        return mask
+        image[:] = image * (1 - soft) + soft * (level + 0.25 * shade)
 
     def _one_fish(
         self, mask: npt.NDArray[np.float32], shade: npt.NDArray[np.float32],
@@ -276,7 +274,8 @@ class NetRenderer:
         s1 = s1 + pose.phase[0]
         s2 = s2 + pose.phase[1]
         half = 0.5 * style.twine_width_m / (L * math.sin(alpha))
-        cover = 1.0 - (1.0 - _box_filtered_pulses(s1, half)) * (1.0 - _box_filtered_pulses(s2, half))
+        gaps = (1.0 - _box_filtered_pulses(s1, half)) * (1.0 - _box_filtered_pulses(s2, half))
+        cover = 1.0 - gaps
         cover = np.where(hits & np.isfinite(t), cover, 0.0)
         depth = np.where(np.isfinite(t), t * np.sqrt(1 + self._rx**2 + self._ry**2), 1e9)
         transmit = np.exp(-style.attenuation_per_m * depth)
@@ -288,14 +287,13 @@ class NetRenderer:
     ) -> Gray:
         import cv2
 
-        img = image.astype(np.float32)
+        img = np.asarray(image, dtype=np.float32)
         if style.blur_sigma_px > 0:
-            img = cv2.GaussianBlur(img, (0, 0), style.blur_sigma_px)
+            img = np.asarray(cv2.GaussianBlur(img, (0, 0), style.blur_sigma_px), dtype=np.float32)
         if style.noise_sigma > 0:
             shot = np.sqrt(np.clip(img, 0, None)) * style.noise_sigma
-            img = img + rng.standard_normal(img.shape, dtype=np.float32) * (
-                style.noise_sigma * 0.5 + shot
-            )
+            noise = rng.standard_normal(img.shape, dtype=np.float32)
+            img = np.asarray(img + noise * (style.noise_sigma * 0.5 + shot), dtype=np.float32)
         return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 

@@ -20,6 +20,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -33,7 +34,7 @@ from service.results import Mat2, NetEstimate, RoiResult
 from service.spectrum import SpectrumAnalyzer
 
 F64 = npt.NDArray[np.float64]
-Image = npt.NDArray[np.generic]
+Image = npt.NDArray[Any]
 
 
 @dataclass(frozen=True)
@@ -316,10 +317,7 @@ class NetEstimator:
             period = n / math.sqrt(m.fit.det) if m.fit is not None else None
             if period is not None and lo <= period <= hi and m.valid:
                 continue
-            if period is None or period < lo:
-                alt = level - 1
-            else:
-                alt = level + 1
+            alt = level - 1 if period is None or period < lo else level + 1
             if not 0 <= alt <= top or not self._layout(w, h, alt, "grid"):
                 continue
             geom = self._layout(w, h, alt, f"grid@{level}")[i]
@@ -573,7 +571,8 @@ def _roi_result(m: _RoiMeasurement, size: int, used: bool) -> RoiResult:
             center_px=m.geometry.center_full, size_px=size * scale, level=m.level,
             detected=False, peaks=m.peaks,
         )
-    edges = np.linalg.inv(m.reciprocal_px).T  # columns e1, e2 with e_i . k_j = delta_ij
+    # Columns e1, e2 of the dual basis: e_i . k_j = delta_ij.
+    edges = np.asarray(np.linalg.inv(m.reciprocal_px), dtype=np.float64).T
     return RoiResult(
         center_px=m.geometry.center_full,
         size_px=size * scale,

@@ -37,23 +37,27 @@ class LatticeFit:
 
 
 def reduce_basis(basis: F64) -> F64:
-    """Lagrange-Gauss reduction: the shortest basis of the same 2D lattice."""
-    a = basis[:, 0].copy()
-    b = basis[:, 1].copy()
-    if a @ a > b @ b:
-        a, b = b, a
+    """Lagrange-Gauss reduction: the shortest basis of the same 2D lattice.
+
+    Plain floats: this runs several times per ROI and numpy's per-call overhead dominates 2x2 work.
+    """
+    ax, ay = float(basis[0, 0]), float(basis[1, 0])
+    bx, by = float(basis[0, 1]), float(basis[1, 1])
+    if ax * ax + ay * ay > bx * bx + by * by:
+        ax, ay, bx, by = bx, by, ax, ay
     for _ in range(32):
-        mu = round(float(a @ b) / float(a @ a))
-        b = b - mu * a
-        if b @ b >= a @ a:
+        aa = ax * ax + ay * ay
+        mu = round((ax * bx + ay * by) / aa)
+        bx, by = bx - mu * ax, by - mu * ay
+        if bx * bx + by * by >= aa:
             break
-        a, b = b, a
+        ax, ay, bx, by = bx, by, ax, ay
     # Canonical orientation: angle between k1 and k2 at most 90 degrees, right-handed.
-    if a @ b < 0:
-        b = -b
-    if a[0] * b[1] - a[1] * b[0] < 0:
-        a, b = b, a
-    return np.stack([a, b], axis=1)
+    if ax * bx + ay * by < 0:
+        bx, by = -bx, -by
+    if ax * by - ay * bx < 0:
+        ax, ay, bx, by = bx, by, ax, ay
+    return np.array([[ax, bx], [ay, by]])
 
 
 def _egcd(a: int, b: int) -> tuple[int, int, int]:
@@ -106,11 +110,26 @@ _SUBLATTICES = (
 )
 
 
+_SUBLATTICE_ARR = np.stack(_SUBLATTICES)
+_SUBLATTICE_INV = np.linalg.inv(_SUBLATTICE_ARR)
+
+
+def _spans_unimodular(indices: I64) -> bool:
+    """Do two of these integer index vectors already form a basis of Z^2 (det +-1)?
+
+    The common case for a correct hypothesis (the fundamentals (1,0) and (0,1) are among the
+    inliers), checked vectorised so the exact Hermite-normal-form search is the exception.
+    """
+    head = indices[:12]
+    dets = np.abs(head[:, None, 0] * head[None, :, 1] - head[:, None, 1] * head[None, :, 0])
+    return bool((dets == 1).any())
+
+
 def _inv2(m: F64) -> F64:
     """Inverse of a 2x2 matrix without LAPACK's per-call overhead (this runs per hypothesis)."""
-    a, b, c, d = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
+    a, b, c, d = float(m[0, 0]), float(m[0, 1]), float(m[1, 0]), float(m[1, 1])
     det = a * d - b * c
-    return np.array([[d, -b], [-c, a]]) / det
+    return np.array([[d / det, -b / det], [-c / det, a / det]])
 
 
 def _basis_observed(basis: F64, k: F64, tol: F64) -> bool:
@@ -164,10 +183,13 @@ class LatticeFinder:
         best: tuple[float, int, F64, npt.NDArray[np.bool_]] | None = None
         for basis in candidates:
             inl, idx = _assign(basis, k, tol)
-            gen = generated_lattice(idx[inl])
-            if gen is None:
-                continue
-            if abs(round(np.linalg.det(gen))) != 1:
+            if _spans_unimodular(idx[inl]):
+                gen = None
+            else:
+                gen = generated_lattice(idx[inl])
+                if gen is None:
+                    continue
+            if gen is not None and abs(round(np.linalg.det(gen))) != 1:
                 # Too fine a basis (a sub-harmonic): use the lattice the peaks really generate.
                 basis = basis @ gen.astype(np.float64)
                 inl, idx = _assign(basis, k, tol)
@@ -181,7 +203,7 @@ class LatticeFinder:
         basis = self._coarsen(basis, k, w, tol, inl)
         return self._refine(basis, k, w, tol, total)
 
-    def _hypotheses(self, k: F64, w: F64, tol: F64, keep: int = 3) -> list[F64]:
+    def _hypotheses(self, k: F64, w: F64, tol: F64, keep: int = 2) -> list[F64]:
         """Score every basis made of two strong peaks at once (vectorised); keep the best few."""
         top = min(len(k), self.hypothesis_peaks)
         ii, jj = np.triu_indices(top, 1)
@@ -213,15 +235,18 @@ class LatticeFinder:
         """
         weight = float(w[inl].sum())
         for _ in range(3):
-            for m in _SUBLATTICES:
-                candidate = basis @ m
-                cand_inl, _ = _assign(candidate, k, tol)
-                cand_weight = float(w[cand_inl].sum())
-                if cand_weight >= 0.9 * weight:
-                    basis, weight = candidate, cand_weight
-                    break
-            else:
+            # All sub-lattices at once: coordinates of every peak in every candidate basis.
+            coords = _inv2(basis) @ k.T  # (2, m) in the current basis
+            idx = np.rint(_SUBLATTICE_INV @ coords)  # (s, 2, m) in each candidate basis
+            cart = (basis @ _SUBLATTICE_ARR) @ idx  # (s, 2, m) back in bins
+            resid2 = ((k.T[None] - cart) ** 2).sum(axis=1)
+            ok = (resid2 < (tol * tol)[None]) & ((idx[:, 0] != 0) | (idx[:, 1] != 0))
+            weights = ok.astype(np.float64) @ w
+            good = np.nonzero(weights >= 0.9 * weight)[0]
+            if good.size == 0:
                 return basis
+            choice = int(good[0])
+            basis, weight = basis @ _SUBLATTICE_ARR[choice], float(weights[choice])
         return basis
 
     @staticmethod
@@ -230,7 +255,8 @@ class LatticeFinder:
     ) -> tuple[F64, npt.NDArray[np.bool_]]:
         """Peaks at half- or third-integer coordinates mean the basis is too coarse: refine it."""
         outliers = ~inl
-        if not outliers.any():
+        # The refined lattice must gain 20 % of weight; impossible if the outliers carry less.
+        if float(w[outliers].sum()) <= 0.2 * float(w[inl].sum()):
             return basis, inl
         coords = k @ _inv2(basis).T
         for denom in (2, 3):
@@ -254,7 +280,7 @@ class LatticeFinder:
 
     def _refine(self, basis: F64, k: F64, w: F64, tol: F64, total: float) -> LatticeFit | None:
         basis = reduce_basis(basis)
-        for _ in range(2):
+        for _ in range(1):
             inl, idx = _assign(basis, k, tol)
             n = idx[inl].astype(np.float64)
             nw = n * w[inl][:, None]

@@ -113,7 +113,7 @@ def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64] | None:
     dof = rays.shape[0] - 3
     chi2 = float(((a @ m - b) ** 2).sum())
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
-    return m, np.linalg.inv(ata) * scale
+    return np.asarray(m, dtype=np.float64), np.asarray(np.linalg.inv(ata) * scale, dtype=np.float64)
 
 
 def _consensus(rays: F64, c: F64, tolerance: float, max_triples: int = 600) -> Bools | None:

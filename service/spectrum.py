@@ -33,7 +33,15 @@ class Peaks:
 
 
 class SpectrumAnalyzer:
-    """Everything that depends only on the ROI size is computed once here."""
+    """Everything that depends only on the ROI size is computed once here.
+
+    The spectrum of a real patch is Hermitian, so only the half kx >= 0 is computed (a real
+    FFT, half the work of a complex one). Rows are centred on ky = 0 by modulating the input
+    with (-1)^y, and a few mirrored columns (kx < 0, from F(-k) = conj F(k)) are prepended so
+    the local filters and the peak interpolation see a seamless spectrum around kx = 0.
+    """
+
+    MARGIN = 6  # mirrored columns: half the 11x11 background box, so kx = 0 is interior
 
     def __init__(
         self,
@@ -41,57 +49,68 @@ class SpectrumAnalyzer:
         min_radius_bins: float = 2.6,
         max_radius_fraction: float = 0.46,
         min_snr: float = 2.8,
-        max_peaks: int = 40,
+        max_peaks: int = 24,
     ) -> None:
         if size < 32 or size & (size - 1):
             raise ValueError(f"ROI size must be a power of two >= 32, got {size}")
         self.size = size
         hann = np.hanning(size + 2)[1:-1]
         self.window: F32 = np.outer(hann, hann).astype(np.float32)
-        c = size // 2
-        yy, xx = np.mgrid[0:size, 0:size]
-        ky, kx = yy - c, xx - c
+        rows_sign = np.where(np.arange(size) % 2 == 0, 1.0, -1.0)[:, None]
+        self._modulated_window: F32 = (self.window * rows_sign).astype(np.float32)
+        m = self.MARGIN
+        half = size // 2
+        self._mirror_rows = (size - np.arange(size)) % size
+        self._mirror_cols = np.arange(m, 0, -1)  # kx = m .. 1, mirrored to -m .. -1
+        ky = np.arange(size)[:, None] - half
+        kx = np.arange(half + 1 + m)[None, :] - m
         radius = np.hypot(kx, ky)
-        half = (ky > 0) | ((ky == 0) & (kx > 0))
-        self.valid: npt.NDArray[np.bool_] = (
-            half & (radius >= min_radius_bins) & (radius <= max_radius_fraction * size)
-        )
-        # Keep one bin of margin so the 3-point interpolation never reads outside the array.
-        self.valid[:1, :] = False
-        self.valid[-1:, :] = False
-        self.valid[:, :1] = False
-        self.valid[:, -1:] = False
+        upper = (kx > 0) | ((kx == 0) & (ky > 0))
+        valid = upper & (radius >= min_radius_bins) & (radius <= max_radius_fraction * size)
+        # One bin of margin so the 3-point interpolation never reads outside the array.
+        valid[:1, :] = False
+        valid[-1:, :] = False
+        valid[:, -1:] = False
+        self.valid: npt.NDArray[np.bool_] = valid
         self.min_snr = min_snr
         self.max_peaks = max_peaks
-        self.centre = c
+        self._row0 = half
+        self._col0 = m
+        self._kernel = np.ones((3, 3), np.uint8)
 
     def log_power(self, patch: F32) -> F32:
-        """Centred log power spectrum of a windowed, mean-free patch."""
+        """Log power of the windowed, mean-free patch on the half plane kx >= -MARGIN.
+
+        Rows are ky + size/2, columns kx + MARGIN.
+        """
         import cv2
+        from scipy import fft
 
         p = patch.astype(np.float32, copy=False)
-        p = (p - float(p.mean())) * self.window
-        spec = cv2.dft(p, flags=cv2.DFT_COMPLEX_OUTPUT)
-        power = spec[..., 0] * spec[..., 0] + spec[..., 1] * spec[..., 1]
-        power = np.fft.fftshift(power)
-        floor = float(power.mean()) * 1e-9 + 1e-20
-        return np.log(power + floor).astype(np.float32)
+        p = (p - float(p.mean())) * self._modulated_window
+        spec = fft.rfft2(p, workers=1)
+        power = (spec.real * spec.real + spec.imag * spec.imag).astype(np.float32)
+        # A flat patch has no spectrum at all: a floor keeps the log finite.
+        np.maximum(power, float(power.mean()) * 1e-10 + 1e-20, out=power)
+        mirrored = power[self._mirror_rows][:, self._mirror_cols]
+        full = np.concatenate([mirrored, power], axis=1)
+        return np.asarray(cv2.log(full), dtype=np.float32)
 
     def background(self, logp: F32) -> F32:
+        """Mean log power over a ring (11x11 box minus the 5x5 core) around each bin."""
         import cv2
 
         outer = cv2.boxFilter(logp, -1, (11, 11), normalize=False, borderType=cv2.BORDER_REFLECT)
         inner = cv2.boxFilter(logp, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)
-        return np.asarray((outer - inner) / (121.0 - 25.0), dtype=np.float32)
+        return np.asarray((outer - inner) * (1.0 / (121.0 - 25.0)), dtype=np.float32)
 
     def peaks(self, patch: F32) -> Peaks:
         import cv2
 
         logp = self.log_power(patch)
         snr = logp - self.background(logp)
-        local_max = logp >= cv2.dilate(logp, np.ones((3, 3), np.uint8))
-        cand = local_max & self.valid & (snr > self.min_snr)
-        rows, cols = np.nonzero(cand)
+        local_max = logp >= cv2.dilate(logp, self._kernel)
+        rows, cols = np.nonzero(local_max & self.valid & (snr > self.min_snr))
         if rows.size == 0:
             return Peaks(np.zeros((0, 2)), np.zeros(0))
         strength = snr[rows, cols]
@@ -100,7 +119,7 @@ class SpectrumAnalyzer:
         centre = logp[rows, cols].astype(np.float64)
         dx = _parabolic(logp[rows, cols - 1], centre, logp[rows, cols + 1])
         dy = _parabolic(logp[rows - 1, cols], centre, logp[rows + 1, cols])
-        k = np.stack([cols + dx - self.centre, rows + dy - self.centre], axis=1)
+        k = np.stack([cols + dx - self._col0, rows + dy - self._row0], axis=1)
         return Peaks(k.astype(np.float64), strength.astype(np.float64))
 
 

@@ -170,7 +170,9 @@ def format_table(rows: list[FrameRow], occluded: list[FrameRow]) -> tuple[str, b
             ok &= good
             paper = PAPER_TABLE1.get((dist, tilt))
             paper_txt = (
-                "no result" if paper is None else f"{paper[0]:6.2f}+-{paper[1]:5.2f} ({paper[2]:4.1f})"
+                "no result"
+                if paper is None
+                else f"{paper[0]:6.2f}+-{paper[1]:5.2f} ({paper[2]:4.1f})"
             )
             occ = [r for r in occluded if r.distance_cm == dist and r.tilt_deg == tilt]
             occ_txt = ""
