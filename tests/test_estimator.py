@@ -1,0 +1,332 @@
+"""The net estimator end to end: rendered frames with exact ground truth, and a real frame.
+
+Frames come from drivers.synthetic_net (a distorted 1280x720 camera with an 82 deg field of view,
+a 1.5 cm mesh, underwater background, noise and blur). Tolerances are the issue's targets (1 % in
+range and distance, 2 deg in the normal); measured errors are quoted next to each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from drivers.synthetic_net import GroundTruth, NetPose, NetRenderer, SceneStyle
+from service.camera import CameraModel, load_camera
+from service.errors import CalibrationError, ConfigError, EstimatorInputError
+from service.estimator import EstimatorSettings, NetEstimator
+from service.mesh import MeshGeometry
+from service.results import NetEstimate
+
+F64 = npt.NDArray[np.float64]
+Gray = npt.NDArray[np.uint8]
+
+FOCAL = 0.5 * 1280 / math.tan(math.radians(41.0))  # 82 deg horizontal field of view
+CAMERA = CameraModel(
+    width=1280, height=720, fx=FOCAL, fy=FOCAL, cx=642.5, cy=357.5,
+    distortion=(-0.08, 0.05, 0.0005, -0.0003, 0.0), name="test_wide",
+)
+SQUARE = MeshGeometry(bar_length_m=0.015)
+RHOMBIC = MeshGeometry(bar_length_m=0.015, opening_angle_deg=60.0)
+
+REAL_DIR = Path("/work/shared/data/real-net-frame")
+REAL_FRAME = REAL_DIR / "net_1280x720.jpg"
+REAL_CALIBRATION = REAL_DIR / "camera_solaqua_1280x720.yaml"
+
+
+@pytest.fixture(scope="module")
+def renderer() -> Iterator[NetRenderer]:
+    yield NetRenderer(CAMERA, SQUARE, seed=0)
+
+
+@pytest.fixture(scope="module")
+def estimator() -> NetEstimator:
+    return NetEstimator(CAMERA, SQUARE, EstimatorSettings())
+
+
+def _render(
+    renderer: NetRenderer, pose: NetPose, seed: int, style: SceneStyle | None = None
+) -> tuple[Gray, GroundTruth]:
+    return renderer.render(pose, rng=np.random.default_rng(seed), style=style)
+
+
+def _errors(estimate: NetEstimate, truth: GroundTruth) -> tuple[float, float, float]:
+    """(relative range error, relative distance error, normal error in degrees)."""
+    assert estimate.range_m is not None and estimate.distance_m is not None
+    assert estimate.normal is not None
+    cos = float(np.dot(estimate.normal, truth.normal))
+    return (
+        estimate.range_m / truth.range_m - 1.0,
+        estimate.distance_m / truth.distance_m - 1.0,
+        math.degrees(math.acos(min(1.0, cos))),
+    )
+
+
+# -- accuracy on rendered frames ------------------------------------------------------------------
+
+POSES = [
+    pytest.param(NetPose(r, tilt_deg=t, tilt_axis_deg=a, roll_deg=roll, phase=(0.3, 0.7)),
+                 id=f"{r}m-{t:.0f}deg-axis{a:.0f}")
+    for r, t, a, roll in [
+        (0.5, 0.0, 0.0, 10.0),
+        (0.5, 25.0, 30.0, 55.0),
+        (0.5, 40.0, 120.0, 20.0),
+        (1.2, 0.0, 0.0, 35.0),
+        (1.2, 25.0, 210.0, 5.0),
+        (1.2, 40.0, 300.0, 70.0),
+        (2.0, 0.0, 0.0, 80.0),
+        (2.0, 25.0, 60.0, 15.0),
+        (2.0, 40.0, 45.0, 20.0),
+    ]
+]
+# Measured with these seeds: range and distance errors at most 0.19 %, normal at most 0.16 deg,
+# reported sigmas 0.08-0.24 % and 0.09-0.24 deg; except 2 m / 40 deg about axis 160 deg (xfail).
+POSES.append(
+    pytest.param(
+        NetPose(2.0, tilt_deg=40.0, tilt_axis_deg=160.0, roll_deg=40.0, phase=(0.3, 0.7)),
+        id="2.0m-40deg-axis160",
+        marks=pytest.mark.xfail(
+            strict=True,
+            reason="misses the 1 % / 2 deg target at 2 m, 40 deg tilt about a near-horizontal "
+            "axis: distance +1.9 %, normal 1.7 deg for this seed; 3 of 8 seeds exceed the "
+            "target (distance up to +1.9 %, normal up to 2.4 deg, i.e. 2-5 reported sigma)",
+        ),
+    )
+)
+
+
+@pytest.mark.parametrize("pose", POSES)
+def test_rendered_net_range_distance_and_normal(
+    renderer: NetRenderer, estimator: NetEstimator, pose: NetPose
+) -> None:
+    frame, truth = _render(renderer, pose, seed=int(pose.range_m * 100 + pose.tilt_deg))
+    estimate = estimator.estimate(frame)
+    assert estimate.detected, estimate.reason
+    range_error, distance_error, normal_error = _errors(estimate, truth)
+    assert abs(range_error) < 0.01
+    assert abs(distance_error) < 0.01
+    assert normal_error < 2.0
+    assert estimate.tilt_deg == pytest.approx(truth.tilt_deg, abs=2.0)
+    assert estimate.rois_used >= EstimatorSettings().min_rois
+    assert 0.0 < estimate.confidence <= 1.0
+    # The reported 1-sigma uncertainties cover the actual errors (4 sigma, plus a floor of
+    # 0.1 % / 0.2 deg for the model bias the sigmas do not include).
+    assert estimate.sigma_range_m is not None and estimate.sigma_normal_deg is not None
+    assert abs(range_error) * truth.range_m < 4 * estimate.sigma_range_m + 0.001 * truth.range_m
+    assert normal_error < 4 * estimate.sigma_normal_deg + 0.2
+
+
+# -- what must not be detected, and what must still be --------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_net_free_water_with_fish_is_not_a_net(
+    renderer: NetRenderer, estimator: NetEstimator, seed: int
+) -> None:
+    frame, truth = _render(
+        renderer, NetPose(1.0), seed, SceneStyle(net_present=False, fish_behind=6, caustics=0.2)
+    )
+    assert not truth.net_present
+    estimate = estimator.estimate(frame)
+    assert not estimate.detected
+    # Nothing a consumer could mistake for a measurement.
+    assert estimate.distance_m is None and estimate.range_m is None and estimate.normal is None
+    assert estimate.reason
+    assert estimate.confidence < EstimatorSettings().min_confidence
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_fish_covering_a_third_of_the_frame(
+    renderer: NetRenderer, estimator: NetEstimator, seed: int
+) -> None:
+    pose = NetPose(1.0, tilt_deg=20.0, tilt_axis_deg=60.0 * seed, roll_deg=15.0)
+    frame, truth = _render(renderer, pose, seed, SceneStyle(fish_front_cover=1 / 3))
+    assert truth.occluded_fraction >= 1 / 3
+    estimate = estimator.estimate(frame)
+    assert estimate.detected, estimate.reason
+    range_error, distance_error, normal_error = _errors(estimate, truth)
+    # Measured <= 0.10 % and 0.03 deg (41 % and 38 % of the frame hidden); the target is 2 %.
+    assert abs(range_error) < 0.02 and abs(distance_error) < 0.02
+    assert normal_error < 2.0
+    # Some ROIs were rejected: the fish were seen as such, not fitted.
+    assert estimate.rois_used < len(estimate.rois)
+
+
+# -- mesh shape ---------------------------------------------------------------------------------
+
+
+def test_rhombic_mesh_with_the_matching_geometry() -> None:
+    renderer = NetRenderer(CAMERA, RHOMBIC, seed=0)
+    pose = NetPose(1.0, tilt_deg=25.0, tilt_axis_deg=100.0, roll_deg=30.0)
+    frame, truth = _render(renderer, pose, seed=9)
+    estimate = NetEstimator(CAMERA, RHOMBIC).estimate(frame)
+    assert estimate.detected, estimate.reason
+    range_error, distance_error, normal_error = _errors(estimate, truth)
+    # Measured 0.04 % / 0.08 % / 0.06 deg.
+    assert abs(range_error) < 0.01 and abs(distance_error) < 0.01
+    assert normal_error < 2.0
+    # Assuming a square mesh instead over-estimates the distance by sqrt(1 / sin 60 deg) - 1 =
+    # 7.5 % (distance scales with the square root of the assumed cell area): the mesh shape
+    # really is used, and mis-configuring it costs what geometry says (measured 7.54 %).
+    as_square = NetEstimator(CAMERA, SQUARE).estimate(frame)
+    assert as_square.detected and as_square.distance_m is not None
+    expected = 1.0 / math.sqrt(math.sin(math.radians(60.0)))
+    assert as_square.distance_m / truth.distance_m == pytest.approx(expected, rel=0.01)
+
+
+# -- tracking prior -----------------------------------------------------------------------------
+
+
+def test_prior_gives_the_cold_answer(renderer: NetRenderer, estimator: NetEstimator) -> None:
+    pose = NetPose(1.2, tilt_deg=25.0, tilt_axis_deg=30.0, roll_deg=10.0)
+    frame, _ = _render(renderer, pose, seed=21)
+    cold = estimator.estimate(frame)
+    assert cold.detected
+    warm = estimator.estimate(frame, prior=cold)
+    _assert_same_answer(warm, cold, rel=0.002)  # measured 0.03 %
+    # The next frame: the ROV moved 3 cm closer and turned a little. Prior (previous frame)
+    # and cold path agree on it too.
+    moved = NetPose(1.17, tilt_deg=27.0, tilt_axis_deg=32.0, roll_deg=10.0)
+    next_frame, truth = _render(renderer, moved, seed=22)
+    tracked = estimator.estimate(next_frame, prior=cold)
+    fresh = estimator.estimate(next_frame)
+    _assert_same_answer(tracked, fresh, rel=0.002)  # measured 0.01 %, 0.02 deg
+    assert abs(_errors(tracked, truth)[0]) < 0.01
+
+
+def test_a_prior_without_detection_falls_back_to_the_search(
+    renderer: NetRenderer, estimator: NetEstimator
+) -> None:
+    frame, _ = _render(renderer, NetPose(0.8, tilt_deg=10.0), seed=23)
+    nothing = NetEstimate(detected=False, confidence=0.0, reason="lost")
+    _assert_same_answer(estimator.estimate(frame, prior=nothing), estimator.estimate(frame), 0.0)
+
+
+def _assert_same_answer(a: NetEstimate, b: NetEstimate, rel: float) -> None:
+    assert a.detected and b.detected
+    assert a.range_m is not None and b.range_m is not None
+    assert a.distance_m is not None and b.distance_m is not None
+    assert a.normal is not None and b.normal is not None
+    assert a.range_m == pytest.approx(b.range_m, rel=rel, abs=1e-12)
+    assert a.distance_m == pytest.approx(b.distance_m, rel=rel, abs=1e-12)
+    angle = math.degrees(math.acos(min(1.0, float(np.dot(a.normal, b.normal)))))
+    assert angle < max(rel * 100, 1e-6)  # 0.2 % -> 0.2 deg
+
+
+# -- inputs -------------------------------------------------------------------------------------
+
+
+def test_bgr_input_equals_gray_input(renderer: NetRenderer, estimator: NetEstimator) -> None:
+    import cv2
+
+    frame, _ = _render(renderer, NetPose(0.9, tilt_deg=15.0, tilt_axis_deg=80.0), seed=31)
+    gray = estimator.estimate(frame)
+    bgr = estimator.estimate(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    single_channel = estimator.estimate(frame[:, :, None])
+    assert gray.detected
+    for other in (bgr, single_channel):
+        assert dataclasses.replace(other, timings_ms={}) == dataclasses.replace(
+            gray, timings_ms={}
+        )
+
+
+def test_half_resolution_stream_uses_the_scaled_calibration(
+    renderer: NetRenderer, estimator: NetEstimator
+) -> None:
+    import cv2
+
+    pose = NetPose(0.6, tilt_deg=20.0, tilt_axis_deg=45.0, roll_deg=25.0)
+    frame, truth = _render(renderer, pose, seed=41)
+    half = cv2.resize(frame, (640, 360), interpolation=cv2.INTER_AREA)
+    estimate = estimator.estimate(half)  # the 1280x720 calibration, scaled by the estimator
+    assert estimate.detected, estimate.reason
+    # Measured 0.05 % (an unscaled focal length would be off by 100 %).
+    range_error, distance_error, normal_error = _errors(estimate, truth)
+    assert abs(range_error) < 0.01 and abs(distance_error) < 0.01
+    assert normal_error < 2.0
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        np.zeros(1280 * 720, np.uint8),
+        np.zeros((2, 720, 1280, 3), np.uint8),
+        np.zeros((720, 1280, 4), np.uint8),
+        np.zeros((720, 1280, 2), np.uint8),
+    ],
+    ids=["flat-1d", "batch-4d", "four-channels", "two-channels"],
+)
+def test_wrong_shape_is_an_input_error(
+    estimator: NetEstimator, frame: npt.NDArray[np.uint8]
+) -> None:
+    with pytest.raises(EstimatorInputError, match="shape"):
+        estimator.estimate(frame)
+
+
+def test_frame_smaller_than_a_roi_is_an_input_error(estimator: NetEstimator) -> None:
+    # Same aspect ratio as the calibration (so the camera scales), but 112x63 < one 128 px ROI.
+    with pytest.raises(EstimatorInputError, match="smaller than one 128px ROI"):
+        estimator.estimate(np.zeros((63, 112), np.uint8))
+
+
+def test_frame_of_another_aspect_ratio_is_a_calibration_error(estimator: NetEstimator) -> None:
+    with pytest.raises(CalibrationError, match="aspect ratio"):
+        estimator.estimate(np.zeros((480, 640), np.uint8))
+
+
+def test_uniform_frame_is_no_net(estimator: NetEstimator) -> None:
+    estimate = estimator.estimate(np.full((720, 1280), 128, np.uint8))
+    assert not estimate.detected and estimate.distance_m is None
+
+
+@pytest.mark.parametrize(
+    ("change", "key"),
+    [
+        ({"roi_size": 100}, "estimator.roi_size"),
+        ({"levels": 0}, "estimator.levels"),
+        ({"min_rois": 3}, "estimator.min_rois"),
+        ({"grid_cols": 2, "grid_rows": 2, "min_rois": 5}, "estimator.min_rois"),
+        ({"min_confidence": 1.5}, "estimator.min_confidence"),
+    ],
+)
+def test_invalid_settings_name_the_key(change: dict[str, float], key: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        NetEstimator(CAMERA, SQUARE, EstimatorSettings(**change))  # type: ignore[arg-type]
+    assert err.value.key == key
+
+
+# -- the real frame -----------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not REAL_FRAME.exists(), reason="real-net-frame data set not present")
+def test_real_net_frame() -> None:
+    import cv2
+
+    camera = load_camera(REAL_CALIBRATION)
+    frame = cv2.imread(str(REAL_FRAME), cv2.IMREAD_COLOR)
+    assert frame is not None
+    estimate = NetEstimator(camera, MeshGeometry(bar_length_m=0.02)).estimate(frame)
+    assert estimate.detected, estimate.reason
+    assert estimate.normal is not None and estimate.range_m is not None
+    # No ground truth; the public implementation reports ~0.82 m with these intrinsics and a
+    # 2.0 cm mesh (ROI depths 0.61-0.93 m). Plausible range only (measured here: 0.90 m).
+    assert 0.5 < estimate.range_m < 1.3
+    # Direction of the tilt. The net is nearer at the bottom right. On the plane n_away . X = d
+    # (n_away = -normal, pointing from the camera to the net) the depth along the ray
+    # (x, y, 1) is z = d / (n_away . (x, y, 1)): it decreases towards +x (right) and +y (down)
+    # exactly when n_away_x > 0 and n_away_y > 0, i.e. normal_x < 0 and normal_y < 0.
+    nx, ny, nz = estimate.normal
+    assert nx < 0 and ny < 0 and nz < 0
+    # Cross-check without the plane fit: the mesh looks larger (nearer) at the bottom right.
+    used = [r for r in estimate.rois if r.used_in_fit]
+    xs = np.array([r.center_px[0] for r in used])
+    ys = np.array([r.center_px[1] for r in used])
+    periods = np.array([r.period_px for r in used])
+    assert np.corrcoef(xs, periods)[0, 1] > 0.3
+    assert np.corrcoef(ys, periods)[0, 1] > 0.3
+    assert estimate.rois_used >= 8
