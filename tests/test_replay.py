@@ -57,9 +57,10 @@ NO_NET = range(12, 16)  # frames with the net out of view (a fish-farm gap, say)
 # estimator retuning, and are still 10x tighter than the ~4 % the paper reports.
 RANGE_TOL_FRAC = 0.005
 NORMAL_TOL_DEG = 2.0
-# The filter lags a moving net: here the range changes 2 cm per frame; gated, smoothed output
-# within 3 cm (1.5 frames of motion) of the truth.
-FILTER_TOL_M = 0.03
+# The filter's constant-velocity model follows this steady approach (2 cm of range per frame)
+# without lag: measured at most 1.1 mm from the truth. 1 cm (half a frame of motion) leaves
+# room for a filter retuned to smooth harder, and still catches a filter that lags a frame.
+FILTER_TOL_M = 0.01
 
 
 def pose_at(i: int) -> NetPose:
@@ -272,6 +273,21 @@ def test_every_nth_frame_without_video(
     assert not (out / "annotated.mp4").exists()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["every"] == 3 and summary["frames"] == 10 and "truth" not in summary
+
+
+def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> None:
+    """--config takes [filter] (and [estimator]) from a daemon configuration: with
+    acquire_count = 5 the first valid output comes two frames later than with the default 3.
+    The configuration names neither a mesh nor a calibration that exists here: not needed."""
+    config = tmp_path / "netpose.toml"
+    config.write_text('[camera]\ncalibration = "/nowhere/camera.yaml"\n'
+                      "[filter]\nacquire_count = 5\n[estimator]\nmin_rois = 5\n")
+    out = tmp_path / "out"
+    code = main(replay_args(recording, out, "--filter", "--config", str(config), "--no-video",
+                            "--max-frames", "6"))
+    assert code == 0
+    valid = [r["filter_valid"] for r in read_csv(out / "estimates.csv")]
+    assert valid == ["0", "0", "0", "0", "1", "1"]
 
 
 def test_image_folder_with_a_frame_the_calibration_does_not_fit(

@@ -348,7 +348,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
         raise ConfigError(option, exc.problem) from None
-    estimator_settings, filter_settings = _tuning(args.config)
+    estimator_settings, filter_settings = _tuning(args.config, mesh.bar_length_m)
     truth = load_truth_csv(args.truth) if args.truth is not None else None
     url = source_url(args.input, args.fps)
     write_video = not args.no_video
@@ -362,14 +362,22 @@ def run(args: argparse.Namespace) -> int:
                        truth, total)
 
 
-def _tuning(path: Path | None) -> tuple[EstimatorSettings | None, FilterSettings | None]:
+def _tuning(
+    path: Path | None, mesh_size: float
+) -> tuple[EstimatorSettings | None, FilterSettings | None]:
+    """[estimator] and [filter] of a daemon configuration file (the rest is not used: the
+    mesh and the calibration come from the command line, the source from INPUT)."""
     if path is None:
         return None, None
-    from service.daemon import load_daemon_config
+    from service.config import load_config
+    from service.daemon import driver_sections
     from service.estimator import EstimatorSettings
     from service.tracking import FilterSettings
 
-    config = load_daemon_config(str(path))
+    # A configuration may leave the mesh to be set, or name a calibration file of the vehicle
+    # that is not here: neither matters to the replay.
+    config = load_config(path, [f"mesh.bar_length_m={mesh_size!r}"],
+                         extra_sections=driver_sections(), check_files=False)
     estimator = config.sections.get("estimator")
     return (
         estimator if isinstance(estimator, EstimatorSettings) else None,
