@@ -78,6 +78,13 @@ class SpectrumAnalyzer:
         self._col0 = m
         self._kernel = np.ones((3, 3), np.uint8)
 
+    def index_of(self, k: npt.ArrayLike) -> tuple[int, int]:
+        """(row, column) of the bin nearest wave vector k (bins) in `log_power`'s array."""
+        kx, ky = (float(v) for v in np.asarray(k, dtype=np.float64).ravel()[:2])
+        if kx < 0 or (kx == 0 and ky < 0):
+            kx, ky = -kx, -ky  # the stored half plane holds k or its conjugate -k
+        return round(ky) + self._row0, round(kx) + self._col0
+
     def log_power(self, patch: F32) -> F32:
         """Log power of the windowed, mean-free patch on the half plane kx >= -MARGIN.
 

@@ -69,9 +69,8 @@ def test_flat_patch_has_no_peaks() -> None:
 
 
 def _raw_power_at(analyzer: SpectrumAnalyzer, logp: F64, k: F64) -> float:
-    kk = k if (k[1] > 0 or (k[1] == 0 and k[0] > 0)) else -k
-    c = analyzer.centre
-    return float(logp[round(kk[1]) + c, round(kk[0]) + c])
+    row, col = analyzer.index_of(k)
+    return float(logp[row, col])
 
 
 def test_weak_lattice_under_a_strong_gradient_is_found_by_whitening() -> None:
