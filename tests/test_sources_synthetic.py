@@ -140,3 +140,25 @@ def test_estimator_recovers_the_ground_truth_within_its_targets() -> None:
     assert abs(float(np.mean(errors_pct))) <= TARGET_MEAN_PCT
     assert float(np.std(errors_pct, ddof=1)) <= TARGET_STD_PCT
     assert float(np.mean(normal_errors)) <= TARGET_NORMAL_DEG
+
+
+def test_realtime_renderer_slower_than_the_frame_rate_still_delivers_current_frames() -> None:
+    # A 640x360 render takes tens of milliseconds; at 100 fps every frame is due before the
+    # previous one is drawn. The source must jump to the frame due now, not fall behind forever.
+    url = "synthetic:?width=640&height=360&fps=100&realtime=1&trajectory=approach&period=2"
+    with open_source(url) as source:
+        assert isinstance(source, SyntheticSource)
+        frames = []
+        for _ in range(4):
+            frame = source.read(2.0)
+            assert frame is not None
+            frames.append(frame)
+        stats = source.stats()
+    indices = [f.index for f in frames]
+    assert all(b - a > 1 for a, b in zip(indices, indices[1:], strict=False))  # frames skipped
+    assert stats.drops == indices[-1] + 1 - len(frames)
+    for frame in frames:
+        # The truth belongs to the frame's own time on the trajectory.
+        assert truth_of(frame).range_m == pytest.approx(
+            source.trajectory.pose_at(frame.index / 100).range_m
+        )

@@ -145,6 +145,9 @@ class FakeCapture:
         self._stamp = time.monotonic() - 0.002  # exposure ended a moment before the dequeue
         return True, image
 
+    def grab(self) -> bool:
+        return self.read()[0]
+
     def get(self, prop_id: int) -> float:
         cv2 = self._cv2
         values = {

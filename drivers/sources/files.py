@@ -126,6 +126,19 @@ class VideoFileSource(PacedSource):
             skipped_before=failed,
         )
 
+    def _skip_to(self, number: int) -> int:
+        # grab() decodes without converting: the cheapest way past frames in any codec.
+        skipped = 0
+        if self._first is not None and number > self._first.number:
+            self._first = None  # the frame peeked at open() is not wanted any more
+            skipped += 1
+        while self._first is None and self._cap is not None and self._decoded < number:
+            if not self._cap.grab():
+                break  # the end, or a damaged frame: read() sorts out which
+            self._decoded += 1
+            skipped += 1
+        return skipped
+
     def _rewind(self) -> None:
         # Re-opening is the one rewind every container and codec supports.
         self._stop()
@@ -188,6 +201,11 @@ class ImageFolderSource(PacedSource):
         flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
         image: Any = cv2.imread(str(self._files[number]), flags)
         return MediaFrame(image=image, number=number, media_time_s=number / self._fps)
+
+    def _skip_to(self, number: int) -> int:
+        skipped = max(0, min(number, len(self._files)) - self._position)
+        self._position += skipped
+        return skipped
 
     def _rewind(self) -> None:
         self._position = 0

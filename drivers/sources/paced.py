@@ -3,9 +3,10 @@
 Without pacing, read() returns the next frame at once: a recording is replayed as fast as the
 consumer goes and no frame is lost (tests, benchmarks, offline replay). With `realtime`, frames
 become due at their media time after open(), as from a camera: read() waits for the next due
-frame and skips (counts as drops) every frame whose successor is already due, so a slow
-consumer sees the newest frame, just as from a live source. No thread is involved: decoding
-happens in the caller.
+frame and skips (counts as drops) the frames that came due while the consumer was busy, so a
+slow consumer sees the newest frame, as from a live source. Skipped frames are not rendered or
+converted (a video file still has to decode them). No thread is involved: decoding happens in
+the caller.
 
 Timestamps are media time on the clocks of open(): t_monotonic = (monotonic at open) + media
 time, so a replay keeps the recording's frame spacing whatever the processing speed.
@@ -14,6 +15,7 @@ time, so a replay keeps the recording's frame spacing whatever the processing sp
 from __future__ import annotations
 
 import logging
+import math
 import time
 from abc import abstractmethod
 from dataclasses import dataclass
@@ -85,6 +87,11 @@ class PacedSource(FrameSource):
         """The next frame of the medium; raise EndOfMediaError after the last."""
 
     @abstractmethod
+    def _skip_to(self, number: int) -> int:
+        """Pass over frames so that the next one is `number` (or the end); return how many
+        frames were passed over. Never goes backwards."""
+
+    @abstractmethod
     def _rewind(self) -> None:
         """Go back to the first frame (for `loop`)."""
 
@@ -121,23 +128,25 @@ class PacedSource(FrameSource):
             return None if item is None else self._deliver(item[1])
         deadline = time.monotonic() + max(0.0, timeout_s)
         if self._pending is None:
-            self._pending = self._next_frame()
-        while self._pending is not None:
-            frame = self._pending[1]
-            now = time.monotonic()
-            if frame.t_monotonic + self.frame_period_s <= now:
-                # Its successor is due already: the consumer missed this one.
-                self._drops += 1
-                self._pending = self._next_frame()
-                continue
-            if frame.t_monotonic > now:
-                if frame.t_monotonic > deadline:
-                    time.sleep(max(0.0, deadline - now))
-                    return None
-                time.sleep(frame.t_monotonic - now)
-            self._pending = None
-            return self._deliver(frame)
-        return None
+            # Jump straight to the frame due now: frames the consumer missed are never decoded
+            # or rendered (a renderer slower than the frame rate would otherwise never catch up).
+            due = math.floor(
+                (time.monotonic() - self._t0_mono - self._loop_time_s) / self.frame_period_s
+            )
+            self._drops += self._skip_to(due)
+            item = self._next_frame()
+            if item is None:
+                return None
+            self._pending = item
+        frame = self._pending[1]
+        now = time.monotonic()
+        if frame.t_monotonic > now:
+            if frame.t_monotonic > deadline:
+                time.sleep(max(0.0, deadline - now))
+                return None
+            time.sleep(frame.t_monotonic - now)
+        self._pending = None
+        return self._deliver(frame)
 
     @property
     def state(self) -> SourceState:

@@ -203,6 +203,13 @@ class SyntheticSource(PacedSource):
         image, truth = renderer.render(self.trajectory.pose_at(t), rng=rng, style=style)
         return MediaFrame(image=image, number=number, media_time_s=t, truth=truth)
 
+    def _skip_to(self, number: int) -> int:
+        if self.duration_s is not None:
+            number = min(number, math.ceil(self.duration_s * self._fps))
+        skipped = max(0, number - self._number)
+        self._number += skipped
+        return skipped
+
     def _rewind(self) -> None:
         self._number = 0
 
