@@ -374,8 +374,10 @@ def test_unreadable_inputs_give_clear_errors(
 
 
 # -- interruption ---------------------------------------------------------------------------------
-def test_sigint_keeps_everything_written_valid(tmp_path: Path) -> None:
-    """An endless synthetic source (every frame carries its truth) stopped by a real SIGINT."""
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_keeps_everything_written_valid(tmp_path: Path, stop: signal.Signals) -> None:
+    """An endless synthetic source (every frame carries its truth) stopped by a real signal:
+    Ctrl-C, or systemd / a batch job stopping the replay."""
     calibration = tmp_path / "camera.yaml"
     save_camera(CAMERA, calibration)
     out = tmp_path / "out"
@@ -396,20 +398,20 @@ def test_sigint_keeps_everything_written_valid(tmp_path: Path) -> None:
                 break
             time.sleep(0.1)
         assert proc.poll() is None, proc.communicate()[1]
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     assert proc.returncode == 130, err
-    assert "stopped by SIGINT" in err and "fps" in err and "frames" in err
+    assert f"stopped by {stop.name}" in err and "fps" in err and "frames" in err
     rows = read_csv(out / "estimates.csv")
     n = len(rows)
     assert n >= 8
     assert [int(r["frame"]) for r in rows] == list(range(n))
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["interrupted"] is True and summary["stop_reason"] == "SIGINT"
+    assert summary["interrupted"] is True and summary["stop_reason"] == stop.name
     assert summary["frames"] == n
     # The synthetic source's own ground truth reached the rows and the summary.
     assert summary["truth"]["net_present_frames"] == n
