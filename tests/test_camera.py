@@ -220,20 +220,6 @@ def _assert_one_line_calibration_error(result: subprocess.CompletedProcess[str],
     assert what in lines[0]
 
 
-def _calibration_option(command: str) -> str:
-    """The command's calibration-file option, whatever its author named it (--camera, --calib)."""
-    import argparse
-
-    from service.cli import build_parser
-
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    for action in sub.choices[command]._actions:
-        if any(s.startswith(("--cam", "--calib")) for s in action.option_strings):
-            return next(s for s in action.option_strings if s.startswith("--"))
-    pytest.fail(f"netpose {command} has no --camera/--calibration option")
-
-
 @pytest.mark.skipif(
     importlib.util.find_spec("service.commands.estimate") is None,
     reason="netpose estimate is not part of this build yet",
@@ -243,7 +229,9 @@ def test_estimate_cli_reports_a_bad_calibration_in_one_line(tmp_path: Path) -> N
     doc = _valid_doc()
     doc["camera_matrix"] = {"rows": 3, "cols": 3, "data": [1.0, 2.0]}
     bad = _write(tmp_path, doc)
-    result = _netpose("estimate", str(REAL_FRAME), _calibration_option("estimate"), str(bad))
+    result = _netpose(
+        "estimate", str(REAL_FRAME), "--calibration", str(bad), "--mesh-size", "0.02"
+    )
     _assert_one_line_calibration_error(result, "must have 9 values")
 
 
