@@ -173,16 +173,18 @@ class FakeCapture:
             self._mode = self._nearest(same, self._mode.width, self._mode.height, self._mode.fps)
             return True
         if prop_id in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+            # Like OpenCV's V4L2 backend: the size changes once both width and height are set.
             w, h = self._requested_size
             if prop_id == cv2.CAP_PROP_FRAME_WIDTH:
                 w = int(value)
             else:
                 h = int(value)
-            self._requested_size = (w, h)
+            if w is None or h is None:
+                self._requested_size = (w, h)
+                return True
+            self._requested_size = (None, None)
             same = [m for m in self._camera.modes if m.fourcc == self._mode.fourcc]
-            self._mode = self._nearest(
-                same, w or self._mode.width, h or self._mode.height, self._mode.fps
-            )
+            self._mode = self._nearest(same, w, h, self._mode.fps)
             return True
         if prop_id == cv2.CAP_PROP_FPS:
             same = [
