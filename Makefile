@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/netpose demo
+	$(BIN)/netpose run --config $(CONFIG)
 
 test: lint typecheck pytest
 
@@ -30,6 +30,10 @@ pytest: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/netpose bench speed
 	$(BIN)/netpose bench accuracy
+
+# On the ROV (as root): user, venv in /opt/netpose, unit, /etc/netpose. See docs/daemon.md.
+install:
+	systemd/install.sh
 
 clean:
 	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache

@@ -165,41 +165,51 @@ class NetRenderer:
         return frame, truth
 
     # -- scene pieces ---------------------------------------------------------------------------
-    def _smooth_field(self, rng: np.random.Generator, cells: int) -> FloatMap:
+    def _smooth_field(
+        self, rng: np.random.Generator, cells: int, shape: tuple[int, int] | None = None
+    ) -> FloatMap:
         import cv2
 
-        h, w = self.camera.height, self.camera.width
-        gh = max(2, int(round(cells * h / w)))
+        h, w = shape if shape is not None else (self.camera.height, self.camera.width)
+        gh = max(2, round(cells * h / w))
         coarse = rng.standard_normal((gh, cells)).astype(np.float32)
         field = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
         return np.asarray(field, dtype=np.float64)
 
     def _background(self, style: SceneStyle, rng: np.random.Generator) -> FloatMap:
-        img = style.water_level * (1.0 + style.vertical_gradient * (0.5 - self._vertical) * 2.0)
-        img = img + style.blotches * self._smooth_field(rng, 4)
+        """Water, light gradient, caustics and sun rays: all smooth, so drawn at half size."""
+        import cv2
+
+        h, w = self.camera.height, self.camera.width
+        hh, hw = (h + 1) // 2, (w + 1) // 2
+        v, u = np.mgrid[0:hh, 0:hw].astype(np.float32)
+        vertical = v / max(hh - 1, 1)
+        img = style.water_level * (1.0 + style.vertical_gradient * (0.5 - vertical) * 2.0)
+        img = img + style.blotches * self._smooth_field(rng, 4, (hh, hw))
         if style.caustics > 0:
-            f1 = self._smooth_field(rng, 14)
-            f2 = self._smooth_field(rng, 11)
-            web = np.exp(-(f1 * f1) / 0.02) + np.exp(-(f2 * f2) / 0.02)
-            img = img + style.caustics * web * (1.0 - self._vertical)
+            f1 = self._smooth_field(rng, 14, (hh, hw))
+            f2 = self._smooth_field(rng, 11, (hh, hw))
+            web = np.exp(-(f1 * f1) * 50.0) + np.exp(-(f2 * f2) * 50.0)
+            img = img + style.caustics * web * (1.0 - vertical)
         if style.sun_rays > 0:
             angle = rng.uniform(-0.4, 0.4)
-            h, w = self.camera.height, self.camera.width
-            v, u = np.mgrid[0:h, 0:w]
-            coord = (u - w / 2) * math.cos(angle) + v * math.sin(angle)
+            coord = (u - hw / 2) * math.cos(angle) + v * math.sin(angle)
             rays = np.zeros_like(img)
             for _ in range(int(rng.integers(2, 6))):
-                centre = rng.uniform(-w / 2, w / 2)
-                width = rng.uniform(15, 60)
+                centre = rng.uniform(-hw / 2, hw / 2)
+                width = rng.uniform(7.5, 30)
                 rays += np.exp(-(((coord - centre) / width) ** 2))
-            img = img + style.sun_rays * rays * (1.2 - self._vertical)
+            img = img + style.sun_rays * rays * (1.2 - vertical)
+        full = np.asarray(
+            cv2.resize(img.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR),
+            dtype=np.float64,
+        )
         if style.snow_per_mpx > 0:
-            h, w = self.camera.height, self.camera.width
             n = int(style.snow_per_mpx * h * w / 1e6)
             ys = rng.integers(0, h, n)
             xs = rng.integers(0, w, n)
-            img[ys, xs] += rng.uniform(0.05, 0.3, n)
-        return np.asarray(img, dtype=np.float64)
+            full[ys, xs] += rng.uniform(0.05, 0.3, n)
+        return full
 
     def _draw_fish(
         self, image: FloatMap, rng: np.random.Generator, count: int, dark: bool
@@ -302,16 +312,24 @@ def _box_filtered_pulses(s: FloatMap, half_width: float) -> FloatMap:
 
     The pixel's footprint in s is estimated from the local gradient (L1 norm over one pixel),
     and the pulse train's integral G(y) = floor(y)*2h + min(frac(y), 2h) gives the exact average.
+    The footprint varies smoothly, so its gradient is taken on a 4x decimated grid; the integer
+    part of s is removed in double precision and the rest done in single precision.
     """
-    gy, gx = np.gradient(s)
-    footprint = np.abs(gx) + np.abs(gy)
-    footprint = np.maximum(footprint, 1e-6)
-    width = 2.0 * half_width
+    import cv2
 
-    def integral(y: FloatMap) -> FloatMap:
+    step = 4
+    coarse = s[::step, ::step]
+    gy, gx = np.gradient(coarse)
+    foot_coarse = ((np.abs(gx) + np.abs(gy)) / step).astype(np.float32)
+    footprint = cv2.resize(foot_coarse, (s.shape[1], s.shape[0]), interpolation=cv2.INTER_LINEAR)
+    footprint = np.maximum(footprint, np.float32(1e-6))
+    frac = (s - np.floor(s)).astype(np.float32)
+    width = np.float32(2.0 * half_width)
+
+    def integral(y: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         fl = np.floor(y)
-        return np.asarray(fl * width + np.minimum(y - fl, width), dtype=np.float64)
+        return fl * width + np.minimum(y - fl, width)
 
-    lo = s - 0.5 * footprint + half_width
-    hi = s + 0.5 * footprint + half_width
+    lo = frac - 0.5 * footprint + np.float32(half_width)
+    hi = frac + 0.5 * footprint + np.float32(half_width)
     return np.asarray((integral(hi) - integral(lo)) / footprint, dtype=np.float64)
