@@ -47,6 +47,7 @@ class EstimatorSettings:
     levels: int = 3
     preferred_period_px: float = 9.0
     min_period_px: float = 2.9
+    min_source_period_px: float = 3.5
     min_cycles: float = 3.0
     min_snr: float = 2.8
     min_roi_snr: float = 4.0
@@ -531,11 +532,14 @@ class NetEstimator:
         # from it means the seed plane was wrong or the ROI shows something else.
         period_out = n / math.sqrt(fit.det)
         on_target = abs(math.log(period_out / s.preferred_period_px)) < math.log(1.35)
+        # Resampling cannot restore what the camera never resolved: a mesh finer than ~3.5 px in
+        # the source has aliased harmonics and a peak position biased by the pixel response.
+        resolved = period_out * step >= s.min_source_period_px
         k_out = fit.basis / n  # cycles per output pixel
         meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
         # For reporting: the lattice in full-resolution image pixels through the local map.
         meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
-        meas.valid = bool(period_ok and quality_ok and on_target)
+        meas.valid = bool(period_ok and quality_ok and on_target and resolved)
         return meas
 
 
