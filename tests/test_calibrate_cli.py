@@ -17,9 +17,10 @@ from service.calibration_io import CalibrationInputError, sample_video
 from service.camera import load_camera, save_camera
 from service.cli import EXIT_CONFIG, main
 from tests.checkerboard_render import TEST_CAMERA, render_views
+from tests.shared_data import REAL_NET_FRAME
 
 REPO = Path(__file__).resolve().parents[1]
-NET_FRAME = Path("/work/shared/data/real-net-frame/net_1280x720.jpg")
+NET_FRAME = REAL_NET_FRAME
 
 
 @pytest.fixture(scope="module")

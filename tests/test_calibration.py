@@ -8,8 +8,6 @@ on, over the whole image, must agree within 0.5 px between true and recovered ca
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -26,8 +24,9 @@ from service.calibration import (
 from service.camera import CameraModel
 from service.errors import CalibrationError
 from tests.checkerboard_render import TEST_CAMERA, render_views
+from tests.shared_data import REAL_NET_FRAME
 
-NET_FRAME = Path("/work/shared/data/real-net-frame/net_1280x720.jpg")
+NET_FRAME = REAL_NET_FRAME
 BOARD = BoardSpec(7, 4, 0.0311)
 SIZE = (TEST_CAMERA.width, TEST_CAMERA.height)
 

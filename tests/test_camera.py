@@ -18,8 +18,9 @@ from service.camera import (
     save_camera,
 )
 from service.errors import CalibrationError
+from tests.shared_data import REAL_NET_DIR
 
-REAL_DIR = Path("/work/shared/data/real-net-frame")
+REAL_DIR = REAL_NET_DIR
 REAL_CALIBRATION = REAL_DIR / "camera_solaqua_1280x720.yaml"
 REAL_FRAME = REAL_DIR / "net_1280x720.jpg"
 needs_real_data = pytest.mark.skipif(

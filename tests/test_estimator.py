@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +21,7 @@ from service.errors import CalibrationError, ConfigError, EstimatorInputError
 from service.estimator import EstimatorSettings, NetEstimator
 from service.mesh import MeshGeometry
 from service.results import NetEstimate
+from tests.shared_data import REAL_NET_DIR
 
 F64 = npt.NDArray[np.float64]
 Gray = npt.NDArray[np.uint8]
@@ -34,7 +34,7 @@ CAMERA = CameraModel(
 SQUARE = MeshGeometry(bar_length_m=0.015)
 RHOMBIC = MeshGeometry(bar_length_m=0.015, opening_angle_deg=60.0)
 
-REAL_DIR = Path("/work/shared/data/real-net-frame")
+REAL_DIR = REAL_NET_DIR
 REAL_FRAME = REAL_DIR / "net_1280x720.jpg"
 REAL_CALIBRATION = REAL_DIR / "camera_solaqua_1280x720.yaml"
 

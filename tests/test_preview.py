@@ -3,8 +3,6 @@ pixel can be accounted for, and on the real net frame."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -19,8 +17,9 @@ from service.preview import (
     render_preview,
 )
 from service.results import NetEstimate, RoiResult
+from tests.shared_data import REAL_NET_FRAME
 
-REAL_FRAME = Path("/work/shared/data/real-net-frame/net_1280x720.jpg")
+REAL_FRAME = REAL_NET_FRAME
 
 
 def colour_mask(image: np.ndarray, colour: tuple[int, int, int]) -> np.ndarray:

@@ -37,6 +37,7 @@ from service.replay import (
     write_truth_csv,
 )
 from service.results import NetEstimate, RoiResult
+from tests.shared_data import REAL_NET_FRAME
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -46,7 +47,7 @@ CAMERA = CameraModel(
 )
 MESH = MeshGeometry(bar_length_m=0.025)
 FPS = 10.0
-REAL_FRAME = Path("/work/shared/data/real-net-frame/net_1280x720.jpg")
+REAL_FRAME = REAL_NET_FRAME
 REAL_CALIBRATION = REAL_FRAME.with_name("camera_solaqua_1280x720.yaml")
 FRAMES = 30
 NO_NET = range(12, 16)  # frames with the net out of view (a fish-farm gap, say)
