@@ -204,6 +204,18 @@ class NetEstimator:
         ]
         return float(np.median(periods)) if periods else None
 
+    def prepare(self, width: int, height: int) -> None:
+        """Build every per-size cache (ROI layouts, rays, lens Jacobians) now, at start-up,
+        so the first frame costs what every other frame costs."""
+        self._camera_for(width, height)
+        for level in range(self.settings.levels):
+            grid = self._layout(width, height, level, "grid")
+            self._layout(width, height, level, "probe")
+            if grid:
+                for other in range(self.settings.levels):
+                    if other != level and self._layout(width, height, other, "grid"):
+                        self._layout(width, height, other, f"grid@{level}")
+
     # -- per frame -------------------------------------------------------------------------------
     def estimate(self, frame: Image, prior: NetEstimate | None = None) -> NetEstimate:
         """Estimate the net plane in one frame (grayscale, or BGR which is converted).
