@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -29,7 +29,6 @@ COMMAND_MODULES = (
     "replay",
     "mavlink_check",
     "monitor",
-    "demo",
 )
 
 Handler = Callable[[argparse.Namespace], int]
@@ -51,11 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        module_name = f"service.commands.{name}"
-        # A command whose module is not part of this build is simply not offered.
-        if importlib.util.find_spec(module_name) is None:
-            continue
-        importlib.import_module(module_name).add_parser(subparsers)
+        importlib.import_module(f"service.commands.{name}").add_parser(subparsers)
     return parser
 
 
@@ -83,6 +78,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (`netpose estimate ... | head`): not an error of ours. Point
+        # stdout at /dev/null so the interpreter's final flush does not complain again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":
