@@ -246,10 +246,7 @@ class NetEstimator:
         if prior is not None and prior.detected and prior.normal is not None and (
             prior.distance_m is not None and prior.level in levels
         ):
-            tracked = self._rectified_pass(
-                level_image, prior.level, np.asarray(prior.normal), prior.distance_m, w, h,
-                timings,
-            )
+            tracked = self._rectified_pass(level_image, prior.level, prior, w, h, timings)
             if _agrees(tracked, prior):
                 timings["total"] = (time.perf_counter() - t0) * 1e3
                 return replace(tracked, timings_ms=timings)
@@ -266,10 +263,7 @@ class NetEstimator:
             if seed.normal is not None and seed.distance_m is not None and (
                 seed.rois_used == len(probes)
             ):
-                quick = self._rectified_pass(
-                    level_image, order[0], np.asarray(seed.normal), seed.distance_m, w, h,
-                    timings,
-                )
+                quick = self._rectified_pass(level_image, order[0], seed, w, h, timings)
                 if _agrees(quick, seed):
                     timings["total"] = (time.perf_counter() - t0) * 1e3
                     return replace(quick, timings_ms=timings)
@@ -375,10 +369,7 @@ class NetEstimator:
         for _ in range(iterations):
             if not current.detected or current.normal is None or current.distance_m is None:
                 break
-            result = self._rectified_pass(
-                level_image, level, np.asarray(current.normal), current.distance_m, w, h,
-                timings,
-            )
+            result = self._rectified_pass(level_image, level, current, w, h, timings)
             if _agrees(result, current):
                 return result
             current = result
@@ -391,17 +382,24 @@ class NetEstimator:
         self,
         level_image: Callable[[int], Image],
         level: int,
-        normal: F64,
-        distance_m: float,
+        seed: NetEstimate,
         w: int,
         h: int,
         timings: dict[str, float],
     ) -> NetEstimate:
+        """Measure the grid in a virtual camera facing the seed's plane, and fit the plane."""
+        assert seed.normal is not None and seed.distance_m is not None
         t0 = time.perf_counter()
-        rotation = _rotation_to_z(-normal)
+        rotation = _rotation_to_z(-np.asarray(seed.normal))
+        grid = self._layout(w, h, level, "grid")
+        # The seed's own lattice at each ROI (when it measured the same grid) spares the
+        # lattice search its hypotheses: the rectified lattice is that one, resampled.
+        hints: list[Mat2 | None] = [None] * len(grid)
+        if len(seed.rois) == len(grid):
+            hints = [r.reciprocal if r.detected else None for r in seed.rois]
         rect = [
-            self._measure_rectified(level_image, g, rotation, distance_m)
-            for g in self._layout(w, h, level, "grid")
+            self._measure_rectified(level_image, g, rotation, seed.distance_m, hint)
+            for g, hint in zip(grid, hints, strict=True)
         ]
         timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t0) * 1e3
         return self._conclude(rect, level, rotation, timings)
@@ -481,6 +479,7 @@ class NetEstimator:
         geom: _RoiGeometry,
         rotation: F64,
         distance_m: float,
+        hint: Mat2 | None = None,
     ) -> _RoiMeasurement:
         """Measure one ROI in a virtual camera that faces the net squarely.
 
@@ -526,7 +525,11 @@ class NetEstimator:
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
         )
         peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
-        fit = self._lattice.fit(peaks)
+        expected = None
+        if hint is not None:
+            # k . x is invariant: with x_full = jm x_out, k_out = jm^T k_full (per pixel), x n.
+            expected = (jm.T @ np.asarray(hint, dtype=np.float64).T) * n
+        fit = self._lattice.fit(peaks, expected)
         rect_geom = _RoiGeometry(
             x0=geom.x0, y0=geom.y0, center_full=geom.center_full, ray=geom.ray,
             jacobian=geom.jacobian,

@@ -173,12 +173,26 @@ class LatticeFinder:
         self.tolerance_relative = tolerance_relative
         self.min_sin = math.sin(math.radians(min_angle_deg))
 
-    def fit(self, peaks: Peaks) -> LatticeFit | None:
+    def fit(self, peaks: Peaks, expected: F64 | None = None) -> LatticeFit | None:
+        """The lattice of the peaks, or None. `expected` (2x2, columns k1 k2 in bins), when the
+        caller knows roughly what to look for (tracking), is tried first and used if it explains
+        most of the peak weight; otherwise the full hypothesis search runs."""
         if len(peaks) < 2:
             return None
         k, w = peaks.k, peaks.snr
         tol = np.maximum(self.tolerance_bins, self.tolerance_relative * np.linalg.norm(k, axis=1))
         total = float(w.sum())
+        if expected is not None and abs(np.linalg.det(expected)) > 1e-9:
+            basis = reduce_basis(np.asarray(expected, dtype=np.float64))
+            inl, idx = _assign(basis, k, tol)
+            if (
+                float(w[inl].sum()) >= 0.6 * total
+                and _spans_unimodular(idx[inl])
+                and _basis_observed(basis, k, tol)
+            ):
+                fitted = self._refine(basis, k, w, tol, total)
+                if fitted is not None:
+                    return fitted
         candidates = self._hypotheses(k, w, tol)
         best: tuple[float, int, F64, npt.NDArray[np.bool_]] | None = None
         for basis in candidates:
