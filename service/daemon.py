@@ -295,13 +295,17 @@ class Daemon:
                     self.flags.reload.clear()
                     self.reload()
                 self.iterate()
+            stopping_at = time.monotonic()
             if self.flags.stop_signal:
                 log.info("%s received: stopping", self.flags.stop_signal)
             self.notifier.stopping()
-            self._log_summary(time.monotonic(), final=True)
+            self._log_summary(stopping_at, final=True)
+            self.close()
+            log.info("stopped cleanly (outputs and source closed in %.2f s)",
+                     time.monotonic() - stopping_at)
             return 0
         finally:
-            self.close()
+            self.close()  # idempotent; after an error too
 
     def iterate(self) -> None:
         """One pass of the frame loop."""

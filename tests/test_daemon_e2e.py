@@ -30,18 +30,25 @@ from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "config" / "demo.toml"
 
-# The scripted scene (synthetic source options, docs/sources.md): the ROV sweeps between two
-# ranges; the net is absent between GAP_START and GAP_END seconds of source time.
+# The scripted scene (synthetic source options, docs/sources.md): the net approaches and recedes
+# between NEAR and FAR metres (sinusoid of PERIOD seconds); it is out of view between GAP_START
+# and GAP_END seconds of source time.
 FPS = 10.0
+NEAR, FAR, PERIOD = 0.8, 1.8, 12.0
 GAP_START, GAP_END = 9.0, 12.0
 RUN_S = 16.0
 REPORT_COASTING_S = 0.3
-WATCHDOG_USEC = 1_000_000  # the daemon must ping every 0.5 s
+# mavlink.max_age_s: the link sends nothing older. Rendering a frame and estimating take 0.1-0.3 s
+# on a loaded two-core CI machine, so the default 0.3 s would make the link flap.
+MAX_AGE_S = 0.5
+LINK_HZ = 20.0
+WATCHDOG_USEC = 2_000_000  # systemd would kill the daemon after 2 s without a ping
 
 
 def synthetic_url() -> str:
-    return (f"synthetic:?width=640&height=360&fps={FPS:g}&realtime=1&trajectory=sweep"
-            f"&gap={GAP_START:g}-{GAP_END:g}&seed=3")
+    return (f"synthetic:?width=640&height=360&fps={FPS:g}&realtime=1&trajectory=approach"
+            f"&near={NEAR:g}&far={FAR:g}"
+            f"&period={PERIOD:g}&gap={GAP_START:g}-{GAP_END:g}&seed=3")
 
 
 class NotifyRecorder:
@@ -108,7 +115,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonRun]:
     overrides = [
         f"camera.url={synthetic_url()}",
         f"mavlink.url={autopilot.url}",
-        "mavlink.rate_hz=20",
+        f"mavlink.rate_hz={LINK_HZ:g}",
+        f"mavlink.max_age_s={MAX_AGE_S:g}",
         "telemetry.vehicle=e2e",
         f"filter.report_coasting_s={REPORT_COASTING_S}",
         "service.status_interval_s=0.5",
@@ -163,11 +171,14 @@ def test_sigterm_exits_cleanly_within_a_second(run: DaemonRun) -> None:
 def test_ready_then_regular_watchdog(run: DaemonRun) -> None:
     kinds = [m.split("\n")[0] for _, m in run.notify]
     assert kinds[0] == "READY=1"
+    interval = WATCHDOG_USEC / 1e6
+    ready_t = run.notify[0][0]
     pings = [t for t, m in run.notify if m == "WATCHDOG=1"]
-    assert len(pings) >= RUN_S / 0.5 * 0.8
-    gaps = np.diff(pings)
-    # Half of WATCHDOG_USEC between pings, never close to the full interval.
-    assert float(np.max(gaps)) < 0.8 * WATCHDOG_USEC / 1e6
+    # Pinged at half the interval (sd_watchdog_enabled(3)), and never as late as the interval
+    # itself, which is when systemd would kill the service.
+    assert len(pings) >= 0.8 * RUN_S / (interval / 2)
+    assert float(np.max(np.diff([ready_t, *pings]))) < interval
+    assert float(np.min(np.diff(pings))) >= interval / 2 - 0.01  # rate-limited, not per frame
     statuses = [m for _, m in run.notify if m.startswith("STATUS=")]
     assert len(statuses) >= RUN_S / 0.5 * 0.5
     assert any(" m |" in s for s in statuses), statuses[-3:]
@@ -206,18 +217,22 @@ def test_autopilot_distance_follows_ground_truth(run: DaemonRun) -> None:
 
 
 def test_distance_stops_when_the_net_disappears_and_resumes(run: DaemonRun) -> None:
-    # Source time 0 = the first frame's capture time.
-    t0 = min(e["frame_time_mono"] for e in run.estimates)
-    gap_start, gap_end = t0 + GAP_START, t0 + GAP_END
-    before = [t for t, _ in run.distances if t < gap_start]
-    inside = [t for t, _ in run.distances if gap_start <= t < gap_end]
-    after = [t for t, _ in run.distances if t >= gap_end]
+    frames = sorted((e["frame_time_mono"], bool(_truth(e)["net_present"]))  # type: ignore[index]
+                    for e in run.estimates if _truth(e))
+    first_absent = next(i for i, (_, present) in enumerate(frames) if not present)
+    last_present_t = frames[first_absent - 1][0]
+    back = next(t for t, present in frames[first_absent:] if present)
+    before = [t for t, _ in run.distances if t <= last_present_t]
+    during = [t for t, _ in run.distances if last_present_t < t < back]
+    after = [t for t, _ in run.distances if t >= back]
     assert before, "no distance before the gap"
-    # The last message in the gap may come at most report_coasting_s after the last frame with
-    # the net, plus one frame period, the processing latency and one link period.
-    limit = REPORT_COASTING_S + 1.0 / FPS + 0.3 + 1.0 / 20
-    late = [t - gap_start for t in inside if t - gap_start > limit]
+    # After the last frame showing the net, the filter may report its prediction for
+    # report_coasting_s, stamped with the capture time; the link sends nothing older than
+    # max_age_s; one link period and scheduling slack on top.
+    limit = REPORT_COASTING_S + MAX_AGE_S + 1.0 / LINK_HZ + 0.1
+    late = [t - last_present_t for t in during if t - last_present_t > limit]
     assert not late, f"distance still sent {max(late):.2f} s into the gap (limit {limit:.2f})"
+    assert back - last_present_t > 2.5  # the gap really was seen (3 s scripted)
     assert after, "distance did not resume after the net came back"
     assert any("net lost" in line for line in run.stderr.splitlines())
     assert sum("net acquired" in line for line in run.stderr.splitlines()) >= 2
@@ -227,7 +242,11 @@ def test_logs_are_state_changes_not_frames(run: DaemonRun) -> None:
     lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
     frames = len(run.estimates)
     assert frames > 50
-    assert len(lines) < 30, "\n".join(lines)
+    # The daemon's own lines: start, source up, link, telemetry, net acquired/lost (twice),
+    # stop, summaries; the drivers add theirs on their state changes.
+    own = [ln for ln in lines if "netpose.daemon" in ln]
+    assert len(own) < 20, "\n".join(own)
+    assert len(lines) < frames / 3, "\n".join(lines)
 
 
 def test_telemetry_estimates_and_status_match_the_schema(run: DaemonRun) -> None:
@@ -288,7 +307,7 @@ def test_sighup_reloads_filter_settings(tmp_path: Path) -> None:
         while not any("READY=1" in m for _, m in notify.snapshot()):
             assert proc.poll() is None and time.monotonic() < deadline
             time.sleep(0.05)
-        cfg.write_text(DEMO.read_text().replace("[filter]", "[filter]\ngate_sigma = 6.0", 1))
+        cfg.write_text(DEMO.read_text() + "\n[filter]\ngate_sigma = 6.0\n")
         proc.send_signal(signal.SIGHUP)
         deadline = time.monotonic() + 10.0
         while not any(m.startswith("RELOADING=1") for _, m in notify.snapshot()):
@@ -326,7 +345,8 @@ def test_unit_file_passes_systemd_analyze_verify(tmp_path: Path) -> None:
     for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure",
                  "RestartPreventExitStatus=78", "User=netpose", "DevicePolicy=closed"):
         assert line in unit
-    assert "PrivateDevices" not in unit and "PrivateNetwork" not in unit
+    settings = [ln for ln in unit.splitlines() if ln and not ln.startswith("#")]
+    assert not [ln for ln in settings if ln.startswith(("PrivateDevices", "PrivateNetwork"))]
 
 
 def test_install_script_is_valid_shell() -> None:
