@@ -257,7 +257,9 @@ def run_soak(
     warmup_s: float | None = None,
 ) -> SoakReport:
     """Run the daemon for `duration_s` and measure it (see the module docstring)."""
-    url = source_url or f"synthetic:?fps={fps:g}&realtime=1&trajectory=sweep"
+    url = source_url or (
+        f"synthetic:?width=640&height=360&fps={fps:g}&realtime=1&trajectory=approach"
+    )
     mav = MavlinkRecorder()
     tel = TelemetryRecorder(vehicle="soak")
     overrides = [
