@@ -2,14 +2,17 @@
 
 A real ffmpeg process (the imageio-ffmpeg binary) encodes numbered frames with x264 and sends
 them as MPEG-TS over UDP, or as RTP described by an SDP file (what the BlueOS camera manager
-sends to port 5600). The source decodes them with OpenCV's FFmpeg backend. The frame numbers
-drawn in the picture tell how fresh each frame is; stopping the streamer is a real stall.
+sends to port 5600), or as RTP that a small RTSP server in this module relays over TCP (what
+the camera manager serves on 8554). The source decodes them with OpenCV's FFmpeg backend, whose
+RTSP client does the real RTSP handshake. The frame numbers drawn in the picture tell how fresh
+each frame is; stopping the streamer or the server is a real stall.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import socket
 import subprocess
 import threading
@@ -197,3 +200,145 @@ def test_nothing_to_receive_at_start_is_an_error_naming_the_url() -> None:
         open_source(f"udp://127.0.0.1:{port}", options)
     assert err.value.url == f"udp://127.0.0.1:{port}"
     assert "0.5 s" in err.value.reason
+
+
+class RtspServer:
+    """The smallest RTSP server FFmpeg's client accepts: one H.264 track, RTP interleaved on
+    the RTSP TCP connection (RFC 2326 section 10.12), fed with the RTP packets ffmpeg sends to a
+    UDP socket. Its threads belong to it and are joined by close()."""
+
+    SESSION = "4711"
+
+    def __init__(self, sdp: str, rtp_in: socket.socket, port: int = 0) -> None:
+        self._sdp = sdp
+        self._rtp_in = rtp_in
+        self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._listener.bind(("127.0.0.1", port))
+        self._listener.listen(4)
+        self._listener.settimeout(0.1)
+        self.port: int = self._listener.getsockname()[1]
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._playing: list[socket.socket] = []
+        self._threads = [
+            threading.Thread(target=self._accept, name="test-rtsp-accept", daemon=True),
+            threading.Thread(target=self._relay, name="test-rtsp-relay", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._listener.accept()
+            except TimeoutError:
+                continue
+            thread = threading.Thread(target=self._serve, args=(conn,), daemon=True)
+            with self._lock:
+                self._threads.append(thread)
+            thread.start()
+
+    def _relay(self) -> None:
+        self._rtp_in.settimeout(0.1)
+        while not self._stop.is_set():
+            try:
+                packet = self._rtp_in.recv(65536)
+            except TimeoutError:
+                continue
+            chunk = b"$\x00" + len(packet).to_bytes(2, "big") + packet  # channel 0: RTP
+            with self._lock:
+                for conn in list(self._playing):
+                    try:
+                        conn.sendall(chunk)
+                    except OSError:
+                        self._playing.remove(conn)
+
+    def _reply(self, method: str, url: str) -> tuple[str, str]:
+        if method == "OPTIONS":
+            return "Public: OPTIONS, DESCRIBE, SETUP, PLAY, TEARDOWN\r\n", ""
+        if method == "DESCRIBE":
+            return (f"Content-Base: {url}/\r\nContent-Type: application/sdp\r\n"
+                    f"Content-Length: {len(self._sdp)}\r\n", self._sdp)
+        if method == "SETUP":
+            return ("Transport: RTP/AVP/TCP;unicast;interleaved=0-1\r\n"
+                    f"Session: {self.SESSION}\r\n", "")
+        return f"Session: {self.SESSION}\r\n", ""
+
+    def _serve(self, conn: socket.socket) -> None:
+        conn.settimeout(0.1)
+        pending = b""
+        try:
+            while not self._stop.is_set():
+                try:
+                    data = conn.recv(4096)
+                except TimeoutError:
+                    continue
+                if not data:
+                    return
+                pending += data
+                while b"\r\n\r\n" in pending:
+                    head, pending = pending.split(b"\r\n\r\n", 1)
+                    lines = head.decode("ascii").split("\r\n")
+                    method, url, _ = lines[0].split(" ")
+                    cseq = next(v for k, _, v in (ln.partition(":") for ln in lines)
+                                if k.lower() == "cseq").strip()
+                    headers, body = self._reply(method, url)
+                    conn.sendall(f"RTSP/1.0 200 OK\r\nCSeq: {cseq}\r\n{headers}\r\n{body}".encode())
+                    if method == "PLAY":
+                        with self._lock:
+                            self._playing.append(conn)
+        except OSError:
+            return
+        finally:
+            with self._lock:
+                if conn in self._playing:
+                    self._playing.remove(conn)
+            conn.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._lock:
+            threads = list(self._threads)
+        for thread in threads:
+            thread.join(5.0)
+        self._listener.close()
+
+
+def rtp_to_rtsp(exe: str, tmp_path: Path, streamers: list[Streamer]) -> tuple[str, socket.socket]:
+    """Start an RTP streamer into a fresh UDP socket; the SDP the RTSP server will describe."""
+    rtp_in = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rtp_in.bind(("127.0.0.1", 0))
+    sdp_file = tmp_path / "rtsp.sdp"
+    streamers.append(Streamer(exe, ["-f", "rtp", "-sdp_file", str(sdp_file),
+                                    f"rtp://127.0.0.1:{rtp_in.getsockname()[1]}"]))
+    assert wait_for(lambda: sdp_file.exists() and "rtpmap" in sdp_file.read_text(), 10.0)
+    sdp = re.sub(r"c=IN IP4 \S+", "c=IN IP4 0.0.0.0", sdp_file.read_text()).strip()
+    return "\r\n".join([*sdp.splitlines(), "a=control:trackID=0", ""]), rtp_in
+
+
+def test_rtsp_over_tcp_and_a_restarted_server(
+    streamers: list[Streamer], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    exe = ffmpeg_exe()
+    sdp, rtp_in = rtp_to_rtsp(exe, tmp_path, streamers)
+    server = RtspServer(sdp, rtp_in)
+    url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
+    try:
+        with caplog.at_level(logging.INFO, logger="drivers.sources"), open_source(
+            url, OPTIONS
+        ) as source:
+            numbers = read_numbers(source, 5)
+            assert len(numbers) == 5 and numbers == sorted(set(numbers))
+            assert streamers[-1].sent - numbers[-1] <= 8  # fresh frames over TCP too
+            server.close()  # the camera manager restarts
+            assert wait_for(lambda: source.state is SourceState.DOWN, 10.0)
+            server = RtspServer(sdp, rtp_in, port=server.port)
+            assert wait_for(lambda: source.state is SourceState.UP, 15.0)
+            again = read_numbers(source, 5)
+            assert len(again) == 5 and again[0] > numbers[-1]
+            assert source.stats().reconnects == 1
+    finally:
+        server.close()
+        rtp_in.close()
+    assert len([r for r in caplog.records if " down: " in r.getMessage()]) == 1
