@@ -192,7 +192,7 @@ class Daemon:
         # The previous detection lets the estimator skip its scale search while tracking.
         self._prior: NetEstimate | None = None
         self._last_frame_at: float | None = None
-        self._source_up = False
+        self._source_up: bool | None = None  # None: no frame yet
         self._track_state = TrackState.LOST
         self._link_state: str | None = None
         self._telemetry_online: bool | None = None
@@ -200,7 +200,6 @@ class Daemon:
         self._next_status = 0.0
         self._next_summary = 0.0
         self._last_output: TrackOutput | None = None
-        self._last_estimate: NetEstimate | None = None
         self._period_started = time.monotonic()
         self._cpu_mark = _cpu_seconds()
 
@@ -331,7 +330,7 @@ class Daemon:
         self._publish_track(out, now)
         stale = self.config.camera.stale_after_s
         last = self._last_frame_at if self._last_frame_at is not None else self._started_at
-        if now - last >= stale and self._source_up is not False:
+        if now - last >= stale and self._source_up is not False:  # up, or never came up
             self._source_up = False
             log.warning("frame source down: no frame for %.1f s (%s)", now - last,
                         _redact_url(self.config.camera.url))
@@ -367,7 +366,6 @@ class Daemon:
         self._period.latencies_ms.append(latency_ms)
         self._total.latencies_ms.append(latency_ms)
         self._publish_estimate(frame, estimate, out, handed_over)
-        self._last_estimate = estimate
 
     def _estimate(self, frame: Frame) -> NetEstimate | None:
         try:
@@ -619,8 +617,8 @@ class Daemon:
             new = load_config(self.config.path, self.config.overrides,
                               extra_sections=driver_sections())
             changed = self.config.changed_sections(new)
-            if "mesh" in changed or "estimator" in changed:
-                self._estimator = self._make_estimator(new, self._camera)  # type: ignore[arg-type]
+            if ("mesh" in changed or "estimator" in changed) and self._camera is not None:
+                self._estimator = self._make_estimator(new, self._camera)
             if "filter" in changed:
                 self.tracker.reconfigure(new.filter)
             if "service" in changed:
