@@ -207,27 +207,28 @@ def test_reference_config_documents_every_key_with_its_default() -> None:
     path = _shipped("netpose.toml")
     text = path.read_text(encoding="utf-8")
     doc = tomllib.loads(text)
-    from service.config import core_sections
+    from service.config import _jsonable, core_sections
 
     sections = core_sections() | _all_sections()
     assert set(doc) == set(sections)
+    effective = load_config(path, extra_sections=_all_sections(), check_files=False).effective
     for name, cls in sections.items():
         for f in dataclasses.fields(cls):
             key = f"{name}.{f.name}"
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            if f.default is not dataclasses.MISSING:
+                default = f.default
+            elif f.default_factory is not dataclasses.MISSING:
+                default = f.default_factory()
+            else:
                 assert f.name in doc[name], f"required key {key} missing from netpose.toml"
                 continue
-            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
             if default is None:
                 assert f"# {f.name} =" in text, f"{key} (unset by default) not documented"
                 continue
             assert f.name in doc[name], f"{key} missing from netpose.toml"
-            cfg_value = load_config(path, extra_sections=_all_sections(),
-                                    check_files=False).effective[name][f.name]
-            from service.config import _jsonable
-
-            assert cfg_value == _jsonable(default), f"{key}: file says {cfg_value}, default is "\
-                f"{default}"
+            assert effective[name][f.name] == _jsonable(default), (
+                f"{key}: file says {effective[name][f.name]}, default is {default}"
+            )
 
 
 def test_cli_exits_78_naming_the_key(tmp_path: Path) -> None:
