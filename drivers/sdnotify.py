@@ -2,8 +2,8 @@
 
 No dependency on libsystemd: the protocol is one datagram per message on the AF_UNIX socket named
 by $NOTIFY_SOCKET (a leading '@' means the Linux abstract namespace). Outside systemd the variable
-is absent and `notifier_from_environment()` returns a `NullNotifier`, so the daemon code is the
-same everywhere.
+is absent and `notifier_from_environment()` returns a `NullNotifier` (or, on a terminal, a
+`ConsoleNotifier` that prints the status lines), so the daemon code is the same everywhere.
 
 Watchdog pings are rate-limited here (at half of $WATCHDOG_USEC, as sd_watchdog_enabled(3)
 recommends) so the frame loop can call `watchdog()` every iteration for free.
@@ -16,6 +16,7 @@ import socket
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
+from typing import TextIO
 
 from drivers.errors import NotifyError
 
@@ -81,6 +82,37 @@ class RecordingNotifier(Notifier):
         return True
 
 
+class ConsoleNotifier(Notifier):
+    """PC stand-in for an interactive run (`make run`): READY, STATUS and STOPPING become lines
+    on a terminal, so the live state is visible without systemctl. STATUS is printed at most
+    once per `min_interval_s` (it changes every second; a terminal should not scroll faster)."""
+
+    def __init__(self, stream: TextIO, min_interval_s: float = 1.0) -> None:
+        super().__init__(None)
+        self._stream = stream
+        self._min_interval_s = min_interval_s
+        self._last_status = -float("inf")
+
+    def notify(self, message: str) -> bool:
+        now = time.monotonic()
+        for line in message.splitlines():
+            key, _, value = line.partition("=")
+            if key == "STATUS":
+                if now - self._last_status < self._min_interval_s:
+                    continue
+                self._last_status = now
+                text = f"netpose: {value}"
+            elif key in ("READY", "STOPPING", "RELOADING"):
+                text = f"netpose: {key.lower()}"
+            else:
+                continue
+            try:
+                print(text, file=self._stream, flush=True)
+            except (OSError, ValueError):  # closed terminal: nothing to tell
+                return False
+        return True
+
+
 class SystemdNotifier(Notifier):
     """The real thing: datagrams to the service manager's notification socket."""
 
@@ -128,11 +160,16 @@ def watchdog_interval_from_environment(env: Mapping[str, str]) -> float | None:
     return value / 1e6 if value > 0 else None
 
 
-def notifier_from_environment(env: Mapping[str, str] | None = None) -> Notifier:
-    """The notifier systemd asked for through the environment, or a NullNotifier."""
+def notifier_from_environment(
+    env: Mapping[str, str] | None = None, console: TextIO | None = None
+) -> Notifier:
+    """The notifier systemd asked for through the environment; outside systemd a
+    ConsoleNotifier on `console` if that is a terminal, else a NullNotifier."""
     environ = os.environ if env is None else env
     path = environ.get("NOTIFY_SOCKET", "")
     interval = watchdog_interval_from_environment(environ)
-    if not path:
-        return NullNotifier(interval)
-    return SystemdNotifier(path, interval)
+    if path:
+        return SystemdNotifier(path, interval)
+    if console is not None and console.isatty():
+        return ConsoleNotifier(console)
+    return NullNotifier(interval)

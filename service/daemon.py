@@ -24,6 +24,7 @@ import math
 import os
 import resource
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -702,7 +703,7 @@ def main(
     logging.getLogger().setLevel(config.service.log_level)
     flags = SignalFlags()
     flags.install()
-    notify = notifier or notifier_from_environment()
+    notify = notifier or notifier_from_environment(console=sys.stdout)
     try:
         return Daemon(config, notify, flags).run(duration_s)
     finally:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import socket
 import uuid
@@ -12,6 +13,7 @@ import pytest
 
 from drivers.errors import NotifyError
 from drivers.sdnotify import (
+    ConsoleNotifier,
     NullNotifier,
     RecordingNotifier,
     SystemdNotifier,
@@ -113,3 +115,21 @@ def test_recording_notifier_keeps_messages() -> None:
     n.watchdog(now=0.0)
     n.watchdog(now=0.1)
     assert n.messages == ["READY=1", "WATCHDOG=1"]
+
+
+class _Tty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_console_notifier_on_a_terminal_prints_status_at_most_once_a_second() -> None:
+    out = _Tty()
+    n = notifier_from_environment({}, console=out)
+    assert isinstance(n, ConsoleNotifier)
+    n.ready(status="started")
+    n.status("tracking 1.20 m")  # within a second of "started": not printed
+    n.stopping()
+    assert out.getvalue().splitlines() == ["netpose: ready", "netpose: started",
+                                           "netpose: stopping"]
+    # Not a terminal (a pipe, a journal): nothing is printed.
+    assert isinstance(notifier_from_environment({}, console=io.StringIO()), NullNotifier)
