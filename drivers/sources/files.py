@@ -54,8 +54,8 @@ class VideoFileSource(PacedSource):
             url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
         )
         self.path = Path(parsed.path).expanduser()
-        self._fps_option = parsed.number("fps", None, 0.1, 1000.0)
-        self._fps = self._fps_option or 25.0
+        # The file's own frame rate wins; this is for files that do not state one.
+        self._fps = parsed.number_or("fps", 25.0, 0.1, 1000.0)
         self._cap: VideoCaptureLike | None = None
         self._first: MediaFrame | None = None
         self._decoded = 0
@@ -161,9 +161,7 @@ class ImageFolderSource(PacedSource):
             url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
         )
         self.pattern = parsed.path
-        fps = parsed.number("fps", DEFAULT_IMAGE_FPS, 0.01, 1000.0)
-        assert fps is not None
-        self._fps = fps
+        self._fps = parsed.number_or("fps", DEFAULT_IMAGE_FPS, 0.01, 1000.0)
         self._files: list[Path] = []
         self._position = 0
 

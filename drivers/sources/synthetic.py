@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -81,19 +82,15 @@ class Trajectory:
 
     def __init__(self, parsed: SourceUrl) -> None:
         self.kind = parsed.choice("trajectory", "approach", TRAJECTORIES)
-        near = parsed.number("near", 0.6, 0.2, 20.0)
-        far = parsed.number("far", 2.0, 0.2, 20.0)
-        rng = parsed.number("range", 1.2, 0.2, 20.0)
-        tilt = parsed.number("tilt", 20.0 if self.kind != "approach" else 10.0, 0.0, 70.0)
-        axis = parsed.number("tilt_axis", 30.0, -360.0, 360.0)
-        roll = parsed.number("roll", 0.0, -360.0, 360.0)
-        period = parsed.number("period", 20.0, 0.5, 3600.0)
-        assert None not in (near, far, rng, tilt, axis, roll, period)
-        if self.kind == "approach" and not near < far:  # type: ignore[operator]
+        self.near = parsed.number_or("near", 0.6, 0.2, 20.0)
+        self.far = parsed.number_or("far", 2.0, 0.2, 20.0)
+        self.range = parsed.number_or("range", 1.2, 0.2, 20.0)
+        self.tilt = parsed.number_or("tilt", 20.0 if self.kind != "approach" else 10.0, 0.0, 70.0)
+        self.axis = parsed.number_or("tilt_axis", 30.0, -360.0, 360.0)
+        self.roll = parsed.number_or("roll", 0.0, -360.0, 360.0)
+        self.period = parsed.number_or("period", 20.0, 0.5, 3600.0)
+        if self.kind == "approach" and not self.near < self.far:
             raise url_error(parsed.raw, "option near must be less than far")
-        self.near, self.far, self.range = float(near), float(far), float(rng)  # type: ignore[arg-type]
-        self.tilt, self.axis = float(tilt), float(axis)  # type: ignore[arg-type]
-        self.roll, self.period = float(roll), float(period)  # type: ignore[arg-type]
 
     def pose_at(self, t: float) -> NetPose:
         from drivers.synthetic_net import NetPose
@@ -125,11 +122,10 @@ class SyntheticSource(PacedSource):
         super().__init__(
             url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", True)
         )
-        fps = parsed.number("fps", 5.0, 0.1, 240.0)
-        seed = parsed.integer("seed", 0, 0, 2**31 - 1)
-        bar = parsed.number("bar", 0.025, 0.001, 1.0)
-        angle = parsed.number("angle", 90.0, 20.0, 160.0)
-        assert fps is not None and seed is not None and bar is not None and angle is not None
+        fps = parsed.number_or("fps", 5.0, 0.1, 240.0)
+        seed = parsed.integer_or("seed", 0, 0, 2**31 - 1)
+        bar = parsed.number_or("bar", 0.025, 0.001, 1.0)
+        angle = parsed.number_or("angle", 90.0, 20.0, 160.0)
         self._fps, self.seed = fps, seed
         self.duration_s = parsed.number("duration", None, 0.01, 1e7)
         self.gap_s = parsed.interval("gap")
@@ -186,8 +182,6 @@ class SyntheticSource(PacedSource):
         return self.gap_s is None or not self.gap_s[0] <= t < self.gap_s[1]
 
     def _next_media(self) -> MediaFrame:
-        from dataclasses import replace
-
         renderer, style = self._renderer, self._style
         if renderer is None or style is None:
             raise EndOfMediaError

@@ -61,6 +61,14 @@ class SourceUrl:
             raise url_error(self.raw, f"option {key} must be one of {', '.join(allowed)}")
         return value
 
+    def integer_or(self, key: str, default: int, low: int, high: int) -> int:
+        value = self.integer(key, None, low, high)
+        return default if value is None else value
+
+    def number_or(self, key: str, default: float, low: float, high: float) -> float:
+        value = self.number(key, None, low, high)
+        return default if value is None else value
+
     def integer(self, key: str, default: int | None, low: int, high: int) -> int | None:
         raw = self.options.get(key)
         if raw is None:

@@ -70,8 +70,7 @@ def parse_v4l2_url(url: str | SourceUrl) -> V4l2Settings:
             fourcc_code(fourcc)
         except ValueError as exc:
             raise url_error(parsed.raw, f"option fourcc: {exc}") from None
-    buffers = parsed.integer("buffers", 2, 1, 32)
-    assert buffers is not None
+    buffers = parsed.integer_or("buffers", 2, 1, 32)
     return V4l2Settings(
         device=device,
         width=width,
