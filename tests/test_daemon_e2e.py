@@ -8,6 +8,7 @@ the module stays well under a minute on two cores.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import signal
@@ -42,6 +43,7 @@ REPORT_COASTING_S = 0.3
 # on a loaded two-core CI machine, so the default 0.3 s would make the link flap.
 MAX_AGE_S = 0.5
 LINK_HZ = 20.0
+ESTIMATOR_TOL = 0.01  # relative range error allowed on these ideal synthetic frames
 WATCHDOG_USEC = 2_000_000  # systemd would kill the daemon after 2 s without a ping
 
 
@@ -200,9 +202,14 @@ def test_autopilot_distance_follows_ground_truth(run: DaemonRun) -> None:
         f = e["filtered"]
         if f["valid"]:
             rel_filt.append(f["range_m"] / truth["range_m"] - 1.0)
-    assert np.median(np.abs(rel_raw)) < 0.05
-    assert np.median(np.abs(rel_filt)) < 0.05
-    assert np.percentile(np.abs(rel_filt), 95) < 0.10
+    print(f"\nraw range error: median |e| {np.median(np.abs(rel_raw)):.2%}, filtered: median "
+          f"|e| {np.median(np.abs(rel_filt)):.2%}, p95 {np.percentile(np.abs(rel_filt), 95):.2%}"
+          f" ({len(rel_filt)} frames)")
+    # The estimator's own target on ideal synthetic frames is well below 1 % (the paper's 4 %
+    # is for real water); the filter must not add more than its lag on this motion.
+    assert np.median(np.abs(rel_raw)) < ESTIMATOR_TOL
+    assert np.median(np.abs(rel_filt)) < ESTIMATOR_TOL
+    assert np.percentile(np.abs(rel_filt), 95) < 3 * ESTIMATOR_TOL
     # MAVLink: each DISTANCE_SENSOR against the truth of the newest frame captured before it.
     table = sorted((e["frame_time_mono"], _truth(e)["range_m"]) for e in est)  # type: ignore[index]
     t_frames = np.array([t for t, _ in table])
@@ -212,8 +219,16 @@ def test_autopilot_distance_follows_ground_truth(run: DaemonRun) -> None:
         if i >= 0 and t_rx - t_frames[i] < 0.5:
             errors.append(d / table[i][1] - 1.0)
     assert len(errors) > 20
-    assert np.median(np.abs(errors)) < 0.05
-    assert np.percentile(np.abs(errors), 95) < 0.12
+    print(f"MAVLink distance error: median |e| {np.median(np.abs(errors)):.2%}, p95 "
+          f"{np.percentile(np.abs(errors), 95):.2%} ({len(errors)} messages)")
+    # A message carries the reading of a frame up to one frame period plus the capture-to-link
+    # latency older than the newest frame: on top of the estimator's tolerance, the net may
+    # have moved by (max speed) x (that age). Typical age ~0.15 s; the link's max_age bounds it.
+    v_max = 0.5 * (FAR - NEAR) * 2 * math.pi / PERIOD
+    typical = ESTIMATOR_TOL + v_max * (1.0 / FPS + 0.15) / NEAR
+    worst = ESTIMATOR_TOL + v_max * (1.0 / FPS + MAX_AGE_S) / NEAR
+    assert np.median(np.abs(errors)) < typical
+    assert np.max(np.abs(errors)) < worst
 
 
 def test_distance_stops_when_the_net_disappears_and_resumes(run: DaemonRun) -> None:
@@ -231,9 +246,15 @@ def test_distance_stops_when_the_net_disappears_and_resumes(run: DaemonRun) -> N
     # max_age_s; one link period and scheduling slack on top.
     limit = REPORT_COASTING_S + MAX_AGE_S + 1.0 / LINK_HZ + 0.1
     late = [t - last_present_t for t in during if t - last_present_t > limit]
+    last_in_gap = max(during, default=last_present_t) - last_present_t
+    print(f"last distance {last_in_gap:.2f} s after the last frame with the net (limit "
+          f"{limit:.2f} s)")
     assert not late, f"distance still sent {max(late):.2f} s into the gap (limit {limit:.2f})"
     assert back - last_present_t > 2.5  # the gap really was seen (3 s scripted)
     assert after, "distance did not resume after the net came back"
+    # Back after acquire_count (3) detections, each one frame period apart, plus latency.
+    print(f"resumed {min(after) - back:.2f} s after the net came back")
+    assert min(after) - back < 3 / FPS + MAX_AGE_S + 0.5
     assert any("net lost" in line for line in run.stderr.splitlines())
     assert sum("net acquired" in line for line in run.stderr.splitlines()) >= 2
 
