@@ -690,6 +690,17 @@ def open_source(config: Config) -> FrameSource:
     return source
 
 
+def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
+    """`netpose run --check`: validate everything that can be checked without opening a device
+    (settings, calibration file, source URL); raises ConfigError/CalibrationError."""
+    config = load_daemon_config(config_path, overrides)
+    path = config.calibration_path()
+    if path is not None:
+        load_camera(path)
+    open_source(config)  # built, not opened: parses and checks the URL and its options
+    return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
+
+
 def main(
     config_path: str | None,
     overrides: Iterable[str] = (),

@@ -71,6 +71,12 @@ else
     echo "netpose: keeping existing $CONF_DIR/netpose.toml"
 fi
 
+# Validate without opening any device (exit 78 names the key to fix); not fatal here, the
+# service would refuse to start with the same message.
+if ! "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" --check; then
+    echo "netpose: fix $CONF_DIR/netpose.toml before starting the service" >&2
+fi
+
 echo "netpose: systemd unit"
 install -m 0644 "$SRC_DIR/systemd/netpose.service" "$UNIT_DIR/netpose.service"
 if command -v systemd-analyze >/dev/null 2>&1; then

@@ -306,6 +306,15 @@ def test_bad_configuration_exits_78_naming_the_key(tmp_path: Path) -> None:
     assert not any("READY=1" in m for _, m in notify.snapshot())
 
 
+def test_check_validates_without_running() -> None:
+    ok = _run_briefly(daemon_command(DEMO, []) + ["--check"])
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.startswith("configuration OK") and "sha256:" in ok.stdout
+    typo = _run_briefly(daemon_command(DEMO, ["camera.url=synthetic:?fsp=30"]) + ["--check"])
+    assert typo.returncode == 78
+    assert "camera.url" in typo.stderr and "fsp" in typo.stderr
+
+
 def test_missing_calibration_file_exits_78(tmp_path: Path) -> None:
     proc = _run_briefly(daemon_command(DEMO, ["camera.url=rtsp://127.0.0.1:1/none",
                                               "camera.calibration=absent.yaml"]))

@@ -19,11 +19,18 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
                    default=[], help="override one configuration key (TOML value), repeatable")
     p.add_argument("--duration", type=float, metavar="SECONDS", default=None,
                    help="stop cleanly after this many seconds (default: run until stopped)")
+    p.add_argument("--check", action="store_true",
+                   help="validate the configuration (and load the calibration), print the "
+                   "effective settings' digest and exit: 0 when valid, 78 when not")
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.daemon import main
+    from service.daemon import check_config, main
+
+    if args.check:
+        print(check_config(args.config, args.overrides))
+        return 0
 
     if args.duration is not None and not args.duration > 0:
         from service.errors import ConfigError
