@@ -35,9 +35,11 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from drivers.mavlink_settings import RangeReading
 from service import __version__
+from service import telemetry_schema as ts
 from service.camera import CameraModel, load_camera
-from service.config import Config, load_config
+from service.config import Config, config_digest, load_config
 from service.errors import ConfigError, NetposeError
 from service.results import NetEstimate
 from service.tracking import NetTracker, TrackOutput, TrackState
@@ -390,8 +392,6 @@ class Daemon:
     ) -> None:
         """Hand the filtered distance to the link, or withdraw it; log state changes."""
         assert self._link is not None
-        from drivers.mavlink_settings import RangeReading
-
         self._log_track_change(out)
         self._last_output = out
         distance = self._autopilot_distance(out)
@@ -428,8 +428,6 @@ class Daemon:
         self, frame: Frame, estimate: NetEstimate | None, out: TrackOutput, now: float
     ) -> None:
         assert self._telemetry is not None
-        from service.telemetry_schema import estimate_payload, filtered_payload
-
         tel = self._telemetry
         self._seq += 1
         est = (estimate or NetEstimate(detected=False, confidence=0.0,
@@ -437,7 +435,7 @@ class Daemon:
         sigma_range = None
         if out.sigma_distance_m is not None and out.normal is not None and abs(out.normal[2]) > 0:
             sigma_range = out.sigma_distance_m / abs(out.normal[2])
-        filtered = filtered_payload(
+        filtered = ts.filtered_payload(
             valid=out.valid,
             distance_m=out.distance_m,
             sigma_distance_m=out.sigma_distance_m,
@@ -450,7 +448,7 @@ class Daemon:
         filtered["state"] = out.state.value
         filtered["measurement"] = out.measurement
         wall = time.time()
-        payload = estimate_payload(
+        payload = ts.estimate_payload(
             vehicle=tel.settings.vehicle,
             seq=self._seq,
             estimate=est,
@@ -473,7 +471,6 @@ class Daemon:
         """Downscaled frame with ROIs and mesh drawn (service.preview), a few times a minute."""
         assert self._telemetry is not None
         from service.preview import encode_jpeg, estimate_caption, render_preview
-        from service.telemetry_schema import preview_meta
 
         settings = self._telemetry.settings
         try:
@@ -485,7 +482,7 @@ class Daemon:
             self._once.problem("preview", "cannot draw the preview: %s", exc)
             return
         h, w = image.shape[:2]
-        meta = preview_meta(vehicle=settings.vehicle, seq=self._seq, now_unix=wall, width=w,
+        meta = ts.preview_meta(vehicle=settings.vehicle, seq=self._seq, now_unix=wall, width=w,
                             height=h)
         self._telemetry.publish_preview(jpeg, meta)
 
@@ -516,8 +513,6 @@ class Daemon:
         self, now: float, period: float, link_status: dict[str, Any], link_state: str
     ) -> None:
         assert self._telemetry is not None
-        from service import telemetry_schema as ts
-
         mean, p99, worst = self._period.latency_stats()
         frames = self._period.frames
         cpu = _cpu_seconds()
@@ -636,7 +631,7 @@ class Daemon:
             effective[name] = self.config.effective[name]
         self.config = dataclasses.replace(
             new, sections={**new.sections, **kept}, effective=effective,
-            digest=_digest(effective),
+            digest=config_digest(effective),
         )
         log.info(
             "configuration reloaded (%s), changed: %s%s", self.config.digest,
@@ -645,12 +640,6 @@ class Daemon:
         )
         self.notifier.ready(status="configuration reloaded")
         return True
-
-
-def _digest(effective: dict[str, Any]) -> str:
-    from service.config import config_digest
-
-    return config_digest(effective)
 
 
 def _truth_dict(truth: Any) -> dict[str, Any] | None:
@@ -675,9 +664,7 @@ def _tilt(out: TrackOutput) -> float:
 
 
 def _redact_url(url: str) -> str:
-    from service.telemetry_schema import redact_secrets
-
-    return str(redact_secrets({"url": url})["url"])
+    return str(ts.redact_secrets({"url": url})["url"])
 
 
 def open_source(config: Config) -> FrameSource:
