@@ -8,6 +8,7 @@ object cv2.VideoCapture(device, CAP_V4L2) would return. Everything above it is t
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -18,7 +19,13 @@ import pytest
 from drivers.errors import SourceError
 from drivers.sources import Frame, SourceOptions, SourceState, open_source
 from drivers.sources.fake_capture import CameraMode, FakeCamera, read_pattern_number
-from drivers.sources.v4l2 import V4l2Settings, V4l2Source, negotiate, parse_v4l2_url
+from drivers.sources.v4l2 import (
+    V4L2_SELECT_TIMEOUT_ENV,
+    V4l2Settings,
+    V4l2Source,
+    negotiate,
+    parse_v4l2_url,
+)
 
 MODES = [
     CameraMode("YUYV", 640, 480, 30.0),
@@ -211,3 +218,13 @@ def test_a_camera_absent_at_start_is_an_error_not_a_retry() -> None:
         source.open()
     source.close()
     assert camera.opens == 1
+
+
+def test_v4l2_read_time_limit_follows_the_stall_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(V4L2_SELECT_TIMEOUT_ENV, raising=False)
+    options = SourceOptions(stall_timeout_s=2.5, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    with fast_source(FakeCamera(MODES), options):
+        assert os.environ[V4L2_SELECT_TIMEOUT_ENV] == "3"  # whole seconds, rounded up
+    monkeypatch.setenv(V4L2_SELECT_TIMEOUT_ENV, "7")  # the user's choice wins
+    with fast_source(FakeCamera(MODES), options):
+        assert os.environ[V4L2_SELECT_TIMEOUT_ENV] == "7"

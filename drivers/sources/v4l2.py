@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -24,6 +25,7 @@ from drivers.sources.url import SourceUrl, parse_source_url, url_error
 log = logging.getLogger(__name__)
 
 V4L2_OPTIONS = ("width", "height", "fps", "fourcc", "buffers")
+V4L2_SELECT_TIMEOUT_ENV = "OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT"
 
 
 @dataclass(frozen=True)
@@ -147,6 +149,12 @@ class V4l2Source(LiveSource):
 
     def _connect(self) -> VideoCaptureLike:
         device = self.settings.device
+        # OpenCV's V4L2 backend has no read time limit property: a camera that stops sending
+        # blocks each read for OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT seconds (default 10), read once
+        # per process at the first frame. Bound it by the stall timeout unless the user set it.
+        os.environ.setdefault(
+            V4L2_SELECT_TIMEOUT_ENV, str(max(1, math.ceil(self._options.stall_timeout_s)))
+        )
         try:
             cap = self._capture_factory(device)
         except Exception as exc:
