@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from drivers.errors import SourceError
-from drivers.sources import Frame, SourceOptions, SourceState, open_source
+from drivers.sources import Frame, FrameSource, SourceOptions, SourceState, open_source
 from drivers.sources.fake_capture import numbered_pattern, read_pattern_number
 
 FRAMES = 30
@@ -84,6 +84,9 @@ def test_every_frame_comes_back_in_order_with_media_timestamps(
             frames.append(frame)
         assert source.state is SourceState.ENDED
         stats = source.stats()
+        started = time.monotonic()
+        assert source.read(0.05) is None
+        assert time.monotonic() - started >= 0.04  # an ended source waits, a poller won't spin
     assert [f.index for f in frames] == list(range(FRAMES))
     assert [read_pattern_number(f.image) for f in frames] == list(range(FRAMES))
     assert all(f.image.shape == (SIZE[1], SIZE[0]) and f.image.dtype == np.uint8 for f in frames)
@@ -233,3 +236,27 @@ def test_empty_image_folder_is_an_error(tmp_path: Path) -> None:
         open_source(f"images:{tmp_path / 'empty'}")
     with pytest.raises(SourceError, match="no such folder"):
         open_source(f"images:{tmp_path / 'nowhere'}/")
+
+
+def test_looped_damaged_file_keeps_frame_numbers_per_pass(
+    videos: dict[str, Path], tmp_path: Path
+) -> None:
+    damaged = tmp_path / "damaged.avi"
+    bad = [0, 13, 28]  # including the first frame of a pass and one next to the last
+    corrupt_jpeg_frames(videos["mjpg"], damaged, bad)
+    good = [n for n in range(FRAMES) if n not in bad]
+    with open_source(f"file:{damaged}?loop=1") as source:
+        frames = read_frames_up_to(source, 2 * len(good))
+        assert source.stats().corrupt == 2 * len(bad)
+    assert [f.index for f in frames] == good + [FRAMES + n for n in good]
+    assert [read_pattern_number(f.image) for f in frames] == good + good
+    # The clock runs on through the loop: frame n of pass p is at (p * FRAMES + n) / FPS.
+    t0 = frames[0].t_monotonic - good[0] / FPS
+    assert np.allclose([f.t_monotonic - t0 for f in frames], [f.index / FPS for f in frames])
+
+
+def read_frames_up_to(source: FrameSource, count: int) -> list[Frame]:
+    frames: list[Frame] = []
+    while len(frames) < count and (frame := source.read(1.0)) is not None:
+        frames.append(frame)
+    return frames

@@ -69,7 +69,7 @@ class PacedSource(FrameSource):
         self._t0_wall = 0.0
         self._loop_time_s = 0.0  # media time added per completed loop
         self._loop_index = 0  # frame numbers added per completed loop
-        self._last: MediaFrame | None = None
+        self._highest_number = -1  # of the current pass, decodable or not
         self._good_since_rewind = 0
         self._pending: tuple[MediaFrame, Frame] | None = None
         self._frames = 0
@@ -122,6 +122,9 @@ class PacedSource(FrameSource):
 
     def read(self, timeout_s: float) -> Frame | None:
         if self._state is not SourceState.UP:
+            if self._state is SourceState.ENDED:
+                # Nothing will come: wait like a quiet camera, so a polling loop does not spin.
+                time.sleep(max(0.0, timeout_s))
             return None
         if not self.realtime:
             item = self._next_frame()
@@ -193,10 +196,13 @@ class PacedSource(FrameSource):
             try:
                 media = self._next_media()
             except EndOfMediaError:
-                if self.loop and self._good_since_rewind > 0 and self._last is not None:
-                    self._loop_time_s += self._last.media_time_s + self.frame_period_s
-                    self._loop_index += self._last.number + 1
+                if self.loop and self._good_since_rewind > 0:
+                    # The next pass continues the numbering and the clock after this one.
+                    length = self._highest_number + 1
+                    self._loop_time_s += length * self.frame_period_s
+                    self._loop_index += length
                     self._good_since_rewind = 0
+                    self._highest_number = -1
                     self._rewind()
                     continue
                 if self.loop:
@@ -205,6 +211,7 @@ class PacedSource(FrameSource):
                 log.info("frame source %s ended after %d frames", redact(self.url), self._frames)
                 return None
             self._count_corrupt(media.skipped_before)
+            self._highest_number = max(self._highest_number, media.number)
             converted = (
                 None if media.image is None
                 else split_gray_color(media.image, self._options.keep_color)
@@ -212,7 +219,6 @@ class PacedSource(FrameSource):
             if converted is None:
                 self._count_corrupt(1)
                 continue
-            self._last = media
             self._good_since_rewind += 1
             offset = self._loop_time_s + media.media_time_s
             frame = Frame(
