@@ -231,6 +231,11 @@ class Daemon:
             "on" if cfg.effective["telemetry"]["enabled"] else "off",
             cfg.path or "defaults", cfg.digest,
         )
+        if cfg.effective["mavlink"].get("vision_enabled"):
+            # A net plane gives distance and two angles; the position along the net is not
+            # observable, so there is no honest VISION_POSITION_ESTIMATE to send.
+            log.warning("mavlink.vision_enabled is set, but the daemon sends no vision pose: "
+                        "only the distance (DISTANCE_SENSOR) is sent")
         self.notifier.ready(status="started, waiting for frames")
 
     def close(self) -> None:
