@@ -273,7 +273,11 @@ class Daemon:
         from service.estimator import NetEstimator
 
         settings = cfg.sections.get("estimator")
-        return NetEstimator(camera, cfg.mesh, settings)
+        estimator = NetEstimator(camera, cfg.mesh, settings)
+        # Per-size caches now, for the calibrated size (frames of another size of the same
+        # aspect ratio build theirs on the first frame).
+        estimator.prepare(camera.width, camera.height)
+        return estimator
 
     @staticmethod
     def _make_link(cfg: Config) -> AutopilotLink:

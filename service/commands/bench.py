@@ -27,6 +27,15 @@ def add_parser(subparsers: Any) -> None:
     speed.add_argument("--seed", type=int, default=1)
     speed.set_defaults(handler=_speed)
 
+    soak = sub.add_parser("soak", help="run the daemon for minutes: CPU, latency, memory growth")
+    soak.add_argument("--duration", type=float, default=300.0, help="seconds (default 300)")
+    soak.add_argument("--fps", type=float, default=30.0, help="source frame rate (default 30)")
+    soak.add_argument("--config", type=Path, default=None,
+                      help="daemon configuration to soak (default: the built-in soak setup)")
+    soak.add_argument("--source", default=None, help="frame-source URL overriding the config")
+    soak.add_argument("--json", type=Path, default=None, help="also write the report as JSON")
+    soak.set_defaults(handler=_soak)
+
 
 def _accuracy(args: argparse.Namespace) -> int:
     from service.benchmarks import accuracy
@@ -39,3 +48,10 @@ def _speed(args: argparse.Namespace) -> int:
     from service.benchmarks import speed
 
     return speed.run(args.frames, args.seed)
+
+
+def _soak(args: argparse.Namespace) -> int:
+    from service.soak_bench import main_soak
+
+    return main_soak(args.duration, args.fps, config=args.config, source_url=args.source,
+                     json_out=args.json)
