@@ -91,6 +91,8 @@ class _RoiMeasurement:
     area_norm: float = math.nan  # mesh cell area in normalised units of the frame of `ray`
     valid: bool = False
     ray: F64 = field(default_factory=lambda: np.zeros(3))
+    # Rectified ROIs only: found / intended mesh period, for a good lattice at the wrong scale.
+    period_ratio: float = math.nan
 
     def __post_init__(self) -> None:
         if not self.ray.any():
@@ -401,6 +403,19 @@ class NetEstimator:
             self._measure_rectified(level_image, g, rotation, seed.distance_m, hint)
             for g, hint in zip(grid, hints, strict=True)
         ]
+        # A seed at the wrong scale (a wrong lattice density in the first pass, fish) shows as
+        # good lattices that all miss the intended period by the same factor: the true distance
+        # is the seed's divided by that factor. Measure once more at the corrected scale.
+        valid = sum(m.valid for m in rect)
+        ratios = [m.period_ratio for m in rect if not m.valid and math.isfinite(m.period_ratio)]
+        if valid < self.settings.min_rois and len(ratios) >= self.settings.min_rois:
+            ratio = float(np.median(ratios))
+            if abs(math.log(ratio)) > math.log(1.35):
+                distance = seed.distance_m / ratio
+                rect = [
+                    self._measure_rectified(level_image, g, rotation, distance, None)
+                    for g in grid
+                ]
         timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t0) * 1e3
         return self._conclude(rect, level, rotation, timings)
 
@@ -555,6 +570,8 @@ class NetEstimator:
         # For reporting: the lattice in full-resolution image pixels through the local map.
         meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
         meas.valid = bool(period_ok and quality_ok and on_target and resolved)
+        if period_ok and quality_ok:
+            meas.period_ratio = period_out / s.preferred_period_px
         return meas
 
 
