@@ -406,9 +406,11 @@ class NetEstimator:
         # A seed at the wrong scale (a wrong lattice density in the first pass, fish) shows as
         # good lattices that all miss the intended period by the same factor: the true distance
         # is the seed's divided by that factor. Measure once more at the corrected scale.
+        # The majority decides: a few ROIs can agree on a wrong density while most see the
+        # true lattice at the "wrong" period.
         valid = sum(m.valid for m in rect)
         ratios = [m.period_ratio for m in rect if not m.valid and math.isfinite(m.period_ratio)]
-        if valid < self.settings.min_rois and len(ratios) >= self.settings.min_rois:
+        if len(ratios) > valid and len(ratios) >= self.settings.min_rois:
             ratio = float(np.median(ratios))
             if abs(math.log(ratio)) > math.log(1.35):
                 distance = seed.distance_m / ratio
