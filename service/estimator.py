@@ -399,10 +399,15 @@ class NetEstimator:
         hints: list[Mat2 | None] = [None] * len(grid)
         if len(seed.rois) == len(grid):
             hints = [r.reciprocal if r.detected else None for r in seed.rois]
-        rect = [
-            self._measure_rectified(level_image, g, rotation, seed.distance_m, hint)
-            for g, hint in zip(grid, hints, strict=True)
-        ]
+        # In the rectified view the lattice is the same in every ROI (the net faces the virtual
+        # camera), so the last good ROI's lattice is the expected one for the next.
+        rect: list[_RoiMeasurement] = []
+        shared: F64 | None = None
+        for g, hint in zip(grid, hints, strict=True):
+            m = self._measure_rectified(level_image, g, rotation, seed.distance_m, hint, shared)
+            if m.valid and m.fit is not None:
+                shared = m.fit.basis
+            rect.append(m)
         # A seed at the wrong scale (a wrong lattice density in the first pass, fish) shows as
         # good lattices that all miss the intended period by the same factor: the true distance
         # is the seed's divided by that factor. Measure once more at the corrected scale.
@@ -497,6 +502,7 @@ class NetEstimator:
         rotation: F64,
         distance_m: float,
         hint: Mat2 | None = None,
+        expected_out: F64 | None = None,
     ) -> _RoiMeasurement:
         """Measure one ROI in a virtual camera that faces the net squarely.
 
@@ -542,7 +548,7 @@ class NetEstimator:
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
         )
         peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
-        expected = None
+        expected = expected_out
         if hint is not None:
             # k . x is invariant: with x_full = jm x_out, k_out = jm^T k_full (per pixel), x n.
             expected = (jm.T @ np.asarray(hint, dtype=np.float64).T) * n
