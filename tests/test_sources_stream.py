@@ -29,7 +29,9 @@ from drivers.sources.fake_capture import numbered_pattern, read_pattern_number
 FPS = 25
 WIDTH, HEIGHT = 320, 240
 OPTIONS = SourceOptions(
-    stall_timeout_s=1.0, open_timeout_s=2.0, reconnect_min_s=0.1, reconnect_max_s=0.5
+    # Open time allows for the slower stream probing of the FFmpeg in OpenCV 4.6 (Debian
+    # bookworm): 3-6 s for this low-bitrate MPEG-TS over UDP, against ~1 s with OpenCV 5.
+    stall_timeout_s=1.0, open_timeout_s=10.0, reconnect_min_s=0.1, reconnect_max_s=0.5
 )
 
 pytestmark = pytest.mark.timeout(60)

@@ -247,7 +247,11 @@ class LiveSource(FrameSource):
                     failed_reads += 1
                 with self._cond:
                     silent_for = now - self._last_frame_mono
-                if failed_reads >= MAX_FAILED_READS or silent_for > opts.stall_timeout_s:
+                # Right after an open, a stream joined mid-GOP fails reads until its next key
+                # frame (OpenCV 4.6's FFmpeg returns them as failures at once): until the first
+                # frame only the stall clock, restarted at the open, decides.
+                too_many = failed_reads >= MAX_FAILED_READS and frames_since_open > 0
+                if too_many or silent_for > opts.stall_timeout_s:
                     reason = (
                         f"no frame for {silent_for:.1f} s"
                         if silent_for > opts.stall_timeout_s
