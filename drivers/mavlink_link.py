@@ -20,13 +20,13 @@ import math
 import os
 import threading
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
 
 from drivers.errors import MavlinkLinkError
+from drivers.lifecycle import Closeable
 from drivers.mavlink_settings import (
     MavlinkSettings,
     RangeReading,
@@ -59,7 +59,7 @@ NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, AD
 SendTimes = dict[str, int]
 
 
-class AutopilotLink(ABC):
+class AutopilotLink(Closeable):
     """What the daemon needs from an autopilot link. Setters are cheap and never block."""
 
     @abstractmethod
@@ -86,13 +86,6 @@ class AutopilotLink(ABC):
         self.start()
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 @dataclass

@@ -21,13 +21,13 @@ import math
 import re
 import threading
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+from drivers.lifecycle import Closeable
 from service.errors import ConfigError
 from service.telemetry_schema import (
     ESTIMATE_SUFFIX,
@@ -210,7 +210,7 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
     return config
 
 
-class TelemetryPublisher(ABC):
+class TelemetryPublisher(Closeable):
     """What the daemon sees of telemetry. Every method returns at once and never raises for a
     network problem; payload dicts handed over must not be modified afterwards."""
 
@@ -268,13 +268,6 @@ class TelemetryPublisher(ABC):
         self.start()
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class NullPublisher(TelemetryPublisher):

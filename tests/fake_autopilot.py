@@ -28,8 +28,9 @@ import tty
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
+
+from drivers.lifecycle import Closeable
 
 
 def _mavlink2() -> Any:
@@ -211,7 +212,7 @@ class _Writer:
         self.transport.write(bytes(data))
 
 
-class FakeAutopilot:
+class FakeAutopilot(Closeable):
     """See the module docstring. Thread-safe accessors; stop with close() (joins)."""
 
     MAV_TYPE_SUBMARINE = 12
@@ -280,13 +281,6 @@ class FakeAutopilot:
     def __enter__(self) -> FakeAutopilot:
         return self.start()
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # ---- recorded traffic -------------------------------------------------------------------
 

@@ -9,14 +9,15 @@ misses; file-like sources can instead be read frame by frame without losing any.
 from __future__ import annotations
 
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 from enum import Enum
-from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
 import numpy as np
 import numpy.typing as npt
+
+from drivers.lifecycle import Closeable
 
 if TYPE_CHECKING:
     from service.camera import CameraModel
@@ -65,7 +66,7 @@ class SourceStats:
     fps: float  # recent capture rate, frames per second
 
 
-class FrameSource(ABC):
+class FrameSource(Closeable):
     """Base of every frame source. Use as a context manager, or open() ... close()."""
 
     def __init__(self, url: str) -> None:
@@ -103,13 +104,6 @@ class FrameSource(ABC):
         self.open()
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         from drivers.sources.url import redact
