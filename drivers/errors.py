@@ -6,7 +6,7 @@ hardware/link problem from a bug.
 
 from __future__ import annotations
 
-from service.errors import NetposeError
+from service.core.errors import NetposeError
 
 
 class DriverError(NetposeError):

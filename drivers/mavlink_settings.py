@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 
 # Component ids a BlueOS vehicle already uses (191 = MAVLink2Rest/onboard computer, 194 = the
 # camera manager, 100-105 = cameras), plus ids that are never valid for a companion service:

@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.mesh import MeshGeometry
+from service.core.camera import CameraModel
+from service.core.mesh import MeshGeometry
 
 FloatMap = npt.NDArray[np.float64]
 Gray = npt.NDArray[np.uint8]

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from drivers.lifecycle import Closeable
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 from service.telemetry_schema import (
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,

@@ -14,7 +14,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from service.errors import CalibrationError, ConfigError, NetposeError
+from service.core.errors import CalibrationError, ConfigError, NetposeError
 
 # Exit status for configuration errors (sysexits.h EX_CONFIG); the systemd unit lists it in
 # RestartPreventExitStatus so a broken configuration does not restart forever.

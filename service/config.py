@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import importlib
-import importlib.util
 import math
 import tomllib
 import types
@@ -30,9 +28,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from service.errors import ConfigError
-from service.mesh import MeshGeometry
-from service.tracking import FilterSettings
+from service.core.errors import ConfigError
+from service.core.estimator import EstimatorSettings
+from service.core.mesh import MeshGeometry
+from service.core.tracking import FilterSettings
 
 T = TypeVar("T")
 
@@ -96,19 +95,13 @@ class ServiceSettings:
 
 def core_sections() -> dict[str, type]:
     """The sections this package defines itself (drivers add theirs via `load_config`)."""
-    sections: dict[str, type] = {
+    return {
         "camera": CameraSettings,
         "mesh": MeshGeometry,
         "filter": FilterSettings,
+        "estimator": EstimatorSettings,
         "service": ServiceSettings,
     }
-    # The estimator's tuning, when the estimator defines a settings dataclass.
-    if importlib.util.find_spec("service.estimator") is not None:
-        settings_cls = getattr(importlib.import_module("service.estimator"), "EstimatorSettings",
-                               None)
-        if isinstance(settings_cls, type) and dataclasses.is_dataclass(settings_cls):
-            sections["estimator"] = settings_cls
-    return sections
 
 
 @dataclass(frozen=True)

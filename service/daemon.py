@@ -38,11 +38,11 @@ import numpy.typing as npt
 from drivers.mavlink_settings import RangeReading
 from service import __version__
 from service import telemetry_schema as ts
-from service.camera import CameraModel, load_camera
 from service.config import Config, config_digest, load_config
-from service.errors import ConfigError, NetposeError
-from service.results import NetEstimate
-from service.tracking import NetTracker, TrackOutput, TrackState
+from service.core.camera import CameraModel, load_camera
+from service.core.errors import ConfigError, NetposeError
+from service.core.results import NetEstimate
+from service.core.tracking import NetTracker, TrackOutput, TrackState
 
 if TYPE_CHECKING:
     from drivers.mavlink_link import AutopilotLink
@@ -270,7 +270,7 @@ class Daemon:
 
     @staticmethod
     def _make_estimator(cfg: Config, camera: CameraModel) -> Any:
-        from service.estimator import NetEstimator
+        from service.core.estimator import NetEstimator
 
         settings = cfg.sections.get("estimator")
         estimator = NetEstimator(camera, cfg.mesh, settings)
@@ -477,9 +477,9 @@ class Daemon:
             self._publish_preview(frame, estimate, wall)
 
     def _publish_preview(self, frame: Frame, estimate: NetEstimate | None, wall: float) -> None:
-        """Downscaled frame with ROIs and mesh drawn (service.preview), a few times a minute."""
+        """Downscaled frame with ROIs and mesh drawn (tools.preview), a few times a minute."""
         assert self._telemetry is not None
-        from service.preview import encode_jpeg, estimate_caption, render_preview
+        from service.tools.preview import encode_jpeg, estimate_caption, render_preview
 
         settings = self._telemetry.settings
         try:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
+from service.core.camera import CameraModel
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from service.calibration import BoardSpec, detect_board
-from service.calibration_io import CalibrationInputError, sample_video
-from service.camera import load_camera, save_camera
 from service.cli import EXIT_CONFIG, main
+from service.core.camera import load_camera, save_camera
+from service.tools.calibration import BoardSpec, detect_board
+from service.tools.calibration_io import CalibrationInputError, sample_video
 from tests.checkerboard_render import TEST_CAMERA, render_views
 from tests.shared_data import REAL_NET_FRAME
 

@@ -12,7 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service.calibration import (
+from service.core.camera import CameraModel
+from service.core.errors import CalibrationError
+from service.tools.calibration import (
     BoardSpec,
     BoardView,
     CalibrationResult,
@@ -21,8 +23,6 @@ from service.calibration import (
     guess_board_size,
     parse_board_size,
 )
-from service.camera import CameraModel
-from service.errors import CalibrationError
 from tests.checkerboard_render import TEST_CAMERA, render_views
 from tests.shared_data import REAL_NET_FRAME
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from service.camera import (
+from service.core.camera import (
     CameraModel,
     camera_from_ros_dict,
     load_camera,
     save_camera,
 )
-from service.errors import CalibrationError
+from service.core.errors import CalibrationError
 from tests.shared_data import REAL_NET_DIR
 
 REAL_DIR = REAL_NET_DIR

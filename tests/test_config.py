@@ -19,8 +19,8 @@ from service.config import (
     load_config,
     parse_override,
 )
-from service.errors import ConfigError
-from service.tracking import FilterSettings
+from service.core.errors import ConfigError
+from service.core.tracking import FilterSettings
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = REPO / "config"

@@ -171,7 +171,7 @@ def test_unreachable_outputs_do_not_stall_the_loop(caplog: pytest.LogCaptureFixt
     from drivers.mavlink_link import MavlinkLink
     from drivers.mavlink_settings import MavlinkSettings
     from drivers.telemetry import TelemetrySettings, make_publisher
-    from service.soak_bench import free_port
+    from service.benchmarks.soak import free_port
 
     dead_tcp = free_port()  # free a moment ago, nobody listens
     dead_router = free_port()

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.soak_bench import TelemetryRecorder
+from service.benchmarks.soak import TelemetryRecorder
 from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 
 REPO = Path(__file__).resolve().parents[1]

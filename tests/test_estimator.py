@@ -16,11 +16,11 @@ import numpy.typing as npt
 import pytest
 
 from drivers.synthetic_net import GroundTruth, NetPose, NetRenderer, SceneStyle
-from service.camera import CameraModel, load_camera
-from service.errors import CalibrationError, ConfigError, EstimatorInputError
-from service.estimator import EstimatorSettings, NetEstimator
-from service.mesh import MeshGeometry
-from service.results import NetEstimate
+from service.core.camera import CameraModel, load_camera
+from service.core.errors import CalibrationError, ConfigError, EstimatorInputError
+from service.core.estimator import EstimatorSettings, NetEstimator
+from service.core.mesh import MeshGeometry
+from service.core.results import NetEstimate
 from tests.shared_data import REAL_NET_DIR
 
 F64 = npt.NDArray[np.float64]

@@ -14,8 +14,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.lattice import LatticeFinder, generated_lattice, reduce_basis
-from service.spectrum import Peaks
+from service.core.lattice import LatticeFinder, generated_lattice, reduce_basis
+from service.core.spectrum import Peaks
 
 F64 = npt.NDArray[np.float64]
 

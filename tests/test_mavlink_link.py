@@ -28,7 +28,7 @@ from drivers.mavlink_settings import (
     load_signing_key,
 )
 from drivers.mavlink_wire import covariance_cm2, distance_sensor_fields, signal_quality
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 from tests.fake_autopilot import (
     FakeAutopilot,
     PtyTransport,

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from service.errors import ConfigError
-from service.mesh import MeshGeometry
+from service.core.errors import ConfigError
+from service.core.mesh import MeshGeometry
 
 
 def test_square_mesh_cell_is_bar_length_squared() -> None:

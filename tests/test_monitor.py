@@ -18,7 +18,7 @@ import pytest
 
 from drivers.telemetry import TelemetrySettings, ZenohPublisher
 from service import telemetry_schema as ts
-from service.monitor_view import MonitorState
+from service.tools.monitor_view import MonitorState
 
 pytestmark = pytest.mark.timeout(90)
 

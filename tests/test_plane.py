@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.plane import fit_plane
+from service.core.plane import fit_plane
 
 F64 = npt.NDArray[np.float64]
 CELL_M2 = 0.015**2

@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service.errors import NetposeError
-from service.preview import (
+from service.core.errors import NetposeError
+from service.core.results import NetEstimate, RoiResult
+from service.tools.preview import (
     NOT_DETECTED,
     REJECTED,
     USED,
@@ -16,7 +17,6 @@ from service.preview import (
     estimate_caption,
     render_preview,
 )
-from service.results import NetEstimate, RoiResult
 from tests.shared_data import REAL_NET_FRAME
 
 REAL_FRAME = REAL_NET_FRAME

@@ -22,13 +22,14 @@ import numpy as np
 import pytest
 
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
-from service.annotate import FrameAnnotator, caption_lines, mesh_parallelogram, net_axes
-from service.camera import CameraModel, save_camera
 from service.cli import main
-from service.errors import NetposeError
-from service.estimator import NetEstimator
-from service.mesh import MeshGeometry
-from service.replay import (
+from service.core.camera import CameraModel, save_camera
+from service.core.errors import NetposeError
+from service.core.estimator import NetEstimator
+from service.core.mesh import MeshGeometry
+from service.core.results import NetEstimate, RoiResult
+from service.tools.annotate import FrameAnnotator, caption_lines, mesh_parallelogram, net_axes
+from service.tools.replay import (
     CSV_COLUMNS,
     PLOT_FILES,
     Truth,
@@ -36,7 +37,6 @@ from service.replay import (
     truth_from_object,
     write_truth_csv,
 )
-from service.results import NetEstimate, RoiResult
 from tests.shared_data import REAL_NET_FRAME
 
 pytestmark = pytest.mark.timeout(120)

@@ -18,8 +18,8 @@ from service.benchmarks.accuracy import (
     TARGET_NORMAL_DEG,
     TARGET_STD_PCT,
 )
-from service.camera import load_camera
-from service.estimator import NetEstimator
+from service.core.camera import load_camera
+from service.core.estimator import NetEstimator
 from tests.shared_data import REAL_NET_CALIBRATION
 
 pytestmark = pytest.mark.timeout(120)

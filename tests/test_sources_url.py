@@ -12,7 +12,7 @@ from drivers.sources.stream import StreamSource, default_ffmpeg_options, ffmpeg_
 from drivers.sources.synthetic import SyntheticSource
 from drivers.sources.url import is_network_url, parse_source_url, redact
 from drivers.sources.v4l2 import V4l2Source
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 
 
 def test_own_schemes_split_into_path_and_options() -> None:

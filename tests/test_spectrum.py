@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.spectrum import SpectrumAnalyzer
+from service.core.spectrum import SpectrumAnalyzer
 
 N = 128
 F64 = npt.NDArray[np.float64]

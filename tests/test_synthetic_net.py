@@ -14,9 +14,9 @@ import numpy.typing as npt
 import pytest
 
 from drivers.synthetic_net import GroundTruth, NetPose, NetRenderer, SceneStyle
-from service.camera import CameraModel
-from service.mesh import MeshGeometry
-from service.spectrum import SpectrumAnalyzer
+from service.core.camera import CameraModel
+from service.core.mesh import MeshGeometry
+from service.core.spectrum import SpectrumAnalyzer
 
 F64 = npt.NDArray[np.float64]
 N = 128

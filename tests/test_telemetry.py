@@ -31,8 +31,8 @@ from drivers.telemetry import (
 )
 from drivers.telemetry_cpu import CpuMeter
 from service import telemetry_schema as ts
-from service.errors import ConfigError
-from service.results import NetEstimate, RoiResult
+from service.core.errors import ConfigError
+from service.core.results import NetEstimate, RoiResult
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from service.errors import ConfigError
-from service.results import NetEstimate
-from service.tracking import (
+from service.core.errors import ConfigError
+from service.core.results import NetEstimate
+from service.core.tracking import (
     FilterSettings,
     NetTracker,
     TrackState,

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from drivers.lifecycle import Closeable
 
 if TYPE_CHECKING:
-    from service.camera import CameraModel
+    from service.core.camera import CameraModel
 
 GrayImage = npt.NDArray[np.uint8]
 ColorImage = npt.NDArray[np.uint8]
@@ -191,7 +191,7 @@ class SourceOptions:
     ffmpeg_options: str | None = None
 
     def __post_init__(self) -> None:
-        from service.errors import ConfigError
+        from service.core.errors import ConfigError
 
         for name in ("stall_timeout_s", "open_timeout_s", "reconnect_min_s", "reconnect_max_s"):
             value = getattr(self, name)

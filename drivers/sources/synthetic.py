@@ -43,9 +43,9 @@ from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.camera import CameraModel
-from service.errors import CalibrationError, ConfigError
-from service.mesh import MeshGeometry
+from service.core.camera import CameraModel
+from service.core.errors import CalibrationError, ConfigError
+from service.core.mesh import MeshGeometry
 
 if TYPE_CHECKING:
     from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
@@ -148,7 +148,7 @@ class SyntheticSource(PacedSource):
             raise url_error(parsed.raw, "give both width and height, or neither")
         calibration = parsed.options.get("calibration")
         if calibration:
-            from service.camera import load_camera
+            from service.core.camera import load_camera
 
             camera = load_camera(calibration)  # CalibrationError names the file
             return camera if width is None or height is None else camera.scaled_to(width, height)

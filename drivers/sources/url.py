@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import parse_qsl
 
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 
 # The configuration key that holds a source URL (service/config.py, [camera] url).
 URL_CONFIG_KEY = "camera.url"

@@ -22,8 +22,8 @@ from service.benchmarks.scenes import (
     bench_camera,
     draw_pose,
 )
-from service.estimator import EstimatorSettings, NetEstimator
-from service.results import NetEstimate
+from service.core.estimator import EstimatorSettings, NetEstimator
+from service.core.results import NetEstimate
 
 # Targets of the estimator issue, checked and printed by the benchmark.
 TARGET_MEAN_PCT = 1.0

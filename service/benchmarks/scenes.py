@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.camera import CameraModel
-from service.mesh import MeshGeometry
+from service.core.camera import CameraModel
+from service.core.mesh import MeshGeometry
 
 # The paper's protocol: a 1.5 cm mesh at 40-200 cm, tilted 0/20/40 degrees. Its camera is not
 # published; this one is a typical wide underwater camera (82 deg HFOV) with barrel distortion.

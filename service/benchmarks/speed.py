@@ -22,9 +22,9 @@ import numpy.typing as npt
 
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from service.benchmarks.scenes import PAPER_MESH, bench_camera
-from service.estimator import NetEstimator
-from service.paper import PaperEstimator
-from service.results import NetEstimate
+from service.core.estimator import NetEstimator
+from service.core.paper import PaperEstimator
+from service.core.results import NetEstimate
 
 TARGET_FPS_720P = 60.0
 

@@ -51,7 +51,7 @@ def _speed(args: argparse.Namespace) -> int:
 
 
 def _soak(args: argparse.Namespace) -> int:
-    from service.soak_bench import main_soak
+    from service.benchmarks.soak import main_soak
 
     return main_soak(args.duration, args.fps, config=args.config, source_url=args.source,
                      json_out=args.json)

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import CalibrationError
+from service.core.errors import CalibrationError
 
 DEFAULT_BOARD = "7x4"  # inner corners of the paper's board
 DEFAULT_SQUARE_M = 0.0311
@@ -81,15 +81,15 @@ class _Collected:
 
 
 def _collect(args: argparse.Namespace, board: Any) -> _Collected:
-    from service.calibration import BoardView, detect_board
-    from service.calibration_io import (
+    from service.commands._progress import ProgressBar
+    from service.tools.calibration import BoardView, detect_board
+    from service.tools.calibration_io import (
         CalibrationInputError,
         Frame,
         plan_inputs,
         read_image,
         sample_video,
     )
-    from service.commands._progress import ProgressBar
 
     plan = plan_inputs(args.inputs)
     out = _Collected()
@@ -134,7 +134,7 @@ def _collect(args: argparse.Namespace, board: Any) -> _Collected:
 
 
 def _no_board_error(collected: _Collected, board: Any) -> CalibrationError:
-    from service.calibration import MIN_VIEWS, guess_board_size
+    from service.tools.calibration import MIN_VIEWS, guess_board_size
 
     candidates = [f for f in collected.sample_frames if f.name != "preview"]
     guesses = [g for g in (guess_board_size(f.gray) for f in candidates) if g is not None]
@@ -156,9 +156,9 @@ def _no_board_error(collected: _Collected, board: Any) -> CalibrationError:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.calibration import MIN_VIEWS, BoardSpec, calibrate, parse_board_size
-    from service.calibration_io import CalibrationInputError
-    from service.camera import save_camera
+    from service.core.camera import save_camera
+    from service.tools.calibration import MIN_VIEWS, BoardSpec, calibrate, parse_board_size
+    from service.tools.calibration_io import CalibrationInputError
 
     board = BoardSpec(*parse_board_size(args.board), square=args.square)
     if args.max_frames < 1:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from service.results import NetEstimate
+from service.core.results import NetEstimate
 
 
 def add_parser(subparsers: Any) -> None:
@@ -46,9 +46,9 @@ def describe(name: str, est: NetEstimate) -> str:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from service.camera import load_camera
-    from service.estimator import NetEstimator
-    from service.mesh import MeshGeometry
+    from service.core.camera import load_camera
+    from service.core.estimator import NetEstimator
+    from service.core.mesh import MeshGeometry
 
     camera = load_camera(args.calibration)
     mesh = MeshGeometry(args.mesh_size, args.opening_angle)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 
 EXIT_CHANGES_NEEDED = 3
 

@@ -24,9 +24,9 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
 
-from service.errors import ConfigError, NetposeError
-from service.monitor_view import MonitorState, Received
+from service.core.errors import ConfigError, NetposeError
 from service.telemetry_schema import ESTIMATE_SUFFIX, STATE_SUFFIX
+from service.tools.monitor_view import MonitorState, Received
 
 if TYPE_CHECKING:
     import zenoh

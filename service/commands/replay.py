@@ -27,14 +27,14 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from service.errors import ConfigError, NetposeError
+from service.core.errors import ConfigError, NetposeError
 
 if TYPE_CHECKING:
     from drivers.sources import FrameSource
-    from service.annotate import FrameAnnotator
-    from service.estimator import EstimatorSettings
-    from service.replay import FrameResult, ReplayFrame, ReplayStats, Truth
-    from service.tracking import FilterSettings
+    from service.core.estimator import EstimatorSettings
+    from service.core.tracking import FilterSettings
+    from service.tools.annotate import FrameAnnotator
+    from service.tools.replay import FrameResult, ReplayFrame, ReplayStats, Truth
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +152,7 @@ def replay_frames(
     decode do not shift the choice); times are relative to the first frame read.
     """
     from drivers.sources import SourceState
-    from service.replay import ReplayFrame, truth_from_object
+    from service.tools.replay import ReplayFrame, truth_from_object
 
     t0: float | None = None
     next_index = 0
@@ -330,9 +330,9 @@ class ReplayRun:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.camera import load_camera
-    from service.mesh import MeshGeometry
-    from service.replay import load_truth_csv
+    from service.core.camera import load_camera
+    from service.core.mesh import MeshGeometry
+    from service.tools.replay import load_truth_csv
 
     if args.every < 1:
         raise NetposeError(f"--every must be at least 1, got {args.every}")
@@ -370,9 +370,9 @@ def _tuning(
     if path is None:
         return None, None
     from service.config import load_config
+    from service.core.estimator import EstimatorSettings
+    from service.core.tracking import FilterSettings
     from service.daemon import driver_sections
-    from service.estimator import EstimatorSettings
-    from service.tracking import FilterSettings
 
     # A configuration may leave the mesh to be set, or name a calibration file of the vehicle
     # that is not here: neither matters to the replay.
@@ -396,10 +396,10 @@ def _replay(
     truth: dict[int, Truth] | None,
     total: int | None,
 ) -> int:
-    from service.annotate import FrameAnnotator
-    from service.estimator import NetEstimator
-    from service.replay import EstimatesCsv, ReplayPipeline, ReplayStats
-    from service.tracking import FilterSettings, NetTracker
+    from service.core.estimator import NetEstimator
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.tools.annotate import FrameAnnotator
+    from service.tools.replay import EstimatesCsv, ReplayPipeline, ReplayStats
 
     tracker = NetTracker(filter_settings or FilterSettings()) if args.filter else None
     pipeline = ReplayPipeline(NetEstimator(camera, mesh, estimator_settings), tracker, truth)
@@ -485,7 +485,7 @@ def _video_fps(source: FrameSource, every: int) -> float:
 
 def _remove_stale_outputs(out_dir: Path) -> None:
     """Files an earlier replay left there would be mistaken for this one's."""
-    from service.replay import PLOT_FILES
+    from service.tools.replay import PLOT_FILES
 
     for name in ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES):
         (out_dir / name).unlink(missing_ok=True)
@@ -500,8 +500,8 @@ def _finish(
     source: FrameSource,
 ) -> None:
     from service import __version__
-    from service.replay import write_json, write_plots
     from service.telemetry_schema import redact_secrets
+    from service.tools.replay import write_json, write_plots
 
     try:
         plots = write_plots(stats, out_dir)

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     if args.duration is not None and not args.duration > 0:
-        from service.errors import ConfigError
+        from service.core.errors import ConfigError
 
         raise ConfigError("--duration", "must be a positive number of seconds")
     return main(args.config, args.overrides, args.duration)

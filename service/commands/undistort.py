@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.errors import NetposeError
+from service.core.camera import CameraModel
+from service.core.errors import NetposeError
 
 Image = npt.NDArray[np.uint8]
 
@@ -71,7 +71,7 @@ def side_by_side(camera: CameraModel, image: Image, alpha: float = 0.0) -> Image
 def _read_input(path: Path, frame_index: int) -> Image:
     import cv2
 
-    from service.calibration_io import VIDEO_SUFFIXES, CalibrationInputError, read_image
+    from service.tools.calibration_io import VIDEO_SUFFIXES, CalibrationInputError, read_image
 
     if not path.exists():
         raise CalibrationInputError(f"{path}: no such file")
@@ -97,7 +97,7 @@ def _read_input(path: Path, frame_index: int) -> Image:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from service.camera import load_camera
+    from service.core.camera import load_camera
 
     if not 0.0 <= args.alpha <= 1.0:
         raise NetposeError(f"--alpha must be between 0 and 1, got {args.alpha}")

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from service.spectrum import Peaks
+from service.core.spectrum import Peaks
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]

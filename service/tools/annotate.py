@@ -16,11 +16,11 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.preview import TEXT, render_preview
-from service.replay import Truth
-from service.results import NetEstimate, RoiResult
-from service.tracking import TrackOutput, TrackState
+from service.core.camera import CameraModel
+from service.core.results import NetEstimate, RoiResult
+from service.core.tracking import TrackOutput, TrackState
+from service.tools.preview import TEXT, render_preview
+from service.tools.replay import Truth
 
 F64 = npt.NDArray[np.float64]
 BGR = npt.NDArray[np.uint8]

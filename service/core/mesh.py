@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from service.errors import ConfigError
+from service.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

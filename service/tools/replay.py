@@ -29,10 +29,10 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from service.errors import NetposeError
-from service.estimator import NetEstimator
-from service.results import NetEstimate, RoiResult
-from service.tracking import NetTracker, TrackOutput
+from service.core.errors import NetposeError
+from service.core.estimator import NetEstimator
+from service.core.results import NetEstimate, RoiResult
+from service.core.tracking import NetTracker, TrackOutput
 
 log = logging.getLogger(__name__)
 

@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.errors import EstimatorInputError
-from service.lattice import LatticeFinder
-from service.mesh import MeshGeometry
-from service.results import NetEstimate, RoiResult
-from service.spectrum import SpectrumAnalyzer
+from service.core.camera import CameraModel
+from service.core.errors import EstimatorInputError
+from service.core.lattice import LatticeFinder
+from service.core.mesh import MeshGeometry
+from service.core.results import NetEstimate, RoiResult
+from service.core.spectrum import SpectrumAnalyzer
 
 Image = npt.NDArray[Any]
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from service.errors import NetposeError
+from service.core.errors import NetposeError
 
 GrayImage = npt.NDArray[np.uint8]
 

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import NetposeError
-from service.results import RoiResult
+from service.core.errors import NetposeError
+from service.core.results import RoiResult
 
 USED = (60, 220, 60)  # BGR
 REJECTED = (0, 210, 230)

@@ -411,7 +411,7 @@ def main_soak(
     """`netpose bench soak`: run, print the report, optionally save it as JSON. Exit status 0
     when the daemon ran the whole time and stopped cleanly, 1 otherwise."""
     if not duration_s > 0 or not fps > 0:
-        from service.errors import ConfigError
+        from service.core.errors import ConfigError
 
         raise ConfigError("soak", "duration and fps must be positive")
     report = run_soak(

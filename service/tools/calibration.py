@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.errors import CalibrationError
+from service.core.camera import CameraModel
+from service.core.errors import CalibrationError
 
 FloatArray = npt.NDArray[np.float64]
 GrayImage = npt.NDArray[np.uint8]

@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from service.errors import CalibrationError
+from service.core.errors import CalibrationError
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -25,13 +25,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from service.camera import CameraModel
-from service.errors import ConfigError, EstimatorInputError
-from service.lattice import LatticeFinder, LatticeFit
-from service.mesh import MeshGeometry
-from service.plane import fit_plane
-from service.results import Mat2, NetEstimate, RoiResult
-from service.spectrum import SpectrumAnalyzer
+from service.core.camera import CameraModel
+from service.core.errors import ConfigError, EstimatorInputError
+from service.core.lattice import LatticeFinder, LatticeFit
+from service.core.mesh import MeshGeometry
+from service.core.plane import fit_plane
+from service.core.results import Mat2, NetEstimate, RoiResult
+from service.core.spectrum import SpectrumAnalyzer
 
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[Any]

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from service.errors import ConfigError
-from service.results import NetEstimate
+from service.core.errors import ConfigError
+from service.core.results import NetEstimate
 
 FloatArray = npt.NDArray[np.float64]
 
