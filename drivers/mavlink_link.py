@@ -3,11 +3,13 @@
 The frame loop only calls cheap setters (`set_range`, `set_vision_pose`): each stores the newest
 value under a lock, a bounded queue of depth one where the newest value wins. One owned thread
 (`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
-with exponential backoff, sends HEARTBEAT at 1 Hz as an onboard controller, tracks the
-autopilot's heartbeat (connecting -> connected -> lost -> connected), and sends DISTANCE_SENSOR
-at `rate_hz` only while the newest reading is valid and younger than `max_age_s`. With no
-believable reading it sends nothing; ArduPilot then reports the rangefinder as "no data" after
-500 ms, which is the protocol's own meaning of "invalid" for a MAVLink rangefinder.
+with backoff (service.core.backoff), sends HEARTBEAT at 1 Hz as an onboard controller, tracks
+the autopilot's heartbeat (waiting -> connected -> lost -> connected), and sends DISTANCE_SENSOR
+at `rate_hz` only while the newest reading is sendable (service.core.readings.RangeStatus) and
+its frame is younger than `max_age_s`. Every message is stamped with the capture time of the
+frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
+ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
+meaning of "invalid" for a MAVLink rangefinder.
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -27,14 +29,12 @@ from typing import Any
 
 from drivers.errors import MavlinkLinkError
 from drivers.lifecycle import Closeable
-from drivers.mavlink_settings import (
-    MavlinkSettings,
-    RangeReading,
-    VisionPose,
-    load_signing_key,
-    serial_device,
-)
+from drivers.mavlink_settings import MavlinkSettings, load_signing_key, serial_device
 from drivers.mavlink_wire import distance_sensor_fields, vision_covariance
+from service.core.backoff import Backoff
+from service.core.messages import AutopilotHealth, AutopilotIdentity
+from service.core.readings import RangeReading, RangeStatus, VisionPose
+from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
 
@@ -67,16 +67,16 @@ class AutopilotLink(Closeable):
         """Begin connecting and sending (returns at once)."""
 
     @abstractmethod
-    def set_range(self, reading: RangeReading | None, t: float) -> None:
-        """Newest distance; `t` is the time.monotonic() of the frame it came from."""
+    def set_range(self, reading: RangeReading) -> None:
+        """Newest reading, stamped with the capture time of its frame."""
 
     @abstractmethod
-    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+    def set_vision_pose(self, pose: VisionPose | None) -> None:
         """Newest vehicle pose in the net frame (sent only when vision is enabled)."""
 
     @abstractmethod
-    def status(self) -> dict[str, Any]:
-        """A JSON-serialisable snapshot for telemetry."""
+    def status(self) -> AutopilotHealth:
+        """A snapshot of the link for the status report."""
 
     @abstractmethod
     def close(self) -> None:
@@ -171,8 +171,8 @@ class MavlinkLink(AutopilotLink):
         self._thread: threading.Thread | None = None
         self._started_at = clock()
         # Inputs, written by the frame loop.
-        self._range: tuple[RangeReading | None, float] = (None, -math.inf)
-        self._pose: tuple[VisionPose | None, float] = (None, -math.inf)
+        self._range: RangeReading = RangeReading.none(-math.inf)
+        self._pose: VisionPose | None = None
         # Link state, written by the link thread, read by status().
         self._transport_up = False
         self._autopilot: _AutopilotIdentity | None = None
@@ -191,17 +191,18 @@ class MavlinkLink(AutopilotLink):
         self._vision_frame_id: int | None = None
         self._vision_resumed = False
         self._foreign_autopilots: set[int] = set()
-        self._in_outage = False
+        self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
+        self._url = redact_text(settings.url)
 
     # ---- frame-loop side: cheap, never blocks on I/O -------------------------------------
 
-    def set_range(self, reading: RangeReading | None, t: float) -> None:
+    def set_range(self, reading: RangeReading) -> None:
         with self._lock:
-            self._range = (reading, t)
+            self._range = reading
 
-    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+    def set_vision_pose(self, pose: VisionPose | None) -> None:
         with self._lock:
-            self._pose = (pose, t)
+            self._pose = pose
 
     def start(self) -> None:
         if self._thread is not None:
@@ -218,45 +219,41 @@ class MavlinkLink(AutopilotLink):
             if thread.is_alive():
                 log.error("MAVLink thread did not stop within 5 s")
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> AutopilotHealth:
         now = self._clock()
         with self._lock:
             ap = self._autopilot
-            autopilot = None
+            identity = None
             if ap is not None:
-                autopilot = {
-                    "sysid": ap.sysid,
-                    "compid": ap.compid,
-                    "type": ap.mav_type,
-                    "autopilot": ap.autopilot,
-                    "mavlink_version": ap.mavlink_version,
-                    "flight_sw_version": ap.flight_sw_version,
-                }
-            return {
-                "state": self._state_locked(),
-                "transport": "up" if self._transport_up else "down",
-                "url": self.settings.url,
-                "autopilot": autopilot,
-                "last_heartbeat_age_s": None if ap is None else round(now - ap.last_heartbeat, 3),
-                "sent": dict(self._sent),
-                "received": self._received,
-                "errors": self._errors,
-                "last_error": self._last_error,
-                "reconnects": self._reconnects,
-                "sending_distance": self._sending_distance,
-                "sending_vision": self._sending_vision,
-                "vision_reset_counter": self._vision_reset_counter,
-            }
+                identity = AutopilotIdentity(
+                    sysid=ap.sysid, compid=ap.compid, type=ap.mav_type, autopilot=ap.autopilot,
+                    mavlink_version=ap.mavlink_version, flight_sw_version=ap.flight_sw_version,
+                )
+            return AutopilotHealth(
+                state=self._state_locked(),
+                heartbeat_age_s=None if ap is None else now - ap.last_heartbeat,
+                messages_sent=sum(self._sent.values()),
+                transport="up" if self._transport_up else "down",
+                url=self._url,
+                autopilot=identity,
+                sent=dict(self._sent),
+                received=self._received,
+                errors=self._errors,
+                last_error=self._last_error or "",
+                reconnects=self._reconnects,
+                sending_distance=self._sending_distance,
+                sending_vision=self._sending_vision,
+                vision_reset_counter=self._vision_reset_counter,
+            )
 
     def _state_locked(self) -> str:
         if self._autopilot is None:
-            return "connecting"
+            return "waiting"
         return "connected" if self._autopilot_alive and self._transport_up else "lost"
 
     # ---- link thread ------------------------------------------------------------------------
 
     def _run(self) -> None:
-        delay = self.settings.retry_initial_s
         attempts = 0
         while not self._stop.is_set():
             attempts += 1
@@ -264,17 +261,15 @@ class MavlinkLink(AutopilotLink):
                 conn = self._connection_factory(self.settings, self._signing_key)
             except Exception as exc:  # any failure to open is retried, never fatal
                 self._note_failure(exc, attempts)
-                self._stop.wait(delay)
-                delay = min(delay * 2.0, self.settings.retry_max_s)
+                self._stop.wait(self._backoff.next_delay(self._clock()))
                 continue
             self._note_up(attempts)
             attempts = 0
-            delay = self.settings.retry_initial_s
             try:
                 self._serve(conn)
             except Exception as exc:
                 self._note_failure(exc, 1)
-                self._stop.wait(delay)
+                self._stop.wait(self._backoff.next_delay(self._clock()))
             finally:
                 with contextlib.suppress(Exception):
                     conn.close()
@@ -286,8 +281,7 @@ class MavlinkLink(AutopilotLink):
         with self._lock:
             self._errors += 1
             self._last_error = message
-            first = not self._in_outage
-            self._in_outage = True
+            first = not self._backoff.in_outage
             was_up = self._transport_up
             self._transport_up = False
             # Without a transport there is no autopilot either; the warning below says why, so
@@ -297,25 +291,25 @@ class MavlinkLink(AutopilotLink):
             # Once per outage; the retries that follow are only at DEBUG level.
             log.warning(
                 "MAVLink link %s %s (%s); retrying with backoff up to %.1f s",
-                self.settings.url,
+                self._url,
                 "lost" if was_up else "unavailable",
                 message,
                 self.settings.retry_max_s,
             )
         else:
-            log.debug("MAVLink link %s attempt %d failed: %s", self.settings.url, attempts, message)
+            log.debug("MAVLink link %s attempt %d failed: %s", self._url, attempts, message)
 
     def _note_up(self, attempts: int) -> None:
         with self._lock:
             self._transport_up = True
-            reconnect = self._in_outage
-            self._in_outage = False
+            reconnect = self._backoff.in_outage
             if reconnect:
                 self._reconnects += 1
+        self._backoff.reset()
         if reconnect:
-            log.info("MAVLink link %s up again after %d attempt(s)", self.settings.url, attempts)
+            log.info("MAVLink link %s up again after %d attempt(s)", self._url, attempts)
         else:
-            log.info("MAVLink link %s open", self.settings.url)
+            log.info("MAVLink link %s open", self._url)
 
     def _serve(self, conn: Any) -> None:
         now = self._clock()
@@ -343,7 +337,7 @@ class MavlinkLink(AutopilotLink):
     def _send(self, conn: Any, name: str, send: Callable[[], None]) -> None:
         send()
         if getattr(conn, "portdead", False):
-            raise _TransportClosedError(f"cannot write to {self.settings.url}")
+            raise _TransportClosedError(f"cannot write to {self._url}")
         with self._lock:
             self._sent[name] += 1
 
@@ -358,14 +352,13 @@ class MavlinkLink(AutopilotLink):
 
     def _send_outputs(self, conn: Any, now: float) -> None:
         with self._lock:
-            reading, reading_t = self._range
-            pose, pose_t = self._pose
+            reading, pose = self._range, self._pose
         max_age = self.settings.max_age_s
-        fresh_range = reading is not None and reading.usable and now - reading_t <= max_age
+        fresh_range = reading.sendable and now - reading.t_capture <= max_age
         self._note_sending("distance", fresh_range)
-        if fresh_range and reading is not None:
+        if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
-            time_boot_ms = self._autopilot_time_ms(now)
+            time_boot_ms = self._autopilot_time_ms(reading.t_capture)
             self._send(
                 conn,
                 "DISTANCE_SENSOR",
@@ -385,11 +378,11 @@ class MavlinkLink(AutopilotLink):
             )
         if not self.settings.vision_enabled:
             return
-        fresh_pose = pose is not None and pose.usable and now - pose_t <= max_age
+        fresh_pose = pose is not None and pose.usable and now - pose.t_capture <= max_age
         self._note_sending("vision", fresh_pose)
         if fresh_pose and pose is not None:
             self._update_reset_counter(pose)
-            usec = self._autopilot_time_ms(now) * 1000
+            usec = self._autopilot_time_ms(pose.t_capture) * 1000
             covariance = vision_covariance(pose)
             reset_counter = self._vision_reset_counter
             self._send(
@@ -432,11 +425,12 @@ class MavlinkLink(AutopilotLink):
             self._vision_frame_id = pose.frame_id
             self._vision_resumed = False
 
-    def _autopilot_time_ms(self, now: float) -> int:
-        """Milliseconds since the autopilot booted (our own start if its clock is unknown)."""
+    def _autopilot_time_ms(self, t: float) -> int:
+        """Instant `t` (this host's monotonic clock) in milliseconds since the autopilot booted
+        (since our own start while its clock is unknown)."""
         with self._lock:
             base = self._autopilot_boot if self._autopilot_boot is not None else self._started_at
-        return int(max(0.0, now - base) * 1000.0) & 0xFFFFFFFF
+        return int(max(0.0, t - base) * 1000.0) & 0xFFFFFFFF
 
     def _is_own(self, msg: Any) -> bool:
         return bool(
@@ -542,29 +536,33 @@ class RecordingAutopilotLink(AutopilotLink):
     def __init__(self) -> None:
         self.started = False
         self.closed = False
-        self.ranges: list[tuple[RangeReading | None, float]] = []
-        self.poses: list[tuple[VisionPose | None, float]] = []
+        self.ranges: list[RangeReading] = []
+        self.poses: list[VisionPose | None] = []
         self._lock = threading.Lock()
 
     def start(self) -> None:
         self.started = True
 
-    def set_range(self, reading: RangeReading | None, t: float) -> None:
+    def set_range(self, reading: RangeReading) -> None:
         with self._lock:
-            self.ranges.append((reading, t))
+            self.ranges.append(reading)
 
-    def set_vision_pose(self, pose: VisionPose | None, t: float) -> None:
+    def set_vision_pose(self, pose: VisionPose | None) -> None:
         with self._lock:
-            self.poses.append((pose, t))
+            self.poses.append(pose)
 
-    def status(self) -> dict[str, Any]:
+    @property
+    def sent(self) -> list[RangeReading]:
+        """The readings a real link would have sent (GOOD or TOO_CLOSE)."""
         with self._lock:
-            return {
-                "state": "connected" if self.started and not self.closed else "connecting",
-                "transport": "fake",
-                "ranges": len(self.ranges),
-                "poses": len(self.poses),
-            }
+            return [r for r in self.ranges if r.status is not RangeStatus.NONE]
+
+    def status(self) -> AutopilotHealth:
+        return AutopilotHealth(
+            state="connected" if self.started and not self.closed else "waiting",
+            transport="fake",
+            messages_sent=len(self.ranges),
+        )
 
     def close(self) -> None:
         self.closed = True

@@ -1,19 +1,17 @@
 """Configuration and input values of the MAVLink autopilot link (no I/O apart from the key file).
 
-The daemon builds `MavlinkSettings` from the TOML section `[mavlink]` (same key names, see
+service.config builds `MavlinkSettings` from the TOML section `[mavlink]` (same key names, see
 docs/mavlink.md); every problem is reported as ConfigError('mavlink.<key>', problem).
-The link's inputs are plain values (`RangeReading`, `VisionPose`): the link knows nothing about
-the estimator.
+The link's inputs are the core's plain values (service.core.readings): the link knows nothing
+about the estimator.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from service.core.errors import ConfigError
 
@@ -138,41 +136,6 @@ class MavlinkSettings:
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> MavlinkSettings:
-        """Build from a parsed `[mavlink]` table; unknown keys and wrong types are errors."""
-        known = {f.name: f for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in values.items():
-            if key not in known:
-                raise ConfigError(f"mavlink.{key}", f"unknown key (known: {', '.join(known)})")
-            kwargs[key] = _coerce(key, value, getattr(cls, key, None))
-        return cls(**kwargs)
-
-
-def _coerce(key: str, value: Any, default: Any) -> Any:
-    """Type-check one TOML value against the type of its default."""
-    full_key = f"mavlink.{key}"
-    if key == "signing_key_file":
-        if value is None or (isinstance(value, str) and value):
-            return value or None
-        raise ConfigError(full_key, f"must be a file path, got {value!r}")
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise ConfigError(full_key, f"must be true or false, got {value!r}")
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(full_key, f"must be an integer, got {value!r}")
-        return value
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(full_key, f"must be a number, got {value!r}")
-        return float(value)
-    if not isinstance(value, str):
-        raise ConfigError(full_key, f"must be a string, got {value!r}")
-    return value
-
 
 def load_signing_key(path: str) -> bytes:
     """Read a MAVLink 2 signing key: 32 raw bytes, or 64 hexadecimal characters (one line).
@@ -195,52 +158,3 @@ def load_signing_key(path: str) -> bytes:
             pass
     raise ConfigError(key, f"{path} must hold 32 raw bytes or 64 hex characters, "
                       f"found {len(data)} bytes")
-
-
-@dataclass(frozen=True)
-class RangeReading:
-    """One distance to the net along the sensor orientation.
-
-    distance_m: along the configured orientation (forward: the optical axis);
-    sigma_m: one standard deviation (nan = unknown); quality: 0..1 confidence (nan = unknown);
-    valid: False when the estimator has no distance it believes (nothing will be sent).
-    """
-
-    distance_m: float
-    sigma_m: float = math.nan
-    quality: float = math.nan
-    valid: bool = True
-
-    @property
-    def usable(self) -> bool:
-        return self.valid and math.isfinite(self.distance_m) and self.distance_m >= 0.0
-
-
-@dataclass(frozen=True)
-class VisionPose:
-    """The vehicle's pose in the net frame (metres, radians), for VISION_POSITION_ESTIMATE.
-
-    Frame: ArduPilot expects a right-handed, z-down frame (x forward, y right, z down at
-    acquisition). `covariance` is the upper triangle (21 values, row-major) of the 6x6
-    covariance of (x, y, z, roll, pitch, yaw), or None if unknown. `frame_id` identifies one
-    acquisition of the net frame: change it whenever the net is re-acquired so the link bumps
-    reset_counter and the EKF does not fuse a jump as motion.
-    """
-
-    x: float
-    y: float
-    z: float
-    roll: float
-    pitch: float
-    yaw: float
-    covariance: tuple[float, ...] | None = None
-    frame_id: int = 0
-
-    def __post_init__(self) -> None:
-        if self.covariance is not None and len(self.covariance) != 21:
-            raise ValueError(f"covariance needs 21 values, got {len(self.covariance)}")
-
-    @property
-    def usable(self) -> bool:
-        values = (self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
-        return all(math.isfinite(v) for v in values)

@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.mavlink_settings import MavlinkSettings, RangeReading, VisionPose
+from drivers.mavlink_settings import MavlinkSettings
+from service.core.readings import RangeReading, RangeStatus, VisionPose
 
 # MAV_DISTANCE_SENSOR_UNKNOWN: a camera is none of laser/ultrasound/infrared/radar.
 DISTANCE_SENSOR_TYPE_UNKNOWN = 4
@@ -64,10 +65,21 @@ class DistanceSensorFields:
 def distance_sensor_fields(
     reading: RangeReading, settings: MavlinkSettings
 ) -> DistanceSensorFields:
+    """The fields of a reading that is sent (GOOD or TOO_CLOSE; NONE is never sent).
+
+    TOO_CLOSE goes out as a distance 1 cm below `min_distance`: ArduPilot compares a MAVLink
+    rangefinder's distance with its minimum and reports OutOfRangeLow, which is the truth,
+    where silence would read as NoData, the same as open water.
+    """
+    min_cm = distance_cm(settings.min_distance_m)
+    if reading.status is RangeStatus.TOO_CLOSE:
+        current = max(0, min_cm - 1)
+    else:
+        current = distance_cm(reading.distance_m)
     return DistanceSensorFields(
-        min_distance=distance_cm(settings.min_distance_m),
+        min_distance=min_cm,
         max_distance=distance_cm(settings.max_distance_m),
-        current_distance=distance_cm(reading.distance_m),
+        current_distance=current,
         type=DISTANCE_SENSOR_TYPE_UNKNOWN,
         id=settings.sensor_id,
         orientation=settings.orientation,

@@ -1,10 +1,10 @@
 """Telemetry to the topside over Zenoh: estimates, 1 Hz status, preview JPEGs and a queryable.
 
-The publisher knows nothing about the estimator: it takes plain JSON-ready dicts (built by
-`service.telemetry_schema`) and JPEG bytes. The frame loop only appends to a bounded deque
+The publisher knows nothing about the estimator: it takes the core's typed messages
+(service.core.messages) and JPEG bytes. The frame loop only appends to a bounded deque
 (drop-oldest, drops counted); a worker thread owned by the publisher opens the Zenoh session,
-retries with backoff while no router answers, serialises and puts. So a missing, slow or
-vanishing router can never stall the frame loop or the MAVLink path.
+retries with backoff while no router answers, serialises (once, here at the edge) and puts. So
+a missing, slow or vanishing router can never stall the frame loop or the MAVLink path.
 
     TelemetryPublisher   the interface the daemon talks to
     ZenohPublisher       the real one (eclipse-zenoh >= 1.0)
@@ -22,24 +22,28 @@ import re
 import threading
 import time
 from abc import abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import zenoh
 
 from drivers.lifecycle import Closeable
+from service.core.backoff import Backoff
 from service.core.errors import ConfigError
-from service.telemetry_schema import (
+from service.core.messages import (
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
     STATE_SUFFIX,
     STATUS_SUFFIX,
-    redact_secrets,
-    state_payload,
+    EstimateMessage,
+    PreviewMeta,
+    StateMessage,
+    StatusMessage,
+    TelemetryHealth,
+    encode,
 )
-
-if TYPE_CHECKING:
-    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -77,34 +81,9 @@ class TelemetrySettings:
     retry_max_s: float = 10.0
 
     def __post_init__(self) -> None:
-        self.validate()
-
-    @classmethod
-    def from_mapping(cls, section: Mapping[str, Any]) -> TelemetrySettings:
-        """Build from a parsed TOML table; unknown keys and wrong types are ConfigErrors."""
-        known = set(cls.__dataclass_fields__)
-        for key in section:
-            if key not in known:
-                known_list = ", ".join(sorted(known))
-                raise ConfigError(f"telemetry.{key}", f"unknown key (known: {known_list})")
-        values: dict[str, Any] = dict(section)
-        for key in ("listen", "connect"):
-            if key in values and values[key] is not None:
-                endpoints = values[key]
-                if isinstance(endpoints, str) or not isinstance(endpoints, Sequence):
-                    raise ConfigError(f"telemetry.{key}", "must be a list of endpoint strings")
-                values[key] = tuple(endpoints)
-        return cls(**values)
-
-    def validate(self) -> None:
         def bad(key: str, problem: str) -> ConfigError:
             return ConfigError(f"telemetry.{key}", problem)
 
-        for key in ("enabled",):
-            if not isinstance(getattr(self, key), bool):
-                raise bad(key, "must be true or false")
-        if self.scouting is not None and not isinstance(self.scouting, bool):
-            raise bad("scouting", "must be true or false")
         for key in ("vehicle", "key_prefix"):
             value = getattr(self, key)
             if not isinstance(value, str) or not _CHUNK.match(value):
@@ -118,14 +97,9 @@ class TelemetrySettings:
             for endpoint in endpoints:
                 if not isinstance(endpoint, str) or not _ENDPOINT.match(endpoint):
                     raise bad(key, f"{endpoint!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447")
-        if self.config_file is not None and not isinstance(self.config_file, str):
-            raise bad("config_file", "must be a path string")
         for key in ("preview_hz", "retry_initial_s", "retry_max_s"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise bad(key, "must be a number")
-            if not math.isfinite(value) or value < 0:
-                raise bad(key, "must be a finite number >= 0")
+            if getattr(self, key) < 0:
+                raise bad(key, "must be >= 0")
         if self.retry_initial_s <= 0 or self.retry_max_s < self.retry_initial_s:
             raise bad("retry_max_s", "retry_initial_s must be > 0 and <= retry_max_s")
         for key, low, high in (
@@ -133,8 +107,7 @@ class TelemetrySettings:
             ("preview_quality", 1, 100),
             ("queue_size", 1, 100_000),
         ):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            if not low <= getattr(self, key) <= high:
                 raise bad(key, f"must be an integer from {low} to {high}")
 
     @property
@@ -173,8 +146,6 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
 
     Raises ConfigError naming the telemetry key when Zenoh rejects a value or the file.
     """
-    import zenoh
-
     from_file = settings.config_file is not None
     if settings.config_file is not None:
         path = Path(settings.config_file)
@@ -195,7 +166,7 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
         try:
             config.insert_json5(zenoh_key, json.dumps(value))
         except zenoh.ZError as exc:
-            raise ConfigError(f"telemetry.{key}", str(exc).split(" at /")[0]) from exc
+            raise ConfigError(f"telemetry.{key}", zenoh_error_text(exc)) from exc
 
     insert("mode", "mode", settings.mode, DEFAULT_MODE)
     listen = None if settings.listen is None else list(settings.listen)
@@ -212,7 +183,7 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
 
 class TelemetryPublisher(Closeable):
     """What the daemon sees of telemetry. Every method returns at once and never raises for a
-    network problem; payload dicts handed over must not be modified afterwards."""
+    network problem."""
 
     def __init__(self, settings: TelemetrySettings) -> None:
         self.settings = settings
@@ -223,28 +194,28 @@ class TelemetryPublisher(Closeable):
         """Begin publishing (a real publisher connects in the background)."""
 
     @abstractmethod
-    def publish_estimate(self, payload: Mapping[str, Any]) -> None:
-        """Queue one estimate payload (service.telemetry_schema.estimate_payload)."""
+    def publish_estimate(self, message: EstimateMessage) -> None:
+        """Queue one estimate."""
 
     @abstractmethod
-    def publish_status(self, payload: Mapping[str, Any]) -> None:
-        """Queue a status payload; it also becomes the status the queryable answers with."""
+    def publish_status(self, message: StatusMessage) -> None:
+        """Queue a status."""
 
     @abstractmethod
-    def publish_preview(self, jpeg: bytes, meta: Mapping[str, Any] | None = None) -> None:
-        """Queue a preview JPEG; `meta` (telemetry_schema.preview_meta) travels as attachment."""
+    def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
+        """Queue a preview JPEG; `meta` travels as its attachment."""
 
     @abstractmethod
-    def set_query_state(self, status: Mapping[str, Any] | None, config: Mapping[str, Any]) -> None:
-        """What the queryable answers: status and effective configuration (secrets removed)."""
+    def set_state(self, message: StateMessage) -> None:
+        """What the `state` queryable answers from now on."""
 
     @abstractmethod
     def close(self) -> None:
         """Stop the worker and close the session; idempotent."""
 
     @abstractmethod
-    def status(self) -> dict[str, Any]:
-        """Counters and link state of the publisher itself (goes into the status payload)."""
+    def status(self) -> TelemetryHealth:
+        """Counters and link state of the publisher itself (goes into the status message)."""
 
     @property
     def online(self) -> bool:
@@ -269,30 +240,29 @@ class TelemetryPublisher(Closeable):
         return self
 
 
-
 class NullPublisher(TelemetryPublisher):
     """Telemetry disabled: accepts everything, sends nothing."""
 
     def start(self) -> None:
         pass
 
-    def publish_estimate(self, payload: Mapping[str, Any]) -> None:
+    def publish_estimate(self, message: EstimateMessage) -> None:
         pass
 
-    def publish_status(self, payload: Mapping[str, Any]) -> None:
+    def publish_status(self, message: StatusMessage) -> None:
         pass
 
-    def publish_preview(self, jpeg: bytes, meta: Mapping[str, Any] | None = None) -> None:
+    def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
         pass
 
-    def set_query_state(self, status: Mapping[str, Any] | None, config: Mapping[str, Any]) -> None:
+    def set_state(self, message: StateMessage) -> None:
         pass
 
     def close(self) -> None:
         pass
 
-    def status(self) -> dict[str, Any]:
-        return {"state": "disabled"}
+    def status(self) -> TelemetryHealth:
+        return TelemetryHealth(state="disabled", key_root=self.settings.key_root)
 
 
 @dataclass
@@ -301,11 +271,10 @@ class RecordingPublisher(TelemetryPublisher):
 
     settings: TelemetrySettings = field(default_factory=TelemetrySettings)
     is_online: bool = True
-    estimates: list[Mapping[str, Any]] = field(default_factory=list)
-    statuses: list[Mapping[str, Any]] = field(default_factory=list)
-    previews: list[tuple[bytes, Mapping[str, Any] | None]] = field(default_factory=list)
-    query_status: Mapping[str, Any] | None = None
-    query_config: dict[str, Any] | None = None
+    estimates: list[EstimateMessage] = field(default_factory=list)
+    statuses: list[StatusMessage] = field(default_factory=list)
+    previews: list[tuple[bytes, PreviewMeta]] = field(default_factory=list)
+    state: StateMessage | None = None
     started: bool = False
     closed: bool = False
 
@@ -319,52 +288,53 @@ class RecordingPublisher(TelemetryPublisher):
     def start(self) -> None:
         self.started = True
 
-    def publish_estimate(self, payload: Mapping[str, Any]) -> None:
-        self.estimates.append(payload)
+    def publish_estimate(self, message: EstimateMessage) -> None:
+        self.estimates.append(message)
 
-    def publish_status(self, payload: Mapping[str, Any]) -> None:
-        self.statuses.append(payload)
-        self.query_status = payload
+    def publish_status(self, message: StatusMessage) -> None:
+        self.statuses.append(message)
 
-    def publish_preview(self, jpeg: bytes, meta: Mapping[str, Any] | None = None) -> None:
+    def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
         self.previews.append((jpeg, meta))
 
-    def set_query_state(self, status: Mapping[str, Any] | None, config: Mapping[str, Any]) -> None:
-        self.query_status = status
-        self.query_config = redact_secrets(config)
+    def set_state(self, message: StateMessage) -> None:
+        self.state = message
 
     def close(self) -> None:
         self.closed = True
 
-    def status(self) -> dict[str, Any]:
-        return {
-            "state": "online" if self.online else "offline",
-            "sent": {
-                "estimate": len(self.estimates),
-                "status": len(self.statuses),
-                "preview": len(self.previews),
-            },
-        }
+    def status(self) -> TelemetryHealth:
+        return TelemetryHealth(
+            state="online" if self.online else "offline",
+            key_root=self.settings.key_root,
+            sent={"estimate": len(self.estimates), "status": len(self.statuses),
+                  "preview": len(self.previews)},
+        )
 
 
 @dataclass(frozen=True)
 class _Outgoing:
     suffix: str
-    payload: Mapping[str, Any] | bytes
-    attachment: Mapping[str, Any] | None = None
+    message: EstimateMessage | StatusMessage | None = None
+    jpeg: bytes = b""
+    meta: PreviewMeta | None = None
 
 
 _STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX)
 
 
+def zenoh_error_text(exc: BaseException) -> str:
+    """Zenoh's error message without the Rust source location it appends (" at /...rs:12")."""
+    return str(exc).split(" at /")[0].strip()
+
+
 class ZenohPublisher(TelemetryPublisher):
     """The real publisher: one Zenoh session owned by one worker thread.
 
-    States: "idle" (before start), "connecting" (opening; retried with exponential backoff
-    from retry_initial_s to retry_max_s while it fails), "online" (session open; a client
-    session re-connects to a returning router by itself), "closed".
-    Payloads handed over while not online are counted as `skipped_offline` and not kept: an
-    estimate that waited for a router is no longer news.
+    States: "idle" (before start), "connecting" (opening; retried with backoff while it fails),
+    "online" (session open; a client session re-connects to a returning router by itself),
+    "closed". Messages handed over while not online are counted as `skipped_offline` and not
+    kept: an estimate that waited for a router is no longer news.
     """
 
     def __init__(
@@ -372,11 +342,9 @@ class ZenohPublisher(TelemetryPublisher):
         settings: TelemetrySettings,
         *,
         clock: Callable[[], float] = time.monotonic,
-        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         super().__init__(settings)
         self._clock = clock
-        self._wall_clock = wall_clock
         self._queue: collections.deque[_Outgoing] = collections.deque(maxlen=settings.queue_size)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -394,9 +362,8 @@ class ZenohPublisher(TelemetryPublisher):
         self._last_error = ""
         self._session_info: zenoh.SessionInfo | None = None
         self._preview_publisher: zenoh.Publisher | None = None
-        self._query_status: Mapping[str, Any] | None = None
-        self._query_config: dict[str, Any] | None = None
-        self._last_estimate: Mapping[str, Any] | None = None
+        self._state_message: StateMessage | None = None
+        self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
 
     # --- frame-loop side: O(microseconds), never blocks on the network -------------------
 
@@ -424,22 +391,18 @@ class ZenohPublisher(TelemetryPublisher):
         self._queue.append(item)
         self._wake.set()
 
-    def publish_estimate(self, payload: Mapping[str, Any]) -> None:
-        self._last_estimate = payload
-        self._enqueue(_Outgoing(ESTIMATE_SUFFIX, payload))
+    def publish_estimate(self, message: EstimateMessage) -> None:
+        self._enqueue(_Outgoing(ESTIMATE_SUFFIX, message))
 
-    def publish_status(self, payload: Mapping[str, Any]) -> None:
-        self._query_status = payload
-        self._enqueue(_Outgoing(STATUS_SUFFIX, payload))
+    def publish_status(self, message: StatusMessage) -> None:
+        self._enqueue(_Outgoing(STATUS_SUFFIX, message))
 
-    def publish_preview(self, jpeg: bytes, meta: Mapping[str, Any] | None = None) -> None:
-        self._enqueue(_Outgoing(PREVIEW_SUFFIX, bytes(jpeg), meta))
+    def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
+        self._enqueue(_Outgoing(PREVIEW_SUFFIX, jpeg=bytes(jpeg), meta=meta))
 
-    def set_query_state(self, status: Mapping[str, Any] | None, config: Mapping[str, Any]) -> None:
-        redacted = redact_secrets(config)  # once here, not per query
+    def set_state(self, message: StateMessage) -> None:
         with self._lock:
-            self._query_status = status
-            self._query_config = redacted
+            self._state_message = message
 
     def _preview_has_audience(self) -> bool:
         """Whether a subscriber matches the preview key (Zenoh tracks this, also through a
@@ -454,7 +417,7 @@ class ZenohPublisher(TelemetryPublisher):
         # Typed as bool in the stubs; zenoh 1.10 returns a MatchingStatus with `.matching`.
         return bool(getattr(status, "matching", status))
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> TelemetryHealth:
         routers = peers = links = None
         info = self._session_info
         if info is not None and self._online:
@@ -467,22 +430,22 @@ class ZenohPublisher(TelemetryPublisher):
             except Exception:  # a session closing under us: counts are just unknown
                 pass
         with self._lock:
-            return {
-                "state": self._state,
-                "key_root": self.settings.key_root,
-                "routers": routers,
-                "peers": peers,
-                "links": links,
+            return TelemetryHealth(
+                state=self._state,
+                key_root=self.settings.key_root,
+                routers=routers,
+                peers=peers,
+                links=links,
                 # Online but nobody to talk to (router gone, no subscriber peer): data is lost.
-                "linked": None if links is None else links > 0,
-                "sent": dict(self._sent),
-                "queue_dropped": self._queue_dropped,
-                "skipped_offline": self._skipped_offline,
-                "errors": self._errors,
-                "queries": self._queries,
-                "open_attempts": self._open_attempts,
-                "last_error": self._last_error,
-            }
+                linked=None if links is None else links > 0,
+                sent=dict(self._sent),
+                queue_dropped=self._queue_dropped,
+                skipped_offline=self._skipped_offline,
+                errors=self._errors,
+                queries=self._queries,
+                open_attempts=self._open_attempts,
+                last_error=self._last_error,
+            )
 
     def close(self, timeout: float = 3.0) -> None:
         """Stop and join the worker. If it is stuck inside a Zenoh open (bounded by Zenoh's
@@ -527,17 +490,14 @@ class ZenohPublisher(TelemetryPublisher):
 
     def _connect(self) -> zenoh.Session | None:
         """Open the session, retrying with backoff; None when asked to stop first."""
-        import zenoh
-
         assert self._config is not None
-        delay = self.settings.retry_initial_s
         logged = False
         while not self._stop.is_set():
             self._open_attempts += 1
             try:
                 session = zenoh.open(self._config)
             except zenoh.ZError as exc:
-                message = str(exc).split(" at /")[0]
+                message = zenoh_error_text(exc)
                 with self._lock:
                     self._last_error = message
                 if not logged:  # once, not every retry: a missing router is a normal condition
@@ -546,12 +506,12 @@ class ZenohPublisher(TelemetryPublisher):
                         message,
                     )
                     logged = True
-                self._stop.wait(delay)
-                delay = min(delay * 2.0, self.settings.retry_max_s)
+                self._stop.wait(self._backoff.next_delay(self._clock()))
                 continue
             if self._stop.is_set():
                 session.close()
                 return None
+            self._backoff.reset()
             self._session_info = session.info
             log.info(
                 "telemetry: Zenoh session open (attempt %d), publishing under %s/",
@@ -564,8 +524,6 @@ class ZenohPublisher(TelemetryPublisher):
     def _declare(
         self, session: zenoh.Session
     ) -> tuple[dict[str, zenoh.Publisher], zenoh.Queryable[None]]:
-        import zenoh
-
         json_enc = zenoh.Encoding.APPLICATION_JSON
         drop = zenoh.CongestionControl.DROP  # never wait for a slow link
         publishers = {
@@ -592,8 +550,6 @@ class ZenohPublisher(TelemetryPublisher):
     def _drain_until_stopped(
         self, publishers: dict[str, zenoh.Publisher], queryable: zenoh.Queryable[None]
     ) -> None:
-        import zenoh
-
         failures_logged: set[str] = set()
         while not self._stop.is_set():
             self._wake.wait(0.5)
@@ -601,14 +557,14 @@ class ZenohPublisher(TelemetryPublisher):
             while self._queue and not self._stop.is_set():
                 item = self._queue.popleft()
                 try:
-                    if isinstance(item.payload, bytes):
-                        attachment = None if item.attachment is None else _to_json(item.attachment)
-                        publishers[item.suffix].put(item.payload, attachment=attachment)
+                    if item.message is None:
+                        attachment = None if item.meta is None else encode(item.meta)
+                        publishers[item.suffix].put(item.jpeg, attachment=attachment)
                     else:
-                        publishers[item.suffix].put(_to_json(item.payload))
+                        publishers[item.suffix].put(encode(item.message))
                 except (ValueError, TypeError, zenoh.ZError) as exc:
-                    # A payload that is not JSON, or a put refused: count it, say it once per
-                    # kind of failure, keep going with the next one.
+                    # A message that cannot be encoded, or a put refused: count it, say it once
+                    # per kind of failure, keep going with the next one.
                     with self._lock:
                         self._errors += 1
                         self._last_error = f"{item.suffix}: {exc}"
@@ -624,35 +580,19 @@ class ZenohPublisher(TelemetryPublisher):
             publisher.undeclare()
 
     def _answer_query(self, query: zenoh.Query) -> None:
-        """Runs on a Zenoh thread: reply with the state snapshot, never raise into Zenoh."""
-        import zenoh
-
+        """Runs on a Zenoh thread: reply with the latest state, never raise into Zenoh."""
         with self._lock:
             self._queries += 1
-            status, config = self._query_status, self._query_config
+            message = self._state_message
+        if message is None:
+            return  # nothing to say before the first status
         try:
-            payload = state_payload(
-                vehicle=self.settings.vehicle,
-                now_unix=self._wall_clock(),
-                now_mono=self._clock(),
-                status=status,
-                config=config,
-                estimate=self._last_estimate,
-            )
-            query.reply(
-                self.settings.key(STATE_SUFFIX),
-                _to_json(payload),
-                encoding=zenoh.Encoding.APPLICATION_JSON,
-            )
+            query.reply(self.settings.key(STATE_SUFFIX), encode(message),
+                        encoding=zenoh.Encoding.APPLICATION_JSON)
         except Exception as exc:
             log.warning("telemetry: cannot answer query %s: %s", query.selector, exc)
             with self._lock:
                 self._errors += 1
-
-
-def _to_json(payload: Mapping[str, Any]) -> bytes:
-    # allow_nan=False: NaN is not JSON; the schema builders already map it to null.
-    return json.dumps(payload, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
 def make_publisher(settings: TelemetrySettings) -> TelemetryPublisher:

@@ -1,8 +1,9 @@
 """The `netpose` command: one entry point, one module per sub-command in `service.commands`.
 
-Each command module exposes `add_parser(subparsers)` and registers a `handler(args) -> int`.
-Command modules import their heavy dependencies (OpenCV, Zenoh, pymavlink) inside the handler so
-that `netpose --help` and a mistyped command answer instantly.
+Each command module exposes `add_parser(subparsers)` and registers a `handler(args) -> int`; its
+imports sit at its top. Only the command being run is imported (this is the one lazy import
+site), so `netpose --help` and a mistyped command answer instantly, without OpenCV, Zenoh or
+pymavlink.
 """
 
 from __future__ import annotations
@@ -14,29 +15,30 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
+from service import __version__
 from service.core.errors import CalibrationError, ConfigError, NetposeError
 
 # Exit status for configuration errors (sysexits.h EX_CONFIG); the systemd unit lists it in
 # RestartPreventExitStatus so a broken configuration does not restart forever.
 EXIT_CONFIG = 78
 
-COMMAND_MODULES = (
-    "run",
-    "estimate",
-    "bench",
-    "calibrate",
-    "undistort",
-    "replay",
-    "mavlink_check",
-    "monitor",
-)
+# name: (module, one-line help shown by `netpose --help`)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("run", "run the service: camera to distance for the autopilot (systemd-ready)"),
+    "estimate": ("estimate", "estimate the net's distance and orientation in image files"),
+    "bench": ("bench", "benchmarks: accuracy, speed, soak and more"),
+    "calibrate": ("calibrate", "calibrate the camera from checkerboard images or a video"),
+    "undistort": ("undistort", "undistorted preview of an image with a calibration"),
+    "replay": ("replay", "run the pipeline over a recording: CSV, annotated video, summary"),
+    "mavlink-check": ("mavlink_check", "check the autopilot's rangefinder settings"),
+    "monitor": ("monitor", "topside view of a vehicle's telemetry (Zenoh)"),
+    "schema": ("schema", "print the telemetry schema (Markdown)"),
+}
 
 Handler = Callable[[argparse.Namespace], int]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from service import __version__
-
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="netpose",
         description="Camera-only distance and orientation to a fish-net, for ArduSub/BlueOS ROVs.",
@@ -49,13 +51,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="logging threshold (default: INFO)",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        importlib.import_module(f"service.commands.{name}").add_parser(subparsers)
+    chosen = _chosen_command(argv)
+    for name, (module, help_text) in COMMANDS.items():
+        if name == chosen:
+            importlib.import_module(f"service.commands.{module}").add_parser(subparsers)
+        else:
+            subparsers.add_parser(name, help=help_text, add_help=False)
     return parser
 
 
+def _chosen_command(argv: Sequence[str] | None) -> str | None:
+    """The sub-command named on the command line (the first word that is one)."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    return next((w for w in words if w in COMMANDS), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import hashlib
+import json
 import math
 import tomllib
 import types
@@ -31,6 +33,7 @@ from typing import Any, Literal, TypeVar
 from service.core.errors import ConfigError
 from service.core.estimator import EstimatorSettings
 from service.core.mesh import MeshGeometry
+from service.core.redact import redact_config
 from service.core.tracking import FilterSettings
 
 T = TypeVar("T")
@@ -131,6 +134,10 @@ class Config:
     @property
     def filter(self) -> FilterSettings:
         return self.section("filter", FilterSettings)
+
+    @property
+    def estimator(self) -> EstimatorSettings:
+        return self.section("estimator", EstimatorSettings)
 
     @property
     def service(self) -> ServiceSettings:
@@ -314,10 +321,11 @@ def _effective(settings: Any) -> dict[str, Any]:
 
 
 def config_digest(effective: Mapping[str, Any]) -> str:
-    """The telemetry schema's digest ('sha256:' + 16 hex): canonical JSON, secrets left out."""
-    from service.telemetry_schema import config_digest as schema_digest
-
-    return schema_digest(effective)
+    """Short stable digest of the effective configuration: 'sha256:' + 16 hex digits of its
+    canonical JSON, secrets redacted, so equal digests mean equal settings and the digest
+    reveals nothing about the secrets."""
+    canonical = json.dumps(redact_config(effective), sort_keys=True, separators=(",", ":"))
+    return "sha256:" + hashlib.sha256(canonical.encode("utf-8")).hexdigest()[:16]
 
 
 def load_config(

@@ -21,6 +21,7 @@ from service.config import (
 )
 from service.core.errors import ConfigError
 from service.core.tracking import FilterSettings
+from service.daemon.wiring import driver_sections
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = REPO / "config"
@@ -187,8 +188,6 @@ def _shipped(name: str) -> Path:
 
 
 def _all_sections() -> dict[str, type]:
-    from service.daemon import driver_sections
-
     return driver_sections()
 
 

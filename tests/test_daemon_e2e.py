@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.benchmarks.soak import TelemetryRecorder
+from drivers.telemetry_subscriber import TelemetrySubscriber
+from service.core.messages import schema_problems
 from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,7 +113,7 @@ def daemon_command(config: Path, overrides: list[str]) -> list[str]:
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonRun]:
     tmp = tmp_path_factory.mktemp("daemon")
     notify = NotifyRecorder(tmp / "notify.sock")
-    tel = TelemetryRecorder(vehicle="e2e")
+    tel = TelemetrySubscriber(vehicle="e2e")
     autopilot = FakeAutopilot(UdpServerTransport()).start()
     overrides = [
         f"camera.url={synthetic_url()}",
@@ -271,8 +272,6 @@ def test_logs_are_state_changes_not_frames(run: DaemonRun) -> None:
 
 
 def test_telemetry_estimates_and_status_match_the_schema(run: DaemonRun) -> None:
-    from service.telemetry_schema import schema_problems
-
     assert run.estimates and run.statuses
     assert not schema_problems(run.estimates[-1])
     assert not schema_problems(run.statuses[-1])

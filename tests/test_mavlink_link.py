@@ -3,6 +3,7 @@ TCP and a pseudo-terminal, and optionally against ArduSub SITL (NETPOSE_ARDUSUB_
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import logging
@@ -21,14 +22,12 @@ from typing import Any
 import pytest
 
 from drivers.mavlink_link import MavlinkLink, RecordingAutopilotLink
-from drivers.mavlink_settings import (
-    MavlinkSettings,
-    RangeReading,
-    VisionPose,
-    load_signing_key,
-)
+from drivers.mavlink_settings import MavlinkSettings, load_signing_key
 from drivers.mavlink_wire import covariance_cm2, distance_sensor_fields, signal_quality
+from service.config import build_section
 from service.core.errors import ConfigError
+from service.core.messages import AutopilotHealth, json_value
+from service.core.readings import RangeReading, RangeStatus, VisionPose
 from tests.fake_autopilot import (
     FakeAutopilot,
     PtyTransport,
@@ -40,7 +39,8 @@ from tests.fake_autopilot import (
 
 pytestmark = pytest.mark.timeout(60)
 
-READING = RangeReading(distance_m=2.346, sigma_m=0.03, quality=0.87)
+READING = RangeReading(RangeStatus.GOOD, t_capture=0.0, distance_m=2.346, sigma_m=0.03,
+                       quality=0.87)
 # Short timeouts so loss and recovery happen within a second of test time.
 FAST = {"heartbeat_timeout_s": 0.5, "retry_initial_s": 0.05, "retry_max_s": 0.4}
 
@@ -58,9 +58,9 @@ def feeding(link: MavlinkLink, reading: RangeReading | None = READING,
     def run() -> None:
         while not stop.is_set():
             now = time.monotonic()
-            link.set_range(reading, now)
+            link.set_range(fresh(reading, now))
             if pose is not None:
-                link.set_vision_pose(pose, now)
+                link.set_vision_pose(dataclasses.replace(pose, t_capture=now))
             stop.wait(period)
 
     thread = threading.Thread(target=run, name="test-frame-loop")
@@ -72,14 +72,21 @@ def feeding(link: MavlinkLink, reading: RangeReading | None = READING,
         thread.join()
 
 
-def wait_status(link: MavlinkLink, key: str, value: Any, timeout: float = 5.0) -> dict[str, Any]:
+def fresh(reading: RangeReading | None, t: float) -> RangeReading:
+    """`reading` as from a frame captured at `t` (None: a frame without a distance)."""
+    if reading is None:
+        return RangeReading.none(t)
+    return dataclasses.replace(reading, t_capture=t)
+
+
+def wait_status(link: MavlinkLink, key: str, value: Any, timeout: float = 5.0) -> AutopilotHealth:
     deadline = time.monotonic() + timeout
     while True:
         status = link.status()
-        if status[key] == value:
+        if getattr(status, key) == value:
             return status
         if time.monotonic() > deadline:
-            raise AssertionError(f"status[{key!r}] stayed {status[key]!r}, wanted {value!r}")
+            raise AssertionError(f"status.{key} stayed {getattr(status, key)!r}, wanted {value!r}")
         time.sleep(0.01)
 
 
@@ -115,16 +122,16 @@ def test_settings_name_the_bad_key(key: str, kwargs: dict[str, Any]) -> None:
     assert info.value.key == f"mavlink.{key}"
 
 
-def test_settings_from_toml_mapping() -> None:
-    s = MavlinkSettings.from_mapping({"url": "udpout:127.0.0.1:14660", "rate_hz": 20,
-                                      "vision_enabled": True})
+def test_settings_from_toml_through_the_one_coercer() -> None:
+    s = build_section("mavlink", MavlinkSettings, {"url": "udpout:127.0.0.1:14660",
+                                                   "rate_hz": 20, "vision_enabled": True})
     assert (s.url, s.rate_hz, s.vision_enabled, s.source_component) == (
         "udpout:127.0.0.1:14660", 20.0, True, 197)
     with pytest.raises(ConfigError, match="unknown key") as info:
-        MavlinkSettings.from_mapping({"rate": 10})
+        build_section("mavlink", MavlinkSettings, {"rate": 10})
     assert info.value.key == "mavlink.rate"
     with pytest.raises(ConfigError) as info:
-        MavlinkSettings.from_mapping({"vision_enabled": "yes"})
+        build_section("mavlink", MavlinkSettings, {"vision_enabled": "yes"})
     assert info.value.key == "mavlink.vision_enabled"
 
 
@@ -186,26 +193,27 @@ def test_heartbeat_and_distance_sensor_over_udp() -> None:
     # 10 Hz: the median gap is robust to one late scheduling turn on a busy machine.
     gaps = [b.t - a.t for a, b in itertools.pairwise(sensors[5:])]
     assert statistics.median(gaps) == pytest.approx(0.1, abs=0.02)
-    assert status["state"] == "connected"
-    assert status["autopilot"]["type"] == 12 and status["autopilot"]["sysid"] == 1
-    assert json.loads(json.dumps(status)) == status  # ready for telemetry as it is
+    assert status.state == "connected"
+    assert status.autopilot is not None
+    assert status.autopilot.type == 12 and status.autopilot.sysid == 1
+    assert json.loads(json.dumps(json_value(status)))  # ready for telemetry as it is
 
 
 def test_nothing_sent_without_a_valid_distance() -> None:
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
-        link.set_range(RangeReading(1.0, valid=False), time.monotonic())
+        link.set_range(RangeReading.none(time.monotonic()))
         with link:
             autopilot.wait_for("HEARTBEAT", count=1, where=from_link)
             with feeding(link, None):
                 time.sleep(0.4)
-            with feeding(link, RangeReading(math.nan, 0.01, 0.9)):
-                time.sleep(0.4)
-            with feeding(link, RangeReading(1.5, 0.01, 0.9, valid=False)):
+            with pytest.raises(ValueError):  # a GOOD reading without a distance cannot exist
+                RangeReading(RangeStatus.GOOD, 0.0, distance_m=math.nan)
+            with feeding(link, RangeReading(RangeStatus.NONE, 0.0, 1.5, 0.01, 0.9)):
                 time.sleep(0.4)
             status = link.status()
     assert autopilot.received("DISTANCE_SENSOR") == []
-    assert status["sending_distance"] is False and status["sent"]["DISTANCE_SENSOR"] == 0
+    assert status.sending_distance is False and status.sent["DISTANCE_SENSOR"] == 0
 
 
 def test_stale_reading_is_not_repeated() -> None:
@@ -214,7 +222,7 @@ def test_stale_reading_is_not_repeated() -> None:
         with link:
             autopilot.wait_for("HEARTBEAT", count=1, where=from_link)
             t_frame = time.monotonic()
-            link.set_range(READING, t_frame)
+            link.set_range(fresh(READING, t_frame))
             autopilot.wait_for("DISTANCE_SENSOR", count=1)
             time.sleep(0.8)  # far beyond max_age: the reading is stale
             status = link.status()
@@ -222,7 +230,7 @@ def test_stale_reading_is_not_repeated() -> None:
     # At 10 Hz a reading can be sent at most max_age * rate + 1 times, all within max_age.
     assert 1 <= len(sent) <= 4
     assert sent[-1].t - t_frame <= 0.3 + 0.05
-    assert status["sending_distance"] is False
+    assert status.sending_distance is False
 
 
 def test_autopilot_heartbeat_lost_and_back(caplog: pytest.LogCaptureFixture) -> None:
@@ -230,14 +238,14 @@ def test_autopilot_heartbeat_lost_and_back(caplog: pytest.LogCaptureFixture) -> 
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
         with link:
-            assert link.status()["state"] == "connecting"
+            assert link.status().state == "waiting"
             wait_status(link, "state", "connected")
             autopilot.heartbeats_enabled = False
             lost = wait_status(link, "state", "lost")
             time.sleep(0.3)  # several more loop turns while lost: still logged only once
             autopilot.heartbeats_enabled = True
             wait_status(link, "state", "connected")
-    assert lost["last_heartbeat_age_s"] > 0.5
+    assert lost.heartbeat_age_s is not None and lost.heartbeat_age_s > 0.5
     messages = [r.getMessage() for r in caplog.records]
     assert sum("heartbeat lost" in m for m in messages) == 1
     assert sum("heartbeat back" in m for m in messages) == 1
@@ -255,13 +263,13 @@ def test_own_echo_and_other_components_are_not_the_autopilot() -> None:
             # An autopilot of another vehicle (system id 2) is not ours either.
             autopilot.send_heartbeat_as(2, 1, mav_type=12, autopilot=3)
             deadline = time.monotonic() + 5.0
-            while link.status()["received"] < 3 and time.monotonic() < deadline:
+            while link.status().received < 3 and time.monotonic() < deadline:
                 time.sleep(0.01)
             time.sleep(0.2)  # more echoes arrive meanwhile
             status = link.status()
     # Dozens of our own messages came back; only the three foreign heartbeats count.
-    assert status["received"] == 3
-    assert status["state"] == "connecting" and status["autopilot"] is None
+    assert status.received == 3
+    assert status.state == "waiting" and status.autopilot is None
 
 
 def test_tcp_link_survives_router_restart(caplog: pytest.LogCaptureFixture) -> None:
@@ -276,16 +284,16 @@ def test_tcp_link_survives_router_restart(caplog: pytest.LogCaptureFixture) -> N
             first.close()  # router gone: connection closed, then refused
             wait_status(link, "transport", "down")
             deadline = time.monotonic() + 5.0
-            while link.status()["errors"] < 4 and time.monotonic() < deadline:
+            while link.status().errors < 4 and time.monotonic() < deadline:
                 time.sleep(0.02)
-            assert link.status()["state"] == "lost"
+            assert link.status().state == "lost"
             with FakeAutopilot(TcpServerTransport(port)) as second:
                 second.wait_for("DISTANCE_SENSOR", count=3, timeout=5.0)
                 status = wait_status(link, "state", "connected")
                 warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     finally:
         first.close()
-    assert status["reconnects"] == 1 and status["errors"] >= 4
+    assert status.reconnects == 1 and status.errors >= 4
     assert sum("retrying" in r.getMessage() for r in warnings) == 1  # once per outage
     assert sum("up again" in r.getMessage() for r in caplog.records) == 1
 
@@ -297,11 +305,11 @@ def test_link_waits_for_a_router_that_starts_later() -> None:
     try:
         # The frame loop keeps handing over values while nothing is listening.
         for _ in range(5):
-            link.set_range(READING, time.monotonic())
+            link.set_range(fresh(READING, time.monotonic()))
             time.sleep(0.05)
         status = link.status()
-        assert (status["state"], status["transport"]) == ("connecting", "down")
-        assert status["errors"] >= 1
+        assert (status.state, status.transport) == ("waiting", "down")
+        assert status.errors >= 1
         with FakeAutopilot(TcpServerTransport(port)) as autopilot, feeding(link):
             autopilot.wait_for("DISTANCE_SENSOR", count=2)
             wait_status(link, "state", "connected")
@@ -332,11 +340,11 @@ def test_unplugged_serial_device_is_retried_and_logged_once(
             autopilot.close()  # both ends of the pty vanish, like a USB autopilot unplugged
         status = wait_status(link, "transport", "down")
         deadline = time.monotonic() + 5.0
-        while link.status()["errors"] < 3 and time.monotonic() < deadline:
+        while link.status().errors < 3 and time.monotonic() < deadline:
             time.sleep(0.02)
         status = link.status()
-    assert status["state"] == "lost" and status["errors"] >= 3
-    assert "could not open port" in status["last_error"]
+    assert status.state == "lost" and status.errors >= 3
+    assert "could not open port" in status.last_error
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and "lost" in warnings[0].getMessage()
 
@@ -351,7 +359,7 @@ def test_udpin_answers_the_autopilot() -> None:
 
 
 def test_vision_position_is_opt_in() -> None:
-    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3)
+    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, t_capture=0.0)
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
         with link, feeding(link, pose=pose):
@@ -361,7 +369,8 @@ def test_vision_position_is_opt_in() -> None:
 
 def test_vision_position_fields_and_reset_counter() -> None:
     covariance = tuple(float(i + 1) * 1e-3 for i in range(21))
-    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, covariance=covariance, frame_id=7)
+    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, t_capture=0.0, covariance=covariance,
+                      frame_id=7)
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url, vision_enabled=True))
         with link:
@@ -371,7 +380,8 @@ def test_vision_position_fields_and_reset_counter() -> None:
             with feeding(link, pose=pose):
                 resumed = autopilot.wait_for("VISION_POSITION_ESTIMATE", count=len(
                     autopilot.received("VISION_POSITION_ESTIMATE")) + 2)
-            moved = VisionPose(-1.0, 0.0, 3.0, 0.0, 0.0, 0.0, covariance=None, frame_id=8)
+            moved = VisionPose(-1.0, 0.0, 3.0, 0.0, 0.0, 0.0, t_capture=0.0, covariance=None,
+                               frame_id=8)
             with feeding(link, pose=moved):
                 autopilot.wait_for("VISION_POSITION_ESTIMATE", where=lambda r: r.msg.x == -1.0)
                 reacquired = autopilot.received("VISION_POSITION_ESTIMATE")[-1].msg
@@ -405,17 +415,18 @@ def test_signed_link_is_accepted_only_with_the_right_key(tmp_path: Path) -> None
         with link, feeding(link):
             time.sleep(0.6)
             status = link.status()
-    assert status["sent"]["DISTANCE_SENSOR"] >= 3
+    assert status.sent["DISTANCE_SENSOR"] >= 3
     assert autopilot.received() == []  # every message rejected by the signature check
 
 
 def test_recording_link_stands_in_for_the_daemon() -> None:
     link = RecordingAutopilotLink()
     with link:
-        link.set_range(READING, 1.0)
-        link.set_range(None, 2.0)
-        assert link.status()["state"] == "connected"
-    assert link.ranges == [(READING, 1.0), (None, 2.0)] and link.closed
+        link.set_range(fresh(READING, 1.0))
+        link.set_range(RangeReading.none(2.0))
+        assert link.status().state == "connected"
+    assert [r.status for r in link.ranges] == [RangeStatus.GOOD, RangeStatus.NONE]
+    assert link.sent == [fresh(READING, 1.0)] and link.closed
 
 
 # ---- ArduSub SITL (only when its binary is named) -------------------------------------------

@@ -17,7 +17,22 @@ import numpy as np
 import pytest
 
 from drivers.telemetry import TelemetrySettings, ZenohPublisher
-from service import telemetry_schema as ts
+from service.core.messages import (
+    AutopilotHealth,
+    CpuHealth,
+    EstimateLatency,
+    EstimateMessage,
+    EstimatorHealth,
+    FilteredView,
+    FilterHealth,
+    FrameSourceHealth,
+    PreviewMeta,
+    StateMessage,
+    StatusMessage,
+    schema_problems,
+    to_json,
+)
+from service.core.redact import redact_config
 from service.tools.monitor_view import MonitorState
 
 pytestmark = pytest.mark.timeout(90)
@@ -31,27 +46,36 @@ def free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def estimate_json(seq: int, distance: float = 1.5, detected: bool = True) -> dict[str, Any]:
+def estimate_message(seq: int, distance: float = 1.5, detected: bool = True) -> EstimateMessage:
     now = time.monotonic()
-    estimate = {"detected": detected, "confidence": 0.8 if detected else 0.1,
-                "distance_m": distance if detected else None, "sigma_distance_m": 0.02,
-                "range_m": distance * 1.02, "tilt_deg": 11.0, "reason": "" if detected else "x",
-                "timings_ms": {"spectrum": 20.0}}
-    return ts.estimate_payload(
-        vehicle=VEHICLE, seq=seq, estimate=estimate, now_unix=time.time(), now_mono=now,
-        frame_time_mono=now - 0.03,
-        filtered=ts.filtered_payload(valid=detected, distance_m=distance, sigma_distance_m=0.01),
+    return EstimateMessage(
+        vehicle=VEHICLE, time_unix=time.time(), time_mono=now, seq=seq,
+        frame_time_mono=now - 0.03, detected=detected, confidence=0.8 if detected else 0.1,
+        distance_m=distance if detected else None, sigma_distance_m=0.02,
+        range_m=distance * 1.02, tilt_deg=11.0, reason="" if detected else "x",
+        filtered=FilteredView(valid=detected, autopilot="good" if detected else "none",
+                              state="tracking" if detected else "lost", measurement="accepted",
+                              distance_m=distance, sigma_distance_m=0.01),
+        latency_ms=EstimateLatency(stages={"spectrum": 20.0}, estimator_total=20.0),
+    )
+
+
+def estimate_json(seq: int, distance: float = 1.5, detected: bool = True) -> dict[str, Any]:
+    return to_json(estimate_message(seq, distance, detected))
+
+
+def status_message() -> StatusMessage:
+    return StatusMessage(
+        vehicle=VEHICLE, time_unix=time.time(), time_mono=time.monotonic(), version="0.1.0",
+        state="running", uptime_s=3.0, config_digest="sha256:00",
+        frame_source=FrameSourceHealth(state="streaming", fps=10.0, dropped=0),
+        autopilot=AutopilotHealth(state="connected"), estimator=EstimatorHealth(fps=10.0),
+        cpu=CpuHealth(cores=2), filter=FilterHealth(state="tracking"),
     )
 
 
 def status_json() -> dict[str, Any]:
-    return ts.status_payload(
-        vehicle=VEHICLE, version="0.1.0", state="running", uptime_s=3.0,
-        config_digest="sha256:00", now_unix=time.time(), now_mono=time.monotonic(),
-        frame_source=ts.frame_source_status(state="streaming", fps=10.0, dropped=0),
-        autopilot=ts.autopilot_status(state="connected"),
-        estimator=ts.estimator_status(fps=10.0), cpu=ts.cpu_status(cores=2),
-    )
+    return to_json(status_message())
 
 
 def encode(payload: dict[str, Any]) -> bytes:
@@ -99,7 +123,7 @@ def test_bad_and_foreign_payloads_are_flagged_not_fatal() -> None:
     assert "not a JSON object" in problems and "confidence" in problems and "schema 2" in problems
     assert state.ingest("netpose/x", b"{}", 3.0) is None  # too short to be ours
     assert state.ingest(f"netpose/{VEHICLE}/unknown", b"{}", 3.0) is None
-    meta = ts.preview_meta(vehicle=VEHICLE, seq=3, now_unix=1.0, width=320, height=180)
+    meta = to_json(PreviewMeta(vehicle=VEHICLE, seq=3, time_unix=1.0, width=320, height=180))
     preview = state.ingest(f"netpose/{VEHICLE}/preview", b"\xff\xd8" * 50, 4.0, encode(meta))
     assert preview is not None
     record = preview.record(1234.5)
@@ -138,11 +162,11 @@ def feed(pub: ZenohPublisher, proc: subprocess.Popen[str], jpeg: bytes) -> int:
     deadline = time.monotonic() + 30
     while proc.poll() is None:
         assert time.monotonic() < deadline, "monitor did not stop after --duration"
-        pub.publish_estimate(estimate_json(seq, 1.0 + 0.5 * np.sin(seq / 20)))
+        pub.publish_estimate(estimate_message(seq, 1.0 + 0.5 * float(np.sin(seq / 20))))
         if seq % 20 == 0:
-            pub.publish_status(status_json())
-            meta = ts.preview_meta(vehicle=VEHICLE, seq=seq, now_unix=time.time(), width=64,
-                                   height=48)
+            pub.publish_status(status_message())
+            meta = PreviewMeta(vehicle=VEHICLE, seq=seq, time_unix=time.time(), width=64,
+                               height=48)
             pub.publish_preview(jpeg, meta)
         seq += 1
         time.sleep(0.05)
@@ -178,7 +202,7 @@ def test_monitor_saves_prints_plots_and_keeps_the_preview(
     assert statuses and previews
     for record in estimates + statuses:
         assert record["key"] == f"netpose/{VEHICLE}/{record['kind']}"
-        assert ts.schema_problems(record["payload"]) == []
+        assert schema_problems(record["payload"]) == []
     assert previews[0]["bytes"] == len(jpeg) and previews[0]["meta"]["width"] == 64
 
     # Not a terminal: one summary line per second.
@@ -198,14 +222,17 @@ def test_monitor_query_prints_state_with_redacted_config(
     publisher: tuple[ZenohPublisher, str],
 ) -> None:
     pub, endpoint = publisher
-    pub.set_query_state(status_json(), {"camera": {"url": "rtsp://a:b@cam/"}, "x": 1})
+    pub.set_state(StateMessage(
+        vehicle=VEHICLE, time_unix=time.time(), time_mono=time.monotonic(),
+        status=status_message(), config=redact_config({"camera": {"url": "rtsp://a:b@cam/"},
+                                                       "x": 1})))
     proc = monitor("--connect", endpoint, "--vehicle", VEHICLE, "--query", "--duration", "5")
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     answers = [json.loads(line) for line in out.splitlines() if line.strip()]
     assert len(answers) == 1
     state = answers[0]
-    assert ts.schema_problems(state) == []
+    assert schema_problems(state) == []
     assert state["config"] == {"camera": {"url": "rtsp://a:<redacted>@cam/"}, "x": 1}
     assert state["status"]["frame_source"]["state"] == "streaming"
 

@@ -78,7 +78,7 @@ def test_real_frame_with_caption_and_float_input() -> None:
     assert frame is not None
     estimate = NetEstimate(detected=True, confidence=0.49, normal=(0.0, 0.3, -0.954),
                            distance_m=0.84, sigma_distance_m=0.01, rois=(square_roi(),))
-    caption = estimate_caption(estimate.to_json_dict())
+    caption = estimate_caption(estimate)
     assert caption == ["d 0.84 m +/- 0.01", "tilt 17 deg  conf 0.49"]  # acos(0.954) = 17.4
     image = render_preview(frame, estimate.rois, caption, width=320)
     plain = render_preview(frame, [], width=320)
@@ -94,8 +94,7 @@ def test_real_frame_with_caption_and_float_input() -> None:
 
 
 def test_no_net_caption_and_no_upscaling() -> None:
-    caption = estimate_caption(NetEstimate(detected=False, confidence=0.1,
-                                           reason="no lattice").to_json_dict())
+    caption = estimate_caption(NetEstimate(detected=False, confidence=0.1, reason="no lattice"))
     assert caption == ["no net (no lattice)"]
     small = np.full((100, 200), 128, np.uint8)
     assert render_preview(small, [], width=320).shape == (100, 200, 3)

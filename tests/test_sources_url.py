@@ -10,9 +10,10 @@ from drivers.sources import create_source
 from drivers.sources.files import ImageFolderSource, VideoFileSource
 from drivers.sources.stream import StreamSource, default_ffmpeg_options, ffmpeg_target
 from drivers.sources.synthetic import SyntheticSource
-from drivers.sources.url import is_network_url, parse_source_url, redact
+from drivers.sources.url import is_network_url, parse_source_url
 from drivers.sources.v4l2 import V4l2Source
 from service.core.errors import ConfigError
+from service.core.redact import redact_text
 
 
 def test_own_schemes_split_into_path_and_options() -> None:
@@ -85,9 +86,9 @@ def test_url_mistakes_are_configuration_errors_naming_the_problem(
 
 def test_passwords_never_reach_messages() -> None:
     url = "rtsp://admin:s3cret@192.168.2.10:554/stream1"
-    assert redact(url) == "rtsp://admin:***@192.168.2.10:554/stream1"
+    assert redact_text(url) == "rtsp://admin:<redacted>@192.168.2.10:554/stream1"
     assert "s3cret" not in repr(create_source(url))
-    assert redact("udp://0.0.0.0:5600") == "udp://0.0.0.0:5600"
+    assert redact_text("udp://0.0.0.0:5600") == "udp://0.0.0.0:5600"
 
 
 def test_network_urls_keep_their_query_for_ffmpeg() -> None:

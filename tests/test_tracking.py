@@ -82,13 +82,13 @@ def test_outlier_is_rejected_and_counted() -> None:
     for i in range(30):
         tracker.step(i / FPS, estimate(1.2, sd=0.02))
     out = tracker.step(30 / FPS, estimate(2.4, sd=0.02))  # a wrong lattice: double the period
-    assert out.measurement == "rejected"
+    assert out.measurement.value == "rejected"
     assert out.mahalanobis is not None and out.mahalanobis > 4.0
     assert out.distance_m == pytest.approx(1.2, abs=0.01)
     assert out.state is TrackState.COASTING and out.valid  # within report_coasting_s
     assert tracker.rejected_total == 1
     out = tracker.step(31 / FPS, estimate(1.2, sd=0.02))
-    assert out.measurement == "accepted" and out.state is TrackState.TRACKING
+    assert out.measurement.value == "accepted" and out.state is TrackState.TRACKING
 
 
 def test_consistent_rejects_restart_the_track_at_the_new_value() -> None:
@@ -99,7 +99,7 @@ def test_consistent_rejects_restart_the_track_at_the_new_value() -> None:
     for i in range(30):
         tracker.step(i / FPS, estimate(1.0, sd=0.01))
     outs = [tracker.step((30 + k) / FPS, estimate(2.0, sd=0.01)) for k in range(8)]
-    assert [o.measurement for o in outs[:4]] == ["rejected"] * 3 + ["reset"]
+    assert [o.measurement.value for o in outs[:4]] == ["rejected"] * 3 + ["reset"]
     assert all(not o.valid for o in outs[3:5])  # re-acquiring: nothing for the autopilot
     assert outs[-1].state is TrackState.TRACKING and outs[-1].valid
     assert outs[-1].distance_m == pytest.approx(2.0, abs=0.005)
@@ -130,11 +130,11 @@ def test_dropout_coasts_on_the_prediction_then_is_lost() -> None:
 
 def test_low_confidence_and_nonsense_estimates_are_not_measurements() -> None:
     tracker = NetTracker(FilterSettings(min_confidence=0.5, acquire_count=1))
-    assert tracker.step(0.0, estimate(1.0, confidence=0.4)).measurement == "none"
-    assert tracker.step(0.1, estimate(float("nan"))).measurement == "none"
-    assert tracker.step(0.2, estimate(-1.0)).measurement == "none"
+    assert tracker.step(0.0, estimate(1.0, confidence=0.4)).measurement.value == "none"
+    assert tracker.step(0.1, estimate(float("nan"))).measurement.value == "none"
+    assert tracker.step(0.2, estimate(-1.0)).measurement.value == "none"
     out = tracker.step(0.3, estimate(1.0, confidence=0.6))
-    assert out.measurement == "reset" and out.valid  # acquire_count=1: believed at once
+    assert out.measurement.value == "reset" and out.valid  # acquire_count=1: believed at once
 
 
 def test_missing_sigmas_use_the_fallback_noise() -> None:

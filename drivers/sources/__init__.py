@@ -22,7 +22,11 @@ from drivers.sources.base import (
     SourceState,
     SourceStats,
 )
+from drivers.sources.files import ImageFolderSource, VideoFileSource
+from drivers.sources.stream import StreamSource
+from drivers.sources.synthetic import SyntheticSource
 from drivers.sources.url import is_network_url, parse_source_url, url_error
+from drivers.sources.v4l2 import V4l2Source
 
 __all__ = [
     "Frame",
@@ -39,25 +43,15 @@ def create_source(url: str, options: SourceOptions | None = None) -> FrameSource
     """The source for `url`, not yet opened. URL mistakes raise ConfigError (camera.url)."""
     text = url.strip()
     if text.startswith("sdp:") or is_network_url(text):
-        from drivers.sources.stream import StreamSource
-
         return StreamSource(text, options)
     parsed = parse_source_url(text)
     if parsed.scheme == "v4l2":
-        from drivers.sources.v4l2 import V4l2Source
-
         return V4l2Source(parsed.raw, options)
     if parsed.scheme == "file":
-        from drivers.sources.files import VideoFileSource
-
         return VideoFileSource(parsed.raw, options)
     if parsed.scheme == "images":
-        from drivers.sources.files import ImageFolderSource
-
         return ImageFolderSource(parsed.raw, options)
     if parsed.scheme == "synthetic":
-        from drivers.sources.synthetic import SyntheticSource
-
         return SyntheticSource(parsed.raw, options)
     raise url_error(url, f"unknown scheme {parsed.scheme!r}")  # pragma: no cover - parser guards
 

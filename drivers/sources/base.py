@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.lifecycle import Closeable
+from service.core.redact import redact_text
 
 if TYPE_CHECKING:
     from service.core.camera import CameraModel
@@ -106,9 +107,7 @@ class FrameSource(Closeable):
 
 
     def __repr__(self) -> str:
-        from drivers.sources.url import redact
-
-        return f"{type(self).__name__}({redact(self._url)!r})"
+        return f"{type(self).__name__}({redact_text(self._url)!r})"
 
 
 def split_gray_color(image: Any, keep_color: bool) -> tuple[GrayImage, ColorImage | None] | None:

@@ -16,6 +16,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -114,8 +115,6 @@ class FakeCapture:
     """cv2.VideoCapture(device, CAP_V4L2) on a FakeCamera, with the V4L2 backend's semantics."""
 
     def __init__(self, camera: FakeCamera, *, opened: bool) -> None:
-        import cv2
-
         self._cv2 = cv2
         self._camera = camera
         self._opened = opened

@@ -18,6 +18,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import cv2
+
 from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
@@ -79,8 +81,6 @@ class VideoFileSource(PacedSource):
         )
 
     def _start(self) -> None:
-        import cv2
-
         self._cap = self._open_capture()
         file_fps = self._cap.get(cv2.CAP_PROP_FPS)
         if 0.1 <= file_fps <= 1000.0:
@@ -97,8 +97,6 @@ class VideoFileSource(PacedSource):
         if self._first is not None:
             first, self._first = self._first, None
             return first
-        import cv2
-
         cap = self._cap
         if cap is None:
             raise EndOfMediaError
@@ -190,8 +188,6 @@ class ImageFolderSource(PacedSource):
             )
 
     def _next_media(self) -> MediaFrame:
-        import cv2
-
         if self._position >= len(self._files):
             raise EndOfMediaError
         number = self._position

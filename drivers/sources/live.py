@@ -30,7 +30,8 @@ from drivers.sources.base import (
     wall_time_of,
 )
 from drivers.sources.opencv_capture import VideoCaptureLike
-from drivers.sources.url import redact
+from service.core.backoff import Backoff
+from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,7 @@ class LiveSource(FrameSource):
     # -- FrameSource ------------------------------------------------------------------------
     def open(self) -> None:
         if self._state is SourceState.CLOSED:
-            raise SourceError(redact(self.url), "the source was closed; create a new one")
+            raise SourceError(redact_text(self.url), "the source was closed; create a new one")
         if self._thread is not None:
             return
         cap = self._connect()  # a source that cannot be opened at start is an error
@@ -131,7 +132,7 @@ class LiveSource(FrameSource):
         if thread.is_alive():
             log.warning(
                 "frame source %s: the capture thread is stuck in the driver and was abandoned",
-                redact(self.url),
+                redact_text(self.url),
             )
 
     # -- internals --------------------------------------------------------------------------
@@ -154,13 +155,13 @@ class LiveSource(FrameSource):
         if new is SourceState.DOWN:
             log.warning(
                 "frame source %s down: %s; re-opening with backoff (%g..%g s)",
-                redact(self.url),
+                redact_text(self.url),
                 reason,
                 self._options.reconnect_min_s,
                 self._options.reconnect_max_s,
             )
         else:
-            log.info("frame source %s %s: %s", redact(self.url), new.value, reason)
+            log.info("frame source %s %s: %s", redact_text(self.url), new.value, reason)
 
     def _publish(self, image: object, t_capture: float, now: float) -> bool:
         converted = split_gray_color(image, self._options.keep_color)
@@ -194,7 +195,7 @@ class LiveSource(FrameSource):
         if first:
             log.warning(
                 "frame source %s: skipped an undecodable frame (further ones are only counted)",
-                redact(self.url),
+                redact_text(self.url),
             )
 
     def _reconnect(self) -> VideoCaptureLike | None:
@@ -214,7 +215,7 @@ class LiveSource(FrameSource):
     def _run(self, first_cap: VideoCaptureLike) -> None:
         opts = self._options
         cap: VideoCaptureLike | None = first_cap
-        backoff = opts.reconnect_min_s
+        backoff = Backoff(opts.reconnect_min_s, opts.reconnect_max_s)
         failed_reads = 0
         frames_since_open = 0
         try:
@@ -222,8 +223,7 @@ class LiveSource(FrameSource):
                 if cap is None:
                     cap = self._reconnect()
                     if cap is None:
-                        self._stop.wait(backoff)
-                        backoff = min(2.0 * backoff, opts.reconnect_max_s)
+                        self._stop.wait(backoff.next_delay(time.monotonic()))
                         continue
                     failed_reads = frames_since_open = 0
                 try:
@@ -240,7 +240,7 @@ class LiveSource(FrameSource):
                         frames_since_open += 1
                         if frames_since_open == 1:
                             self._recovered()
-                            backoff = opts.reconnect_min_s
+                            backoff.reset()
                         continue
                     self._count_corrupt(1)
                 else:
@@ -262,8 +262,7 @@ class LiveSource(FrameSource):
                     self._set_state(SourceState.DOWN, reason)
                     if frames_since_open == 0:
                         # Opened but nothing came: back off, or a flapping device spins the CPU.
-                        self._stop.wait(backoff)
-                        backoff = min(2.0 * backoff, opts.reconnect_max_s)
+                        self._stop.wait(backoff.next_delay(time.monotonic()))
         finally:
             if cap is not None:
                 cap.release()

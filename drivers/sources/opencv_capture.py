@@ -13,8 +13,10 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, Protocol
 
+import cv2
+
 from drivers.errors import SourceError
-from drivers.sources.url import redact
+from service.core.redact import redact_text
 
 
 class VideoCaptureLike(Protocol):
@@ -63,8 +65,6 @@ def timeout_params(open_timeout_s: float, read_timeout_s: float) -> list[int]:
     Both properties exist since OpenCV 4.5.2; a build without them gets no parameters (an unknown
     parameter would make the open fail).
     """
-    import cv2
-
     params: list[int] = []
     for name, seconds in (
         ("CAP_PROP_OPEN_TIMEOUT_MSEC", open_timeout_s),
@@ -87,18 +87,16 @@ def open_ffmpeg_capture(
 ) -> VideoCaptureLike:
     """A cv2.VideoCapture on `target` through the FFmpeg backend; SourceError naming `url`
     (with `failure` as the reason when given)."""
-    import cv2
-
     params = timeout_params(open_timeout_s, read_timeout_s)
     with ffmpeg_capture_options(options):
         try:
             cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG, params)
         except cv2.error as exc:
-            raise SourceError(redact(url), f"OpenCV refused to open it: {exc}") from None
+            raise SourceError(redact_text(url), f"OpenCV refused to open it: {exc}") from None
     if not cap.isOpened():
         cap.release()
         raise SourceError(
-            redact(url),
+            redact_text(url),
             failure
             or f"OpenCV's FFmpeg backend could not open it within {open_timeout_s:g} s "
             "(nothing there, no stream yet, or a format FFmpeg does not know)",

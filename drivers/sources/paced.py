@@ -29,7 +29,7 @@ from drivers.sources.base import (
     SourceStats,
     split_gray_color,
 )
-from drivers.sources.url import redact
+from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ class PacedSource(FrameSource):
         self._state = SourceState.UP
         log.info(
             "frame source %s up: %.4g fps%s%s",
-            redact(self.url),
+            redact_text(self.url),
             1.0 / self.frame_period_s,
             ", looping" if self.loop else "",
             ", paced in real time" if self.realtime else "",
@@ -186,7 +186,7 @@ class PacedSource(FrameSource):
         if self._corrupt == 0:
             log.warning(
                 "frame source %s: skipped an undecodable frame (further ones are only counted)",
-                redact(self.url),
+                redact_text(self.url),
             )
         self._corrupt += count
 
@@ -206,9 +206,11 @@ class PacedSource(FrameSource):
                     self._rewind()
                     continue
                 if self.loop:
-                    log.warning("frame source %s: no decodable frame to loop", redact(self.url))
+                    log.warning("frame source %s: no decodable frame to loop",
+                                redact_text(self.url))
                 self._state = SourceState.ENDED
-                log.info("frame source %s ended after %d frames", redact(self.url), self._frames)
+                log.info("frame source %s ended after %d frames", redact_text(self.url),
+                         self._frames)
                 return None
             self._count_corrupt(media.skipped_before)
             self._highest_number = max(self._highest_number, media.number)

@@ -35,7 +35,6 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,12 +42,10 @@ from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.core.camera import CameraModel
+from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError, ConfigError
 from service.core.mesh import MeshGeometry
-
-if TYPE_CHECKING:
-    from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +90,6 @@ class Trajectory:
             raise url_error(parsed.raw, "option near must be less than far")
 
     def pose_at(self, t: float) -> NetPose:
-        from drivers.synthetic_net import NetPose
-
         w = 2.0 * math.pi * t / self.period
         range_m, tilt = self.range, self.tilt
         if self.kind == "approach":
@@ -148,8 +143,6 @@ class SyntheticSource(PacedSource):
             raise url_error(parsed.raw, "give both width and height, or neither")
         calibration = parsed.options.get("calibration")
         if calibration:
-            from service.core.camera import load_camera
-
             camera = load_camera(calibration)  # CalibrationError names the file
             return camera if width is None or height is None else camera.scaled_to(width, height)
         try:
@@ -166,8 +159,6 @@ class SyntheticSource(PacedSource):
         return 1.0 / self._fps
 
     def _start(self) -> None:
-        from drivers.synthetic_net import NetRenderer, SceneStyle
-
         try:
             self._renderer = NetRenderer(self._camera, self.mesh, seed=self.seed)
         except Exception as exc:  # the renderer is ours: say so rather than crash the caller

@@ -15,6 +15,7 @@ from pathlib import Path
 from urllib.parse import parse_qsl
 
 from service.core.errors import ConfigError
+from service.core.redact import redact_text
 
 # The configuration key that holds a source URL (service/config.py, [camera] url).
 URL_CONFIG_KEY = "camera.url"
@@ -23,13 +24,8 @@ _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
 
 
-def redact(url: str) -> str:
-    """The URL with any password replaced, fit for logs and error messages."""
-    return re.sub(r"(://[^/:@?#]*:)[^/@?#]*@", r"\1***@", url)
-
-
 def url_error(url: str, problem: str) -> ConfigError:
-    return ConfigError(URL_CONFIG_KEY, f"{redact(url)}: {problem}")
+    return ConfigError(URL_CONFIG_KEY, f"{redact_text(url)}: {problem}")
 
 
 @dataclass(frozen=True)

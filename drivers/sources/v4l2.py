@@ -16,6 +16,8 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
+
 from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.live import LiveSource
@@ -85,8 +87,6 @@ def parse_v4l2_url(url: str | SourceUrl) -> V4l2Settings:
 
 def negotiate(cap: VideoCaptureLike, settings: V4l2Settings) -> GrantedFormat:
     """Request the format in `settings` and return what the driver granted (logged)."""
-    import cv2
-
     if settings.fourcc is not None:
         cap.set(cv2.CAP_PROP_FOURCC, float(fourcc_code(settings.fourcc)))
     if settings.width is not None and settings.height is not None:
@@ -126,8 +126,6 @@ def negotiate(cap: VideoCaptureLike, settings: V4l2Settings) -> GrantedFormat:
 
 
 def _open_v4l2_capture(device: str) -> VideoCaptureLike:
-    import cv2
-
     return cv2.VideoCapture(int(device) if device.isdigit() else device, cv2.CAP_V4L2)
 
 
@@ -179,8 +177,6 @@ class V4l2Source(LiveSource):
         """
         if not self._use_driver_timestamps:
             return received_mono
-        import cv2
-
         stamp = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         if received_mono - 1.0 <= stamp <= received_mono + 1e-3:
             return min(stamp, received_mono)

@@ -23,7 +23,6 @@ import logging
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -35,118 +34,14 @@ from typing import Any
 
 import numpy as np
 
+from drivers.mavlink_observer import DistanceObserver
+from drivers.telemetry_subscriber import TelemetrySubscriber
+from service.core.errors import ConfigError
+
 log = logging.getLogger(__name__)
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_CONFIG = REPO_ROOT / "config" / "demo.toml"
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A loopback port that was free a moment ago."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class MavlinkRecorder:
-    """Receives the daemon's MAVLink on a loopback UDP port and keeps DISTANCE_SENSOR arrivals.
-
-    Owns one thread; `close()` stops and joins it.
-    """
-
-    def __init__(self) -> None:
-        os.environ["MAVLINK20"] = "1"  # before pymavlink is imported
-        from pymavlink.dialects.v20 import ardupilotmega
-
-        self._mav = ardupilotmega.MAVLink(None)
-        self._mav.robust_parsing = True
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(("127.0.0.1", 0))
-        self._sock.settimeout(0.1)
-        self.url = f"udpout:127.0.0.1:{self._sock.getsockname()[1]}"
-        self._lock = threading.Lock()
-        self.distances: list[tuple[float, int]] = []  # (monotonic arrival, current_distance cm)
-        self.heartbeats = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="soak-mavlink", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self._sock.recv(65535)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            t = time.monotonic()
-            for msg in self._mav.parse_buffer(data) or []:
-                kind = msg.get_type()
-                with self._lock:
-                    if kind == "DISTANCE_SENSOR":
-                        self.distances.append((t, int(msg.current_distance)))
-                    elif kind == "HEARTBEAT":
-                        self.heartbeats += 1
-
-    def snapshot(self) -> list[tuple[float, int]]:
-        with self._lock:
-            return list(self.distances)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self._sock.close()
-
-
-class TelemetryRecorder:
-    """A Zenoh peer listening on loopback; the daemon connects to it and publishes here."""
-
-    def __init__(self, key_prefix: str = "netpose", vehicle: str = "soak") -> None:
-        import zenoh
-
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        config = zenoh.Config()
-        config.insert_json5("mode", json.dumps("peer"))
-        config.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
-        config.insert_json5("scouting/multicast/enabled", "false")
-        self._session = zenoh.open(config)
-        self._lock = threading.Lock()
-        self.estimates: list[dict[str, Any]] = []
-        self.statuses: list[dict[str, Any]] = []
-
-        def on_sample(sample: Any) -> None:
-            try:
-                payload = json.loads(sample.payload.to_bytes())
-            except (ValueError, UnicodeDecodeError):
-                return
-            payload["_received_mono"] = time.monotonic()
-            kind = payload.get("kind") if isinstance(payload, dict) else None
-            with self._lock:
-                if kind == "estimate":
-                    self.estimates.append(payload)
-                elif kind == "status":
-                    self.statuses.append(payload)
-
-        self._subscriber = self._session.declare_subscriber(f"{key_prefix}/{vehicle}/**",
-                                                            on_sample)
-
-    def snapshot(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-        with self._lock:
-            return list(self.estimates), list(self.statuses)
-
-    def daemon_overrides(self) -> list[str]:
-        """--set options that point the daemon's telemetry at this subscriber."""
-        return [
-            "telemetry.enabled=true",
-            "telemetry.mode=peer",
-            f"telemetry.connect=['{self.endpoint}']",
-            "telemetry.listen=[]",
-            "telemetry.scouting=false",
-        ]
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-        self._session.close()
 
 
 @dataclass
@@ -260,8 +155,8 @@ def run_soak(
     url = source_url or (
         f"synthetic:?width=640&height=360&fps={fps:g}&realtime=1&trajectory=approach"
     )
-    mav = MavlinkRecorder()
-    tel = TelemetryRecorder(vehicle="soak")
+    mav = DistanceObserver()
+    tel = TelemetrySubscriber(vehicle="soak")
     overrides = [
         f"camera.url={url}",
         f"mavlink.url={mav.url}",
@@ -411,8 +306,6 @@ def main_soak(
     """`netpose bench soak`: run, print the report, optionally save it as JSON. Exit status 0
     when the daemon ran the whole time and stopped cleanly, 1 otherwise."""
     if not duration_s > 0 or not fps > 0:
-        from service.core.errors import ConfigError
-
         raise ConfigError("soak", "duration and fps must be positive")
     report = run_soak(
         duration_s, fps, config=Path(config) if config else DEFAULT_CONFIG,

@@ -17,6 +17,7 @@ import statistics
 import time
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -25,6 +26,8 @@ from service.benchmarks.scenes import PAPER_MESH, bench_camera
 from service.core.estimator import NetEstimator
 from service.core.paper import PaperEstimator
 from service.core.results import NetEstimate
+from service.core.tracking import FilterSettings, NetTracker
+from service.pipeline import Pipeline
 
 TARGET_FPS_720P = 60.0
 
@@ -74,22 +77,22 @@ def _time(
     return times, cpu, medians, detected / len(frames)
 
 
-class _Tracker:
-    """Feeds each estimate back as the next frame's prior, as the daemon does."""
+class _Tracking:
+    """The daemon's own pipeline (prior feedback, filter) at the camera's frame spacing."""
 
-    def __init__(self, estimator: NetEstimator) -> None:
-        self.estimator = estimator
-        self.previous: NetEstimate | None = None
+    def __init__(self, estimator: NetEstimator, fps: float = 30.0) -> None:
+        self.pipeline = Pipeline(estimator, NetTracker(FilterSettings()))
+        self.period = 1.0 / fps
+        self.index = 0
 
     def step(self, image: npt.NDArray[np.uint8]) -> NetEstimate:
-        est = self.estimator.estimate(image, prior=self.previous)
-        self.previous = est if est.detected else None
-        return est
+        result = self.pipeline.process(image, self.index * self.period, self.index)
+        self.index += 1
+        assert result.estimate is not None, result.error
+        return result.estimate
 
 
 def run(frames: int, seed: int) -> int:
-    import cv2
-
     cv2.setNumThreads(1)
     pinning = _pin_to_one_core()
     print(f"netpose bench speed: {frames} frames per case, one core ({pinning}), "
@@ -102,7 +105,7 @@ def run(frames: int, seed: int) -> int:
         images = _frames(width, height, frames, seed)
         estimator = NetEstimator(camera, PAPER_MESH)
         paper = PaperEstimator(camera, PAPER_MESH)
-        tracking = _Tracker(estimator)
+        tracking = _Tracking(estimator)
         cases: list[tuple[str, Callable[[npt.NDArray[np.uint8]], NetEstimate]]] = [
             ("cold", estimator.estimate),
             ("tracking", tracking.step),

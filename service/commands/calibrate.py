@@ -9,9 +9,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from service.commands._progress import ProgressBar
+from service.commands.undistort import side_by_side
+from service.core.camera import save_camera
 from service.core.errors import CalibrationError
+from service.tools.calibration import (
+    MIN_VIEWS,
+    BoardSpec,
+    BoardView,
+    calibrate,
+    detect_board,
+    guess_board_size,
+    parse_board_size,
+)
+from service.tools.calibration_io import (
+    CalibrationInputError,
+    Frame,
+    plan_inputs,
+    read_image,
+    sample_video,
+)
 
 DEFAULT_BOARD = "7x4"  # inner corners of the paper's board
 DEFAULT_SQUARE_M = 0.0311
@@ -81,16 +101,6 @@ class _Collected:
 
 
 def _collect(args: argparse.Namespace, board: Any) -> _Collected:
-    from service.commands._progress import ProgressBar
-    from service.tools.calibration import BoardView, detect_board
-    from service.tools.calibration_io import (
-        CalibrationInputError,
-        Frame,
-        plan_inputs,
-        read_image,
-        sample_video,
-    )
-
     plan = plan_inputs(args.inputs)
     out = _Collected()
 
@@ -134,8 +144,6 @@ def _collect(args: argparse.Namespace, board: Any) -> _Collected:
 
 
 def _no_board_error(collected: _Collected, board: Any) -> CalibrationError:
-    from service.tools.calibration import MIN_VIEWS, guess_board_size
-
     candidates = [f for f in collected.sample_frames if f.name != "preview"]
     guesses = [g for g in (guess_board_size(f.gray) for f in candidates) if g is not None]
     found = len(collected.views)
@@ -156,10 +164,6 @@ def _no_board_error(collected: _Collected, board: Any) -> CalibrationError:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.core.camera import save_camera
-    from service.tools.calibration import MIN_VIEWS, BoardSpec, calibrate, parse_board_size
-    from service.tools.calibration_io import CalibrationInputError
-
     board = BoardSpec(*parse_board_size(args.board), square=args.square)
     if args.max_frames < 1:
         raise CalibrationError(f"--max-frames must be at least 1, got {args.max_frames}")
@@ -215,10 +219,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_preview(path: Path, camera: Any, collected: _Collected) -> None:
-    import cv2
-
-    from service.commands.undistort import side_by_side
-
     frame = next((f for f in collected.sample_frames if f.name == "preview"), None)
     if frame is None:
         return

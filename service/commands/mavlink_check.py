@@ -10,6 +10,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from drivers.mavlink_link import import_mavutil
+from drivers.mavlink_probe import RANGEFINDER_PARAMS, VISION_PARAMS, advise, probe_autopilot
+from drivers.mavlink_settings import MavlinkSettings
 from service.core.errors import ConfigError
 
 EXIT_CHANGES_NEEDED = 3
@@ -42,8 +45,6 @@ def add_parser(subparsers: Any) -> None:
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from drivers.mavlink_settings import MavlinkSettings
-
     values: dict[str, Any] = {
         "url": args.url,
         "baud": args.baud,
@@ -63,15 +64,11 @@ def _settings(args: argparse.Namespace) -> Any:
 
 
 def _enum_name(enum: str, value: int) -> str:
-    from drivers.mavlink_link import import_mavutil
-
     entry = import_mavutil().mavlink.enums.get(enum, {}).get(value)
     return f"{entry.name} ({value})" if entry is not None else str(value)
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.mavlink_probe import RANGEFINDER_PARAMS, VISION_PARAMS, advise, probe_autopilot
-
     if not args.timeout > 0:
         raise ConfigError("--timeout", f"must be > 0, got {args.timeout}")
     settings = _settings(args)

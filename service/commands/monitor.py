@@ -8,28 +8,27 @@ JSON lines, plot distance and confidence over time, or ask the vehicle's queryab
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import math
 import os
 import queue
-import signal
 import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
 from pathlib import Path
-from types import FrameType
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, Any
 
+import numpy as np
+import zenoh
+
+from drivers.telemetry import TelemetrySettings, build_zenoh_config, zenoh_error_text
+from service.core.backoff import Backoff
 from service.core.errors import ConfigError, NetposeError
-from service.telemetry_schema import ESTIMATE_SUFFIX, STATE_SUFFIX
+from service.core.messages import ESTIMATE_SUFFIX, STATE_SUFFIX
+from service.signals import SignalFlags, handle_signals
 from service.tools.monitor_view import MonitorState, Received
-
-if TYPE_CHECKING:
-    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -75,8 +74,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def _zenoh_config(args: argparse.Namespace) -> zenoh.Config:
-    from drivers.telemetry import TelemetrySettings, build_zenoh_config
-
     connect = args.connect
     if connect is None and args.listen is None and args.zenoh_config is None:
         connect = ["tcp/127.0.0.1:7447"]
@@ -104,36 +101,19 @@ def _zenoh_config(args: argparse.Namespace) -> zenoh.Config:
 
 def _open_session(config: zenoh.Config, deadline: float, stop: threading.Event) -> zenoh.Session:
     """Open, retrying (a client fails while its router is away) until `deadline` or stop."""
-    import zenoh
-
-    delay = 0.5
+    backoff = Backoff(initial_s=0.5, max_s=5.0)
     announced = False
     while True:
         try:
             return zenoh.open(config)
         except zenoh.ZError as exc:
             if not announced:
-                print(f"monitor: no Zenoh link yet ({str(exc).split(' at /')[0]}); retrying",
+                print(f"monitor: no Zenoh link yet ({zenoh_error_text(exc)}); retrying",
                       file=sys.stderr, flush=True)
                 announced = True
+        delay = backoff.next_delay(time.monotonic())
         if time.monotonic() + delay > deadline or stop.wait(delay):
             raise NetposeError("no Zenoh link: is the vehicle (or its router) reachable?")
-        delay = min(delay * 2, 5.0)
-
-
-@contextlib.contextmanager
-def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """SIGINT/SIGTERM end the monitor cleanly (files flushed, session closed)."""
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for signum, old in previous.items():
-            signal.signal(signum, old)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -145,10 +125,10 @@ def run(args: argparse.Namespace) -> int:
         if not chunk or "/" in chunk or any(c in chunk for c in "?#$ "):
             raise ConfigError(option, f"{chunk!r} must be one key chunk (no '/')")
     config = _zenoh_config(args)
-    stop = threading.Event()
     start = time.monotonic()
     deadline = math.inf if args.duration is None else start + args.duration
-    with _stop_on_signals(stop):
+    with handle_signals(SignalFlags()) as flags:
+        stop = flags.stop
         session = _open_session(config, deadline, stop)
         try:
             if args.query:
@@ -333,8 +313,6 @@ class LivePlot:
             if self.pyplot is not None:
                 self.pyplot.pause(0.001)  # keep the window responsive
             return
-        import numpy as np
-
         data = np.array(self.samples, dtype=float).reshape(-1, 5)
         t, distance, sigma, filtered, confidence = data.T
         ax = self.distance_axes

@@ -14,27 +14,43 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import sys
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any, TextIO
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
+from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
+from service import __version__
+from service.core.camera import CameraModel, load_camera
 from service.core.errors import ConfigError, NetposeError
-
-if TYPE_CHECKING:
-    from drivers.sources import FrameSource
-    from service.core.estimator import EstimatorSettings
-    from service.core.tracking import FilterSettings
-    from service.tools.annotate import FrameAnnotator
-    from service.tools.replay import FrameResult, ReplayFrame, ReplayStats, Truth
+from service.core.estimator import EstimatorSettings, NetEstimator
+from service.core.mesh import MeshGeometry
+from service.core.redact import redact_text
+from service.core.tracking import FilterSettings, NetTracker
+from service.daemon.wiring import load_daemon_config
+from service.pipeline import AutopilotDistance, Pipeline
+from service.signals import SignalFlags, handle_signals
+from service.tools.annotate import FrameAnnotator
+from service.tools.replay import (
+    PLOT_FILES,
+    EstimatesCsv,
+    FrameResult,
+    ReplayFrame,
+    ReplayRunner,
+    ReplayStats,
+    Truth,
+    load_truth_csv,
+    truth_from_object,
+    write_json,
+    write_plots,
+)
 
 log = logging.getLogger(__name__)
 
@@ -116,8 +132,6 @@ def source_url(text: str, fps: float | None) -> str:
 
 
 def _open_source(url: str, keep_color: bool) -> FrameSource:
-    from drivers.sources import SourceOptions, open_source
-
     try:
         return open_source(url, SourceOptions(keep_color=keep_color))
     except ConfigError as exc:
@@ -132,8 +146,6 @@ def _frame_count(source: FrameSource) -> int | None:
         return len(files)
     path = getattr(source, "path", None)
     if isinstance(path, Path) and path.is_file():
-        import cv2
-
         cap = cv2.VideoCapture(str(path))
         try:
             count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else -1.0
@@ -151,9 +163,6 @@ def replay_frames(
     Every `every`-th frame by the source's frame numbers (so frames the source could not
     decode do not shift the choice); times are relative to the first frame read.
     """
-    from drivers.sources import SourceState
-    from service.tools.replay import ReplayFrame, truth_from_object
-
     t0: float | None = None
     next_index = 0
     waiting_logged = False
@@ -177,6 +186,7 @@ def replay_frames(
             image=frame.image,
             index=frame.index,
             time_s=round(frame.t_monotonic - t0, 6),
+            t_capture=frame.t_monotonic,
             color=frame.color,
             truth=truth_from_object(frame.truth),
         )
@@ -235,36 +245,6 @@ def _clock(seconds: float) -> str:
     return f"{s // 60}:{s % 60:02d}"
 
 
-# -- stop requests ----------------------------------------------------------------------------
-class StopRequest:
-    """SIGINT/SIGTERM set `event` so the frame in hand is finished and the outputs closed;
-    a second Ctrl-C interrupts at once. Handlers are restored on exit."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.signal_name: str | None = None
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopRequest:
-        if threading.current_thread() is not threading.main_thread():
-            return self  # signals can only be handled in the main thread
-
-        def handler(signum: int, _frame: FrameType | None) -> None:
-            if self.event.is_set() and signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            self.signal_name = signal.Signals(signum).name
-            self.event.set()
-
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, previous in self._previous.items():
-            signal.signal(sig, previous)
-        self._previous.clear()
-
-
 # -- outputs ----------------------------------------------------------------------------------
 class AnnotatedVideo:
     """annotated.mp4 (MPEG-4 Part 2, which every OpenCV build with FFmpeg writes), opened at
@@ -279,8 +259,6 @@ class AnnotatedVideo:
         self.frames = 0
 
     def write(self, image: npt.NDArray[np.uint8]) -> None:
-        import cv2
-
         h, w = image.shape[:2]
         if self._writer is None:
             self._open(w, h)
@@ -292,8 +270,6 @@ class AnnotatedVideo:
         self.frames += 1
 
     def _open(self, width: int, height: int) -> None:
-        import cv2
-
         # Even sizes: some encoders refuse odd ones.
         size = (width - width % 2, height - height % 2)
         for name, fourcc in ((VIDEO_NAME, "mp4v"), (FALLBACK_VIDEO_NAME, "MJPG")):
@@ -330,10 +306,6 @@ class ReplayRun:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.core.camera import load_camera
-    from service.core.mesh import MeshGeometry
-    from service.tools.replay import load_truth_csv
-
     if args.every < 1:
         raise NetposeError(f"--every must be at least 1, got {args.every}")
     if args.max_frames is not None and args.max_frames < 1:
@@ -348,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
         raise ConfigError(option, exc.problem) from None
-    estimator_settings, filter_settings = _tuning(args.config, mesh.bar_length_m)
+    tuning = _tuning(args.config, mesh.bar_length_m)
     truth = load_truth_csv(args.truth) if args.truth is not None else None
     url = source_url(args.input, args.fps)
     write_video = not args.no_video
@@ -358,51 +330,47 @@ def run(args: argparse.Namespace) -> int:
             total = -(-total // args.every)
             if args.max_frames is not None:
                 total = min(total, args.max_frames)
-        return _replay(args, source, url, camera, mesh, estimator_settings, filter_settings,
-                       truth, total)
+        return _replay(args, source, url, camera, mesh, tuning, truth, total)
 
 
-def _tuning(
-    path: Path | None, mesh_size: float
-) -> tuple[EstimatorSettings | None, FilterSettings | None]:
-    """[estimator] and [filter] of a daemon configuration file (the rest is not used: the
-    mesh and the calibration come from the command line, the source from INPUT)."""
+@dataclass(frozen=True)
+class Tuning:
+    """What a daemon configuration sets that changes the pipeline's output."""
+
+    estimator: EstimatorSettings | None = None
+    filter: FilterSettings | None = None
+    autopilot_distance: AutopilotDistance = "optical_axis"
+
+
+def _tuning(path: Path | None, mesh_size: float) -> Tuning:
+    """[estimator], [filter] and service.autopilot_distance of a daemon configuration file (the
+    rest is not used: the mesh and the calibration come from the command line, the source
+    from INPUT)."""
     if path is None:
-        return None, None
-    from service.config import load_config
-    from service.core.estimator import EstimatorSettings
-    from service.core.tracking import FilterSettings
-    from service.daemon import driver_sections
-
+        return Tuning()
     # A configuration may leave the mesh to be set, or name a calibration file of the vehicle
     # that is not here: neither matters to the replay.
-    config = load_config(path, [f"mesh.bar_length_m={mesh_size!r}"],
-                         extra_sections=driver_sections(), check_files=False)
-    estimator = config.sections.get("estimator")
-    return (
-        estimator if isinstance(estimator, EstimatorSettings) else None,
-        config.section("filter", FilterSettings),
-    )
+    config = load_daemon_config(str(path), [f"mesh.bar_length_m={mesh_size!r}"],
+                                check_files=False)
+    return Tuning(config.estimator, config.filter, config.service.autopilot_distance)
 
 
 def _replay(
     args: argparse.Namespace,
     source: FrameSource,
     url: str,
-    camera: Any,
-    mesh: Any,
-    estimator_settings: EstimatorSettings | None,
-    filter_settings: FilterSettings | None,
+    camera: CameraModel,
+    mesh: MeshGeometry,
+    tuning: Tuning,
     truth: dict[int, Truth] | None,
     total: int | None,
 ) -> int:
-    from service.core.estimator import NetEstimator
-    from service.core.tracking import FilterSettings, NetTracker
-    from service.tools.annotate import FrameAnnotator
-    from service.tools.replay import EstimatesCsv, ReplayPipeline, ReplayStats
-
-    tracker = NetTracker(filter_settings or FilterSettings()) if args.filter else None
-    pipeline = ReplayPipeline(NetEstimator(camera, mesh, estimator_settings), tracker, truth)
+    # The daemon's pipeline, as the daemon builds it: the filter always runs (its output is
+    # written with --filter), so the estimates are the ones the vehicle would have made.
+    pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
+                        NetTracker(tuning.filter or FilterSettings()),
+                        tuning.autopilot_distance)
+    runner = ReplayRunner(pipeline, keep_track=args.filter, truth=truth)
     show = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
     progress = RateProgress(total, sys.stderr) if show else None
     fps = _video_fps(source, args.every)
@@ -413,10 +381,10 @@ def _replay(
     csv_file: EstimatesCsv | None = None
     video: AnnotatedVideo | None = None
 
-    with StopRequest() as stop:
-        frames = replay_frames(source, args.every, stop.event)
+    with handle_signals(SignalFlags()) as stop:
+        frames = replay_frames(source, args.every, stop.stop)
         try:
-            for result in pipeline.run(frames):
+            for result in runner.run(frames):
                 if csv_file is None:
                     # The first frame was accepted: only now is there something to write.
                     out_dir.mkdir(parents=True, exist_ok=True)
@@ -433,8 +401,7 @@ def _replay(
                 if args.max_frames is not None and outcome.frames_read >= args.max_frames:
                     break
         except KeyboardInterrupt:
-            stop.event.set()
-            stop.signal_name = stop.signal_name or "SIGINT"
+            stop.request_stop("SIGINT")
         finally:
             stats.finish()
             if progress is not None:
@@ -444,9 +411,9 @@ def _replay(
                 video.close()
             if csv_file is not None:
                 csv_file.close()
-        if stop.event.is_set():
+        if stop.stop.is_set():
             outcome.interrupted = True
-            outcome.stop_reason = stop.signal_name or "stopped"
+            outcome.stop_reason = stop.stop_signal or "stopped"
 
     if csv_file is None:
         if outcome.interrupted:
@@ -485,8 +452,6 @@ def _video_fps(source: FrameSource, every: int) -> float:
 
 def _remove_stale_outputs(out_dir: Path) -> None:
     """Files an earlier replay left there would be mistaken for this one's."""
-    from service.tools.replay import PLOT_FILES
-
     for name in ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES):
         (out_dir / name).unlink(missing_ok=True)
 
@@ -499,10 +464,6 @@ def _finish(
     out_dir: Path,
     source: FrameSource,
 ) -> None:
-    from service import __version__
-    from service.telemetry_schema import redact_secrets
-    from service.tools.replay import write_json, write_plots
-
     try:
         plots = write_plots(stats, out_dir)
         outcome.outputs += [p.name for p in plots]
@@ -511,7 +472,7 @@ def _finish(
     source_stats = source.stats()
     summary: dict[str, Any] = {
         "netpose_version": __version__,
-        "input": str(redact_secrets({"url": url})["url"]),
+        "input": redact_text(url),
         "calibration": str(args.calibration),
         "mesh": {"bar_length_m": args.mesh_size, "opening_angle_deg": args.opening_angle},
         "every": args.every,

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from service.core.errors import ConfigError
+from service.daemon.wiring import check_config, main
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
@@ -26,14 +29,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.daemon import check_config, main
-
     if args.check:
         print(check_config(args.config, args.overrides))
         return 0
-
     if args.duration is not None and not args.duration > 0:
-        from service.core.errors import ConfigError
-
         raise ConfigError("--duration", "must be a positive number of seconds")
     return main(args.config, args.overrides, args.duration)

@@ -10,11 +10,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
-from service.core.camera import CameraModel
+from service.core.camera import CameraModel, load_camera
 from service.core.errors import NetposeError
+from service.tools.calibration_io import VIDEO_SUFFIXES, CalibrationInputError, read_image
 
 Image = npt.NDArray[np.uint8]
 
@@ -47,8 +49,6 @@ def add_parser(subparsers: Any) -> None:
 
 def undistort_image(camera: CameraModel, image: Image, alpha: float = 0.0) -> Image:
     """`image` with the lens distortion of `camera` removed, same size, new pinhole intrinsics."""
-    import cv2
-
     h, w = image.shape[:2]
     cam = camera.scaled_to(w, h)
     new_matrix, _roi = cv2.getOptimalNewCameraMatrix(
@@ -69,10 +69,6 @@ def side_by_side(camera: CameraModel, image: Image, alpha: float = 0.0) -> Image
 
 
 def _read_input(path: Path, frame_index: int) -> Image:
-    import cv2
-
-    from service.tools.calibration_io import VIDEO_SUFFIXES, CalibrationInputError, read_image
-
     if not path.exists():
         raise CalibrationInputError(f"{path}: no such file")
     if path.suffix.lower() not in VIDEO_SUFFIXES:
@@ -95,10 +91,6 @@ def _read_input(path: Path, frame_index: int) -> Image:
 
 
 def run(args: argparse.Namespace) -> int:
-    import cv2
-
-    from service.core.camera import load_camera
-
     if not 0.0 <= args.alpha <= 1.0:
         raise NetposeError(f"--alpha must be between 0 and 1, got {args.alpha}")
     if args.frame < 0:

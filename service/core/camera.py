@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 import yaml
@@ -93,8 +94,6 @@ class CameraModel:
 
     def undistort_pixels(self, pixels: npt.ArrayLike) -> FloatArray:
         """Distorted pixel coordinates (..., 2) -> undistorted normalised coordinates (..., 2)."""
-        import cv2
-
         pts = np.asarray(pixels, dtype=np.float64)
         shape = pts.shape
         flat = pts.reshape(-1, 1, 2)
@@ -115,8 +114,6 @@ class CameraModel:
 
     def project_normalized(self, normalized: npt.ArrayLike) -> FloatArray:
         """Undistorted normalised coordinates (..., 2) -> distorted pixel coordinates (..., 2)."""
-        import cv2
-
         pts = np.asarray(normalized, dtype=np.float64)
         shape = pts.shape
         obj = np.concatenate([pts.reshape(-1, 2), np.ones((pts.size // 2, 1))], axis=1)
@@ -201,8 +198,6 @@ def camera_from_ros_dict(doc: Mapping[str, Any], source: str = "calibration") ->
 
 
 def _load_opencv_storage(path: Path) -> CameraModel:
-    import cv2
-
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
         if not fs.isOpened():

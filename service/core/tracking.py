@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from filterpy.kalman import KalmanFilter
 
 from service.core.errors import ConfigError
 from service.core.results import NetEstimate
@@ -38,6 +39,15 @@ class TrackState(enum.Enum):
     TRACKING = "tracking"
     COASTING = "coasting"
     LOST = "lost"
+
+
+class Outcome(enum.Enum):
+    """What the filter did with one frame's measurement."""
+
+    ACCEPTED = "accepted"  # inside the gate: fused
+    REJECTED = "rejected"  # outside the gate: ignored
+    NONE = "none"  # no usable measurement in this frame
+    RESET = "reset"  # the track (re)started from this measurement
 
 
 @dataclass(frozen=True)
@@ -175,8 +185,7 @@ class TrackOutput:
     pitch_deg: float | None
     normal: tuple[float, float, float] | None
     sigma_distance_m: float | None
-    # What happened to this frame's measurement: "accepted", "rejected", "none" or "reset".
-    measurement: str
+    measurement: Outcome
     mahalanobis: float | None
     consecutive_rejects: int
     since_accepted_s: float | None
@@ -192,8 +201,6 @@ class NetTracker:
     """
 
     def __init__(self, settings: FilterSettings) -> None:
-        from filterpy.kalman import KalmanFilter  # pulls in SciPy: only when a tracker is made
-
         self._settings = settings
         self._kf = KalmanFilter(dim_x=6, dim_z=3)
         self._kf.F = np.eye(6)
@@ -276,12 +283,12 @@ class NetTracker:
                 self._predict(dt)
         self._t_last = t
 
-        outcome = "none"
+        outcome = Outcome.NONE
         maha: float | None = None
         if m is not None:
             if not self._has_track:
                 self._start(m, t)
-                outcome = "reset"
+                outcome = Outcome.RESET
             else:
                 z, R, maha = self._gate(m)
                 if maha <= s.gate_sigma:
@@ -293,19 +300,19 @@ class NetTracker:
                     self._facing_sign = m.facing_sign
                     if self._hits >= s.acquire_count:
                         self._confirmed = True
-                    outcome = "accepted"
+                    outcome = Outcome.ACCEPTED
                     self.accepted_total += 1
                 else:
                     self._rejects += 1
                     self.rejected_total += 1
-                    outcome = "rejected"
+                    outcome = Outcome.REJECTED
                     if self._rejects >= s.max_consecutive_rejects:
                         # The world moved beyond the model: start again from what is seen now,
                         # and earn trust again before telling the autopilot anything.
                         self._start(m, t)
                         self._confirmed = s.acquire_count <= 1
                         self.resets_total += 1
-                        outcome = "reset"
+                        outcome = Outcome.RESET
 
         since = None if self._t_accepted is None else t - self._t_accepted
         if self._has_track and since is not None and since >= s.coast_timeout_s:
@@ -321,7 +328,7 @@ class NetTracker:
         return self._output(state, outcome, maha, since)
 
     def _output(
-        self, state: TrackState, outcome: str, maha: float | None, since: float | None
+        self, state: TrackState, outcome: Outcome, maha: float | None, since: float | None
     ) -> TrackOutput:
         if not self._has_track:
             return TrackOutput(

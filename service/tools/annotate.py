@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -168,8 +169,6 @@ class FrameAnnotator:
         label: str = "",
         refused: str = "",
     ) -> BGR:
-        import cv2
-
         h, w = frame.shape[:2]
         out_width = w if self._width is None else min(w, self._width)
         rois: Sequence[RoiResult] = estimate.rois if estimate is not None else ()
@@ -200,8 +199,6 @@ class FrameAnnotator:
         self, image: BGR, estimate: NetEstimate, w: int, h: int, scale: float, font: float,
         thick: int,
     ) -> None:
-        import cv2
-
         if estimate.range_m is None or not math.isfinite(estimate.range_m) or estimate.range_m <= 0:
             return
         camera = self._camera_for(w, h)
@@ -240,8 +237,6 @@ class FrameAnnotator:
 def _put_text(image: BGR, text: str, origin: tuple[int, int], font: float, thick: int) -> None:
     """White text on a half-dark box, readable on bright and dark water alike. (A thicker dark
     outline does not work at larger sizes: Hershey glyphs advance with the thickness.)"""
-    import cv2
-
     (tw, th), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font, thick)
     x, y = origin
     pad = max(2, thick + 1)

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -177,8 +178,6 @@ class CalibrationResult:
 
 
 def _to_gray(image: npt.NDArray[Any]) -> GrayImage:
-    import cv2
-
     if image.ndim == 3 and image.shape[2] == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     elif image.ndim == 3 and image.shape[2] == 4:
@@ -209,8 +208,6 @@ def _refine_corners(gray: GrayImage, corners: FloatArray, board: BoardSpec) -> F
     moved by more than max(1 px, 10 % of the spacing) from the detector's estimate is refined
     again with half the window.
     """
-    import cv2
-
     spacing = _corner_spacing(corners, board)
     start = corners.astype(np.float32).reshape(-1, 1, 2)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
@@ -230,8 +227,6 @@ def _refine_corners(gray: GrayImage, corners: FloatArray, board: BoardSpec) -> F
 
 def detect_board(image: npt.NDArray[Any], board: BoardSpec) -> FloatArray | None:
     """Inner corners (N x 2, pixels) of `board` in `image`, or None when it is not (fully) seen."""
-    import cv2
-
     gray = _to_gray(image)
     pattern = board.pattern_size
     if hasattr(cv2, "findChessboardCornersSBWithMeta"):
@@ -260,8 +255,6 @@ def guess_board_size(image: npt.NDArray[Any]) -> tuple[int, int] | None:
     Asks the sector-based detector for any board at least 3x3 and reads the real size from its
     meta data; used only to explain "no 9x6 board found" when the board is e.g. 7x4.
     """
-    import cv2
-
     if not hasattr(cv2, "findChessboardCornersSBWithMeta"):
         return None
     gray = _to_gray(image)
@@ -282,8 +275,6 @@ def guess_board_size(image: npt.NDArray[Any]) -> tuple[int, int] | None:
 
 def _tilt_deg(rvec: FloatArray) -> float:
     """Angle between the board normal and the optical axis."""
-    import cv2
-
     rot, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))
     return float(np.degrees(np.arccos(min(1.0, abs(float(rot[2, 2]))))))
 
@@ -304,8 +295,6 @@ def _solve(
     image_size: tuple[int, int],
     fix_k3: bool,
 ) -> _Solve:
-    import cv2
-
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     objects = [object_points] * len(image_points)
@@ -335,8 +324,6 @@ def _outlier_threshold(view_rms: FloatArray, factor: float, floor_px: float) -> 
 
 def _coverage(views: Sequence[FloatArray], image_size: tuple[int, int]) -> tuple[float, list[str]]:
     """Fraction of the image inside some board outline, and the grid cells nobody visited."""
-    import cv2
-
     width, height = image_size
     scale = min(1.0, 256.0 / max(width, height))  # a coarse mask is enough and cheap
     mask = np.zeros((max(1, round(height * scale)), max(1, round(width * scale))), np.uint8)

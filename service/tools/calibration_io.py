@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -83,8 +84,6 @@ def plan_inputs(inputs: Sequence[str | Path]) -> InputPlan:
 
 def read_image(path: Path) -> GrayImage:
     """One still image as 8-bit grey; a clear error if it is not an image OpenCV can decode."""
-    import cv2
-
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
@@ -97,15 +96,11 @@ def read_image(path: Path) -> GrayImage:
 
 def sharpness(gray: GrayImage) -> float:
     """Variance of the Laplacian on a half-size copy: high for crisp edges, low for blur."""
-    import cv2
-
     small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
     return float(cv2.Laplacian(small, cv2.CV_32F).var())
 
 
 def _thumbnail(gray: GrayImage) -> npt.NDArray[np.float32]:
-    import cv2
-
     h, w = gray.shape[:2]
     size = (THUMBNAIL_WIDTH, max(1, round(THUMBNAIL_WIDTH * h / w)))
     return cv2.resize(gray, size, interpolation=cv2.INTER_AREA).astype(np.float32)
@@ -126,8 +121,6 @@ def sample_video(
     Returns (frames, frames read, segment picks skipped as blurred or duplicate). One decoding
     pass; memory holds one candidate frame per segment.
     """
-    import cv2
-
     capture = cv2.VideoCapture(str(path))
     try:
         if not capture.isOpened():
@@ -190,8 +183,6 @@ def sample_video(
 
 def _count_frames(path: Path) -> int:
     """Frame count for containers that do not store one (raw H.264, some MJPEG streams)."""
-    import cv2
-
     capture = cv2.VideoCapture(str(path))
     count = 0
     try:

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.telemetry_schema import (
+from service.core.messages import (
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
     STATE_SUFFIX,

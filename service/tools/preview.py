@@ -11,13 +11,13 @@ yellow = lattice found but rejected by the fit, grey = no lattice.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from service.core.errors import NetposeError
-from service.core.results import RoiResult
+from service.core.results import NetEstimate, RoiResult
 
 USED = (60, 220, 60)  # BGR
 REJECTED = (0, 210, 230)
@@ -28,27 +28,23 @@ TEXT = (255, 255, 255)
 CELLS_EACH_SIDE = 2
 
 
-def estimate_caption(estimate: Mapping[str, Any]) -> list[str]:
-    """Short text lines for a preview from an estimate dict (NetEstimate.to_json_dict())."""
-    if not estimate.get("detected"):
-        reason = estimate.get("reason") or "no net"
-        return [f"no net ({reason})"]
+def estimate_caption(estimate: NetEstimate | None) -> list[str]:
+    """Short text lines for a preview: distance and sigma, tilt and confidence, or why not."""
+    if estimate is None:
+        return []
+    if not estimate.detected:
+        return [f"no net ({estimate.reason or 'no net'})"]
     lines = []
-    distance, sigma = estimate.get("distance_m"), estimate.get("sigma_distance_m")
-    if distance is not None:
-        text = f"d {distance:.2f} m"
-        if sigma is not None:
-            text += f" +/- {sigma:.2f}"
+    if estimate.distance_m is not None:
+        text = f"d {estimate.distance_m:.2f} m"
+        if estimate.sigma_distance_m is not None:
+            text += f" +/- {estimate.sigma_distance_m:.2f}"
         lines.append(text)
-    tilt = estimate.get("tilt_deg")
-    confidence = estimate.get("confidence")
     details = []
-    if tilt is not None:
-        details.append(f"tilt {tilt:.0f} deg")
-    if confidence is not None:
-        details.append(f"conf {confidence:.2f}")
-    if details:
-        lines.append("  ".join(details))
+    if estimate.tilt_deg is not None:
+        details.append(f"tilt {estimate.tilt_deg:.0f} deg")
+    details.append(f"conf {estimate.confidence:.2f}")
+    lines.append("  ".join(details))
     return lines
 
 
@@ -69,8 +65,6 @@ def render_preview(
     `frame` is grey (H, W) or BGR (H, W, 3), uint8 or float in [0, 1] / [0, 255]; ROI
     coordinates are in its full-resolution pixels (as the estimator reports them).
     """
-    import cv2
-
     scale = _scale_for(frame, width)
     image = frame
     if image.dtype != np.uint8:
@@ -93,8 +87,6 @@ def render_preview(
 
 
 def _draw_roi(image: np.ndarray, roi: RoiResult, scale: float) -> None:
-    import cv2
-
     cx, cy = roi.center_px[0] * scale, roi.center_px[1] * scale
     half = roi.size_px * scale / 2.0
     x0, y0 = round(cx - half), round(cy - half)
@@ -128,8 +120,6 @@ def _draw_roi(image: np.ndarray, roi: RoiResult, scale: float) -> None:
 
 def encode_jpeg(image: np.ndarray, quality: int = 70) -> bytes:
     """JPEG bytes of a BGR or grey uint8 image."""
-    import cv2
-
     if image.dtype != np.uint8:
         raise NetposeError(f"JPEG encoding needs uint8 pixels, got {image.dtype}")
     ok, buffer = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])

@@ -1,8 +1,8 @@
 """Replay of a recording through the estimator (and optionally the filter): frames in, rows out.
 
-The pipeline takes any iterable of `ReplayFrame` (grey image, time in the recording, frame
-number, optional ground truth) and produces one `FrameResult` per frame. Around it sit the
-pieces `netpose replay` writes to its output folder:
+`ReplayRunner` feeds any iterable of `ReplayFrame` (grey image, capture time, frame number,
+optional ground truth) through the daemon's own `service.pipeline.Pipeline` and produces one
+`FrameResult` per frame. Around it sit the pieces `netpose replay` writes to its output folder:
 
 - `EstimatesCsv`: one CSV row per processed frame, flushed as it is written, so an interrupted
   replay leaves a valid file;
@@ -30,9 +30,10 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.errors import NetposeError
-from service.core.estimator import NetEstimator
+from service.core.messages import json_value
 from service.core.results import NetEstimate, RoiResult
-from service.core.tracking import NetTracker, TrackOutput
+from service.core.tracking import TrackOutput
+from service.pipeline import Pipeline, PipelineResult
 
 log = logging.getLogger(__name__)
 
@@ -172,30 +173,43 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
 @dataclass(frozen=True, eq=False)
 class ReplayFrame:
     """One frame of a recording. `index` counts frames over the whole input (before --every);
-    `time_s` is the time in the recording (seconds from its start)."""
+    `time_s` is the time in the recording (seconds from its start); `t_capture` the capture
+    time the pipeline is given (the source's clock, as the daemon gives it)."""
 
     image: Gray
     index: int
     time_s: float
+    t_capture: float
     color: npt.NDArray[np.uint8] | None = None
     truth: Truth | None = None
 
 
-# -- the pipeline -----------------------------------------------------------------------------
+# -- results ----------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class FrameResult:
-    """Everything known about one processed frame."""
+    """One replayed frame: the pipeline's result, and the truth when known."""
 
     frame: ReplayFrame
-    estimate: NetEstimate | None  # None when the estimator could not use the frame
-    process_ms: float  # estimator (and filter) time for this frame
-    track: TrackOutput | None = None  # None without --filter
+    result: PipelineResult
+    process_ms: float  # pipeline time for this frame (a measurement)
+    keep_track: bool = True  # False without --filter: the filter's columns stay empty
     truth: Truth | None = None
-    error: str = ""  # why there is no estimate
+
+    @property
+    def estimate(self) -> NetEstimate | None:
+        return self.result.estimate
+
+    @property
+    def track(self) -> TrackOutput | None:
+        return self.result.track if self.keep_track else None
+
+    @property
+    def error(self) -> str:
+        return self.result.error
 
     @property
     def detected(self) -> bool:
-        return self.estimate is not None and self.estimate.detected
+        return self.result.detected
 
     def range_error_m(self) -> float | None:
         e, t = self.estimate, self.truth
@@ -238,55 +252,42 @@ def angle_between_deg(a: Sequence[float] | None, b: Sequence[float] | None) -> f
     return math.degrees(math.acos(max(-1.0, min(1.0, float(va @ vb) / denom))))
 
 
-class ReplayPipeline:
-    """Estimator (fed its previous detection as prior) and optional filter over frames.
+class ReplayRunner:
+    """Frames of a recording through the daemon's `Pipeline`, with their capture times.
 
-    A frame the estimator cannot use (wrong size for the calibration) gives a row without an
-    estimate and one log line; if the very first frame is refused, the error is raised instead,
-    since then no frame of the recording would be usable.
+    A frame the estimator cannot use gives a row without an estimate and one log line; if the
+    very first frame is refused, the error is raised instead, since then no frame of the
+    recording would be usable.
     """
 
     def __init__(
         self,
-        estimator: NetEstimator,
-        tracker: NetTracker | None = None,
+        pipeline: Pipeline,
+        keep_track: bool = True,
         truth: Mapping[int, Truth] | None = None,
     ) -> None:
-        self._estimator = estimator
-        self._tracker = tracker
+        self._pipeline = pipeline
+        self._keep_track = keep_track
         self._truth = truth or {}
-        self._prior: NetEstimate | None = None
         self._processed = 0
         self._refusal_logged = False
 
     def process(self, frame: ReplayFrame) -> FrameResult:
         t0 = time.perf_counter()
-        error = ""
-        estimate: NetEstimate | None
-        try:
-            estimate = self._estimator.estimate(frame.image, prior=self._prior)
-        except NetposeError as exc:
+        result = self._pipeline.process(frame.image, frame.t_capture, frame.index)
+        if result.failure is not None and not result.crashed:
             if self._processed == 0:
-                raise  # not even the first frame fits: the whole recording is unusable
+                # Not even the first frame fits: the whole recording is unusable.
+                raise result.failure
             if not self._refusal_logged:
                 log.warning("frame %d: estimator refused the frame: %s (logged once)",
-                            frame.index, exc)
+                            frame.index, result.error)
                 self._refusal_logged = True
-            estimate, error = None, str(exc)
         self._processed += 1
-        self._prior = estimate if estimate is not None and estimate.detected else None
-        track = None
-        if self._tracker is not None:
-            track = self._tracker.step(frame.time_s, estimate)
         truth = frame.truth if frame.truth is not None else self._truth.get(frame.index)
-        return FrameResult(
-            frame=frame,
-            estimate=estimate,
-            process_ms=(time.perf_counter() - t0) * 1e3,
-            track=track,
-            truth=truth,
-            error=error,
-        )
+        return FrameResult(frame=frame, result=result,
+                           process_ms=(time.perf_counter() - t0) * 1e3,
+                           keep_track=self._keep_track, truth=truth)
 
     def run(self, frames: Iterable[ReplayFrame]) -> Iterator[FrameResult]:
         for frame in frames:
@@ -311,7 +312,8 @@ CSV_COLUMNS = (
 
 
 def _cell(value: object) -> str:
-    """A CSV cell: empty for unknown, 0/1 for booleans, enough digits for millimetres."""
+    """A CSV cell: empty for unknown, 0/1 for booleans, 12 significant digits (a replay can be
+    compared with the daemon's own output to the nanometre)."""
     if value is None:
         return ""
     if isinstance(value, bool):
@@ -319,7 +321,7 @@ def _cell(value: object) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
-        return f"{value:.7g}" if math.isfinite(value) else ""
+        return f"{value:.12g}" if math.isfinite(value) else ""
     return str(value)
 
 
@@ -349,7 +351,7 @@ def csv_row(result: FrameResult) -> list[str]:
         round(result.process_ms, 3),
         None if k is None else k.state.value,
         None if k is None else k.valid,
-        None if k is None else k.measurement,
+        None if k is None else k.measurement.value,
         None if k is None else k.range_m,
         None if k is None else k.distance_m,
         *fnormal,
@@ -601,7 +603,7 @@ class ReplayStats:
             }
         if self.has_truth:
             out["truth"] = self._truth_summary()
-        return _json_safe(out)
+        return dict(json_value(out))
 
     def _truth_summary(self) -> dict[str, Any]:
         s = self.series
@@ -629,17 +631,6 @@ class ReplayStats:
         if self.has_filter:
             out["filtered_distance_error_m"] = _error_stats(s.filtered_error)
         return out
-
-
-def _json_safe(value: Any) -> Any:
-    """NaN and infinities (not JSON) become null."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def write_json(path: str | Path, document: Mapping[str, Any]) -> None:

@@ -1,0 +1,64 @@
+"""A Zenoh peer listening on loopback that keeps the estimates and statuses published to it.
+
+What the topside sees of netpose, for the soak benchmark and the end-to-end tests: the daemon
+connects to it (`daemon_overrides()`) and publishes here.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from drivers.net import free_port
+
+
+class TelemetrySubscriber:
+    def __init__(self, key_prefix: str = "netpose", vehicle: str = "soak") -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        config = zenoh.Config()
+        config.insert_json5("mode", json.dumps("peer"))
+        config.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        self._session = zenoh.open(config)
+        self._lock = threading.Lock()
+        self.estimates: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+
+        def on_sample(sample: Any) -> None:
+            try:
+                payload = json.loads(sample.payload.to_bytes())
+            except (ValueError, UnicodeDecodeError):
+                return
+            if not isinstance(payload, dict):
+                return
+            payload["_received_mono"] = time.monotonic()
+            with self._lock:
+                if payload.get("kind") == "estimate":
+                    self.estimates.append(payload)
+                elif payload.get("kind") == "status":
+                    self.statuses.append(payload)
+
+        self._subscriber = self._session.declare_subscriber(f"{key_prefix}/{vehicle}/**",
+                                                            on_sample)
+
+    def snapshot(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        with self._lock:
+            return list(self.estimates), list(self.statuses)
+
+    def daemon_overrides(self) -> list[str]:
+        """--set options that point the daemon's telemetry at this subscriber."""
+        return [
+            "telemetry.enabled=true",
+            "telemetry.mode=peer",
+            f"telemetry.connect=['{self.endpoint}']",
+            "telemetry.listen=[]",
+            "telemetry.scouting=false",
+        ]
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self._session.close()

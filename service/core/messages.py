@@ -1,0 +1,404 @@
+"""Typed telemetry messages: one frozen dataclass per payload, serialised once at the edge.
+
+Every payload netpose publishes (Zenoh, the web page, recordings) is one of the messages below.
+They are built from typed values by the application and turned into JSON only by `to_json` /
+`encode`, called by the transport that sends them. There is one rounding policy for every float
+(`FLOAT_DECIMALS` places: micrometres, microseconds, micro-degrees), and a value that is unknown
+or not finite is `null` (strict JSON has no NaN).
+
+The documentation of every key lives here, in each field's metadata; `schema_markdown()` renders
+it, docs/telemetry.md carries that rendering, and a test keeps the two identical.
+
+Wire conventions: every message carries `schema` (SCHEMA_VERSION) and `kind` first. The version
+is bumped when a key changes meaning or disappears; adding keys keeps it, so readers ignore keys
+they do not know.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import math
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+SCHEMA_VERSION = 1
+FLOAT_DECIMALS = 6
+
+# Key expressions below the per-vehicle prefix `<key_prefix>/<vehicle>`.
+ESTIMATE_SUFFIX = "estimate"
+STATUS_SUFFIX = "status"
+PREVIEW_SUFFIX = "preview"
+STATE_SUFFIX = "state"
+
+Vec3 = tuple[float, float, float]
+
+# States a status section can report (docs/telemetry.md explains each).
+FRAME_SOURCE_STATES = ("starting", "streaming", "reconnecting", "ended", "stopped", "failed")
+AUTOPILOT_STATES = ("disabled", "waiting", "connected", "lost")
+SERVICE_STATES = ("starting", "running", "degraded", "stopping")
+
+
+def doc(text: str, default: Any = dataclasses.MISSING) -> Any:
+    """A message field with its documentation (rendered into docs/telemetry.md)."""
+    if default is dataclasses.MISSING:
+        return field(metadata={"doc": text})
+    if isinstance(default, dict | list):
+        value = default
+        return field(default_factory=lambda: type(value)(value), metadata={"doc": text})
+    return field(default=default, metadata={"doc": text})
+
+
+# -- estimate -------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class FilteredView:
+    """The tracking filter's view of the net after this frame."""
+
+    valid: bool = doc("the filter believes its distance (TRACKING, or COASTING briefly)")
+    autopilot: str = doc(
+        "what the autopilot is told: `good` (distance sent), `too_close` (a reading below the "
+        "rangefinder minimum is sent), `none` (nothing is sent)"
+    )
+    state: str = doc("`tracking`, `coasting` or `lost`")
+    measurement: str = doc(
+        "fate of this frame's measurement: `accepted`, `rejected`, `none` or `reset`"
+    )
+    distance_m: float | None = doc("filtered perpendicular distance to the net plane", None)
+    sigma_distance_m: float | None = doc("its one-sigma uncertainty", None)
+    range_m: float | None = doc("filtered distance along the optical axis", None)
+    sigma_range_m: float | None = doc("its one-sigma uncertainty", None)
+    normal: Vec3 | None = doc("filtered plane normal [x, y, z]", None)
+    closing_speed_mps: float | None = doc(
+        "rate at which the distance shrinks (positive = approaching the net)", None
+    )
+    age_s: float | None = doc("time since the filter last accepted a measurement", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimateLatency:
+    """Where the time of one frame went."""
+
+    stages: dict[str, float] = doc(
+        "time spent in each estimator stage, ms (names are the estimator's)", {}
+    )
+    estimator_total: float | None = doc("estimator time for this frame, ms", None)
+    frame_to_publish: float | None = doc(
+        "frame capture to publication, ms, monotonic clock", None
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class TruthView:
+    """Ground truth of a rendered frame (synthetic and `sim:` sources only)."""
+
+    net_present: bool = doc("a net is in view")
+    range_m: float | None = doc("true distance along the optical axis", None)
+    distance_m: float | None = doc("true perpendicular distance", None)
+    tilt_deg: float | None = doc("true angle between optical axis and net normal", None)
+    normal: Vec3 | None = doc("true plane normal", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Message:
+    """Header of every JSON message; `schema` and `kind` are added by the encoder."""
+
+    KIND: ClassVar[str] = ""
+    vehicle: str = doc("vehicle name, as in the key expression")
+    time_unix: float = doc("vehicle wall clock when the message was built, s since 1970 (UTC)")
+    time_mono: float = doc("vehicle monotonic clock when the message was built, s")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimateMessage(Message):
+    """One processed frame: the estimator's answer and the filter's."""
+
+    KIND: ClassVar[str] = ESTIMATE_SUFFIX
+    seq: int = doc("frame counter of this service run (gaps = frames the estimator skipped)")
+    frame_time_unix: float | None = doc("wall-clock capture time of the frame", None)
+    frame_time_mono: float | None = doc("monotonic capture time of the frame", None)
+    detected: bool = doc("a net lattice was found in this frame", False)
+    confidence: float = doc("detection confidence 0..1", 0.0)
+    range_m: float | None = doc("distance to the net plane along the optical axis", None)
+    sigma_range_m: float | None = doc("its one-sigma uncertainty", None)
+    distance_m: float | None = doc("perpendicular distance from the camera to the plane", None)
+    sigma_distance_m: float | None = doc("its one-sigma uncertainty", None)
+    normal: Vec3 | None = doc(
+        "unit normal of the net plane [x, y, z], from the net to the camera (camera frame)", None
+    )
+    tilt_deg: float | None = doc("angle between optical axis and net normal (0 = square)", None)
+    sigma_normal_deg: float | None = doc("uncertainty of the normal direction", None)
+    rois: int = doc("regions of interest analysed in this frame", 0)
+    rois_used: int = doc("regions whose lattice entered the plane fit", 0)
+    reason: str = doc("why nothing was detected (empty when detected)", "")
+    filtered: FilteredView | None = doc("the tracking filter's view (null without a filter)", None)
+    latency_ms: EstimateLatency = doc("per-stage latency", EstimateLatency())
+    truth: TruthView | None = doc("ground truth of a rendered frame, else null", None)
+
+
+# -- status ---------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class FrameSourceHealth:
+    """The camera or video stream."""
+
+    state: str = doc("`starting`, `streaming`, `reconnecting`, `ended`, `stopped`, `failed`")
+    fps: float | None = doc("frames received per second over the last period", None)
+    frames: int = doc("frames received in total", 0)
+    dropped: int = doc("frames not processed because the estimator was busy (total)", 0)
+    corrupt: int = doc("frames that could not be decoded (total)", 0)
+    last_frame_age_s: float | None = doc("time since the last frame", None)
+    error: str = doc("why the source is not streaming (empty while it is)", "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AutopilotIdentity:
+    """The autopilot this link talks to, from its HEARTBEAT (and AUTOPILOT_VERSION)."""
+
+    sysid: int = doc("MAVLink system id")
+    compid: int = doc("MAVLink component id")
+    type: int = doc("MAV_TYPE")
+    autopilot: int = doc("MAV_AUTOPILOT")
+    mavlink_version: int = doc("1 or 2, from the heartbeat's framing")
+    flight_sw_version: int | None = doc("AUTOPILOT_VERSION.flight_sw_version", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AutopilotHealth:
+    """The MAVLink link to the autopilot (the link's own status, as it is)."""
+
+    state: str = doc("`disabled`, `waiting` (no heartbeat yet), `connected`, `lost`")
+    heartbeat_age_s: float | None = doc("time since the last autopilot heartbeat", None)
+    messages_sent: int = doc("MAVLink messages sent in total", 0)
+    transport: str = doc("`up`, `down`, or `fake` for a stand-in", "down")
+    url: str = doc("the link's endpoint, secrets removed", "")
+    autopilot: AutopilotIdentity | None = doc("who answers, null before the first heartbeat", None)
+    sent: dict[str, int] = doc("messages sent per MAVLink message name", {})
+    received: int = doc("messages received from the vehicle", 0)
+    errors: int = doc("failed opens and transport errors", 0)
+    last_error: str = doc("the last of those, empty if none", "")
+    reconnects: int = doc("times the transport came back after an outage", 0)
+    sending_distance: bool = doc("DISTANCE_SENSOR is being sent right now", False)
+    sending_vision: bool = doc("VISION_POSITION_ESTIMATE is being sent right now", False)
+    vision_reset_counter: int = doc("reset_counter of the vision pose (bumped on each jump)", 0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EstimatorHealth:
+    """Processing over the last status period."""
+
+    fps: float | None = doc("frames processed per second", None)
+    frames: int = doc("frames processed in the last period", 0)
+    detected_fraction: float | None = doc("share of them with a net, 0..1", None)
+    latency_ms_mean: float | None = doc("frame capture to result, mean, ms", None)
+    latency_ms_max: float | None = doc("frame capture to result, max, ms", None)
+    errors: int = doc("frames the estimator could not use (total)", 0)
+    last_error: str = doc("why, for the last of them (empty if none)", "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CpuHealth:
+    """CPU load."""
+
+    cores: int | None = doc("CPU count", None)
+    load_1m: float | None = doc("system 1-minute load average", None)
+    process_percent: float | None = doc(
+        "this process's CPU time over the period, % of one core", None
+    )
+    rss_mb: float | None = doc("resident memory of this process, MB", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TelemetryHealth:
+    """The Zenoh publisher's own counters."""
+
+    state: str = doc("`idle`, `connecting`, `online`, `closed`, `failed`, `disabled`")
+    key_root: str = doc("`<key_prefix>/<vehicle>`", "")
+    routers: int | None = doc("Zenoh routers connected", None)
+    peers: int | None = doc("Zenoh peers connected", None)
+    links: int | None = doc("Zenoh transports open (routers, peers and clients)", None)
+    linked: bool | None = doc("at least one link: published data can reach someone", None)
+    sent: dict[str, int] = doc("messages put per stream", {})
+    queue_dropped: int = doc("oldest messages dropped because the link could not keep up", 0)
+    skipped_offline: int = doc("messages handed over while no session was open", 0)
+    errors: int = doc("payloads that could not be put, failed queries", 0)
+    queries: int = doc("queries answered", 0)
+    open_attempts: int = doc("session open attempts", 0)
+    last_error: str = doc("the last error, empty if none", "")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FilterHealth:
+    """The tracking filter."""
+
+    state: str = doc("`tracking`, `coasting` or `lost`")
+    accepted: int = doc("measurements accepted (total)", 0)
+    rejected: int = doc("measurements rejected by the gate (total)", 0)
+    resets: int = doc("track restarts (total)", 0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StatusLatency:
+    """Frame capture to the hand-over to the autopilot link."""
+
+    capture_to_link_p50: float | None = doc("median over the last period, ms", None)
+    capture_to_link_p99: float | None = doc("99th percentile over the last period, ms", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StatusMessage(Message):
+    """Health of the service, once per `service.status_interval_s`."""
+
+    KIND: ClassVar[str] = STATUS_SUFFIX
+    version: str = doc("netpose version")
+    state: str = doc("`starting`, `running`, `degraded` (a part is down), `stopping`")
+    uptime_s: float = doc("time since the service started")
+    config_digest: str = doc(
+        "`sha256:` + 16 hex digits of the effective configuration, secrets left out"
+    )
+    frame_source: FrameSourceHealth = doc("camera / video stream")
+    autopilot: AutopilotHealth = doc("MAVLink link")
+    estimator: EstimatorHealth = doc("processing over the last period")
+    cpu: CpuHealth = doc("CPU and memory")
+    telemetry: TelemetryHealth | None = doc("the publisher's own counters", None)
+    filter: FilterHealth = doc("the tracking filter")
+    latency_ms: StatusLatency = doc("frame to autopilot latency", StatusLatency())
+
+
+@dataclass(frozen=True, kw_only=True)
+class StateMessage(Message):
+    """The `state` queryable's answer."""
+
+    KIND: ClassVar[str] = STATE_SUFFIX
+    status: StatusMessage | None = doc("the last status message (null before the first)", None)
+    config: dict[str, Any] = doc("the effective configuration, secrets redacted", {})
+    estimate: EstimateMessage | None = doc("the last estimate message", None)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PreviewMeta:
+    """JSON metadata sent as the Zenoh attachment of a preview JPEG."""
+
+    KIND: ClassVar[str] = PREVIEW_SUFFIX
+    vehicle: str = doc("vehicle name")
+    seq: int = doc("the frame counter of the estimate it belongs to")
+    time_unix: float = doc("wall clock when drawn")
+    width: int = doc("JPEG width, px")
+    height: int = doc("JPEG height, px")
+
+
+AnyMessage = EstimateMessage | StatusMessage | StateMessage | PreviewMeta
+MESSAGES: tuple[type[Any], ...] = (EstimateMessage, StatusMessage, StateMessage, PreviewMeta)
+
+
+# -- serialisation ----------------------------------------------------------------------------
+def json_value(value: Any) -> Any:
+    """A JSON value under the one rounding policy (dataclasses become objects)."""
+    if value is None or isinstance(value, bool | str):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return round(value, FLOAT_DECIMALS) if math.isfinite(value) else None
+    if isinstance(value, enum.Enum):
+        return json_value(value.value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        body = {f.name: json_value(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        kind = getattr(value, "KIND", "")
+        # A message (also one nested in another, like the state's last status) carries its
+        # header; the sections of a message do not.
+        return {"schema": SCHEMA_VERSION, "kind": kind, **body} if kind else body
+    if isinstance(value, Mapping):
+        return {str(k): json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_value(v) for v in value]
+    try:  # numpy scalars and the like
+        return json_value(float(value))
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def to_json(message: AnyMessage) -> dict[str, Any]:
+    """The JSON object of a message: `schema`, `kind`, then its fields."""
+    body = json_value(message)
+    assert isinstance(body, dict)
+    return body
+
+
+def encode(message: AnyMessage) -> bytes:
+    return json.dumps(to_json(message), separators=(",", ":"), allow_nan=False).encode("utf-8")
+
+
+def keys_of(cls: type[Any]) -> frozenset[str]:
+    """Top-level keys of a message class on the wire."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    return frozenset(names | {"schema", "kind"})
+
+
+def schema_problems(payload: Mapping[str, Any]) -> list[str]:
+    """What is wrong with a received payload compared with this schema (empty when fine).
+
+    Extra keys are accepted (a newer publisher may add some); missing keys and another schema
+    version are reported.
+    """
+    kinds = {cls.KIND: cls for cls in (EstimateMessage, StatusMessage, StateMessage)}
+    cls = kinds.get(str(payload.get("kind")))
+    if cls is None:
+        return [f"unknown kind {payload.get('kind')!r}"]
+    problems = []
+    if payload.get("schema") != SCHEMA_VERSION:
+        problems.append(f"schema {payload.get('schema')!r} (this reader knows {SCHEMA_VERSION})")
+    missing = sorted(keys_of(cls) - payload.keys())
+    if missing:
+        problems.append("missing " + ", ".join(missing))
+    return problems
+
+
+# -- documentation ----------------------------------------------------------------------------
+def _type_text(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        parts = [_type_text(a) for a in typing.get_args(tp) if a is not type(None)]
+        nullable = type(None) in typing.get_args(tp)
+        return " or ".join(parts) + (" or null" if nullable else "")
+    if origin is tuple:
+        return "[x, y, z]"
+    if origin is dict:
+        return "object"
+    if dataclasses.is_dataclass(tp):
+        return "object"
+    return {bool: "bool", int: "int", float: "float", str: "string"}.get(tp, "any")
+
+
+def _table(cls: type[Any]) -> list[str]:
+    hints = typing.get_type_hints(cls)
+    lines = ["| Key | Type | Meaning |", "|-----|------|---------|"]
+    for f in dataclasses.fields(cls):
+        lines.append(f"| `{f.name}` | {_type_text(hints[f.name])} | {f.metadata.get('doc', '')} |")
+    return lines
+
+
+def _nested(cls: type[Any], path: str) -> list[tuple[str, type[Any]]]:
+    """(key path, dataclass) of the objects inside `cls`'s fields, depth first."""
+    found: list[tuple[str, type[Any]]] = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        for tp in (hints[f.name], *typing.get_args(hints[f.name])):
+            if dataclasses.is_dataclass(tp) and isinstance(tp, type) and tp not in MESSAGES:
+                inner = f"{path}.{f.name}"
+                found.append((inner, tp))
+                found.extend(_nested(tp, inner))
+    return found
+
+
+def schema_markdown() -> str:
+    """The key reference of every message, as Markdown (docs/telemetry.md carries it)."""
+    out: list[str] = [f"Schema version {SCHEMA_VERSION}. Every message starts with `schema` (int) "
+                      "and `kind` (string); the keys of each kind follow.", ""]
+    for cls in MESSAGES:
+        out += [f"### `{cls.KIND}`", "", (cls.__doc__ or "").strip(), "", *_table(cls), ""]
+        for path, inner in _nested(cls, cls.KIND):
+            out += [f"#### `{path}`", "", (inner.__doc__ or "").strip(), "", *_table(inner), ""]
+    return "\n".join(out).rstrip() + "\n"

@@ -1,0 +1,140 @@
+"""Log lines about state changes, never one per frame, and never more than one a second.
+
+A state that flaps (a net at the edge of detection, a stream that stutters) must not fill the
+journal: each topic logs at most once per `min_interval_s`; the changes in between are counted
+and the next line says how many there were.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+from service.core.tracking import Outcome, TrackOutput, TrackState
+
+log = logging.getLogger("netpose.daemon")
+
+
+class StateLog:
+    """Decides when a state change is logged: at most once per `min_interval_s` per topic.
+
+    The caller reports the current state every time it looks (every frame, every status); a
+    line is due when the state differs from the one last logged and the topic has been quiet
+    long enough. Changes in between are counted, and the line that follows names the state in
+    force then, so the log always ends on the truth, however fast the state flapped.
+    """
+
+    def __init__(self, min_interval_s: float = 1.0) -> None:
+        self.min_interval_s = min_interval_s
+        self._logged: dict[str, object] = {}
+        self._current: dict[str, object] = {}
+        self._changes: dict[str, int] = {}
+        self._last_line: dict[str, float] = {}
+
+    def update(self, topic: str, state: object, now: float) -> tuple[bool, object, int]:
+        """(log now?, the state last logged, changes since it beyond the one being logged)."""
+        if topic in self._current and self._current[topic] != state:
+            self._changes[topic] = self._changes.get(topic, 0) + 1
+        self._current[topic] = state
+        if topic not in self._logged:
+            self._logged[topic] = state  # the initial state is not a change
+            self._changes[topic] = 0
+            return False, state, 0
+        previous = self._logged[topic]
+        if state == previous:
+            return False, previous, 0
+        last = self._last_line.get(topic)
+        if last is not None and now - last < self.min_interval_s:
+            return False, previous, 0
+        changes = self._changes.get(topic, 1)
+        self._logged[topic] = state
+        self._changes[topic] = 0
+        self._last_line[topic] = now
+        return True, previous, max(0, changes - 1)
+
+
+def _more(between: int) -> str:
+    return f" (after {between} more change(s) not logged)" if between else ""
+
+
+class OnceLogger:
+    """A recurring problem is logged once when it starts and once when it clears."""
+
+    def __init__(self, logger: logging.Logger = log) -> None:
+        self._logger = logger
+        self._active: set[str] = set()
+
+    def problem(self, key: str, message: str, *args: object, exc_info: bool = False) -> None:
+        if key not in self._active:
+            self._active.add(key)
+            self._logger.warning(message, *args, exc_info=exc_info)
+
+    def cleared(self, key: str, message: str, *args: object) -> None:
+        if key in self._active:
+            self._active.discard(key)
+            self._logger.info(message, *args)
+
+
+class TrackLog:
+    """Net acquired / lost / track restarted, from the filter's state (TRACKING and COASTING
+    both count as "net"; the flip between them is not news)."""
+
+    def __init__(self, states: StateLog, coast_timeout_s: float, max_rejects: int) -> None:
+        self._states = states
+        self._state = TrackState.LOST
+        self.coast_timeout_s = coast_timeout_s
+        self.max_rejects = max_rejects
+
+    @property
+    def state(self) -> TrackState:
+        return self._state
+
+    def update(self, out: TrackOutput, now: float) -> None:
+        self._state = out.state
+        has_net = out.state is not TrackState.LOST
+        due, _, between = self._states.update("track", has_net, now)
+        if not due:
+            if out.state is TrackState.LOST and out.measurement is Outcome.RESET:
+                log.debug("net track restarted: measurements left the gate %d times in a row",
+                          self.max_rejects)
+            return
+        if has_net:
+            log.info("net acquired at %.2f m (tilt %.1f deg)%s",
+                     out.distance_m if out.distance_m is not None else math.nan,
+                     tilt_deg(out), _more(between))
+        elif out.measurement is Outcome.RESET:
+            log.info("net track restarted at %.2f m: measurements left the gate %d times in a "
+                     "row%s", out.distance_m if out.distance_m is not None else math.nan,
+                     self.max_rejects, _more(between))
+        else:
+            log.info("net lost (no accepted measurement for %.1f s)%s", self.coast_timeout_s,
+                     _more(between))
+
+
+class SourceWatch:
+    """Frame source up / down, judged by the time since the last frame."""
+
+    def __init__(self, url_for_logs: str, stale_after_s: float, started_at: float) -> None:
+        self._url = url_for_logs
+        self.stale_after_s = stale_after_s
+        self._started_at = started_at
+        self.up: bool | None = None  # None: no frame yet
+        self.last_frame_at: float | None = None
+
+    def frame(self, width: int, height: int, now: float) -> None:
+        if not self.up:
+            log.info("frame source up: %dx%d from %s", width, height, self._url)
+        self.up = True
+        self.last_frame_at = now
+
+    def idle(self, now: float) -> None:
+        last = self.last_frame_at if self.last_frame_at is not None else self._started_at
+        if now - last >= self.stale_after_s and self.up is not False:
+            self.up = False
+            log.warning("frame source down: no frame for %.1f s (%s)", now - last, self._url)
+
+
+def tilt_deg(out: TrackOutput) -> float:
+    if out.normal is None:
+        return math.nan
+    return math.degrees(math.acos(min(1.0, abs(out.normal[2]))))

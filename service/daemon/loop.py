@@ -1,0 +1,240 @@
+"""The frame loop: read the newest frame, run the pipeline, hand the result to the outputs.
+
+Per iteration: read (timeout <= 0.5 s, so a stop is honoured within a second) -> ping the
+systemd watchdog (from the loop itself: a hung loop must stop the pings) -> pipeline -> the
+reading to the link, the estimate to telemetry -> status when due. When the estimator is
+slower than the camera the source hands over only its newest frame: older ones are skipped
+(and counted), never queued.
+
+Time comes from the frames (capture times) and from the injected `clock`, so tests drive
+`iterate()` over a list of frames without sleeping, and a replay runs the same pipeline.
+Signals: SIGTERM/SIGINT request a stop (exit 0); SIGHUP reloads the configuration (`reload`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from service import __version__
+from service.config import Config, config_digest
+from service.core.camera import CameraModel
+from service.core.errors import NetposeError
+from service.core.estimator import NetEstimator
+from service.core.readings import RangeReading
+from service.core.redact import redact_text
+from service.core.tracking import NetTracker, TrackOutput
+from service.daemon.events import OnceLogger, SourceWatch, StateLog, TrackLog
+from service.daemon.outputs import FrameOutputs, PreviewSettings
+from service.daemon.ports import AutopilotLink, FrameSource, Notifier, TelemetrySink
+from service.daemon.stats import LoopStats
+from service.daemon.status import ReportContext, StatusReporter
+from service.pipeline import Pipeline, PipelineResult
+from service.signals import SignalFlags
+
+log = logging.getLogger("netpose.daemon")
+
+Clock = Callable[[], float]
+
+
+@dataclass(frozen=True)
+class DaemonParts:
+    """Everything the loop talks to, built (not yet started) by `service.daemon.wiring`."""
+
+    source: FrameSource
+    link: AutopilotLink
+    telemetry: TelemetrySink
+    notifier: Notifier
+    camera: CameraModel
+    vehicle: str = "rov"
+    preview: PreviewSettings = field(default_factory=PreviewSettings)
+    telemetry_enabled: bool = True
+
+
+def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
+    estimator = NetEstimator(camera, config.mesh, config.estimator)
+    # Per-size caches now, for the calibrated size, so the first frame costs what all do.
+    estimator.prepare(camera.width, camera.height)
+    return estimator
+
+
+class Daemon:
+    """Owns the loop over its parts. Use `run()`; it always closes what it opened."""
+
+    def __init__(
+        self,
+        config: Config,
+        parts: DaemonParts,
+        *,
+        clock: Clock = time.monotonic,
+        wall_clock: Clock = time.time,
+        flags: SignalFlags | None = None,
+        load_config: Callable[[], Config] | None = None,
+    ) -> None:
+        self.config = config
+        self.parts = parts
+        self.clock = clock
+        self.flags = flags or SignalFlags()
+        self._load_config = load_config
+        self.pipeline = Pipeline(make_estimator(config, parts.camera), NetTracker(config.filter),
+                                 config.service.autopilot_distance)
+        self.stats = LoopStats()
+        self.problems = OnceLogger(log)
+        states = StateLog()
+        now = clock()
+        self._url = redact_text(config.camera.url)
+        self.track_log = TrackLog(states, config.filter.coast_timeout_s,
+                                  config.filter.max_consecutive_rejects)
+        self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now)
+        self.outputs = FrameOutputs(parts.link, parts.telemetry, parts.vehicle, parts.preview,
+                                    wall_clock, self.problems)
+        self.reporter = StatusReporter(
+            ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
+                          self.pipeline.tracker, self.track_log, self.source_watch, self.outputs),
+            vehicle=parts.vehicle, interval_s=config.service.status_interval_s,
+            summary_interval_s=config.service.summary_interval_s, started_at=now,
+            wall_clock=wall_clock, states=states,
+        )
+        self._apply_config_to_reporter()
+        self.last: TrackOutput | None = None
+        self._closed = False
+
+    # -- the loop ----------------------------------------------------------------------------
+    def iterate(self) -> PipelineResult:
+        """One pass of the frame loop."""
+        frame = self.parts.source.read(self.config.camera.read_timeout_s)
+        now = self.clock()
+        self.parts.notifier.watchdog(now)
+        if frame is None:
+            result = self.pipeline.tick(now)
+            self.source_watch.idle(now)
+        else:
+            h, w = frame.image.shape[:2]
+            self.source_watch.frame(w, h, now)
+            result = self.pipeline.process(frame.image, frame.t_monotonic, frame.index)
+        self.outputs.to_autopilot(result)
+        self.stats.record(result, self.clock())
+        if frame is not None:
+            self._note_errors(result)
+            self.outputs.publish(frame, result, self.clock())
+        self.track_log.update(result.track, now)
+        self.last = result.track
+        self.reporter.tick(now, self.last)
+        return result
+
+    def run(self, duration_s: float | None = None) -> int:
+        """Start, loop until stopped (signal or `duration_s`), close. Returns the exit status."""
+        try:
+            self.start()
+            deadline = None if duration_s is None else self.clock() + duration_s
+            while not self.flags.stop.is_set():
+                if deadline is not None and self.clock() >= deadline:
+                    log.info("run duration of %.1f s reached", duration_s)
+                    break
+                if self.flags.reload.is_set():
+                    self.flags.reload.clear()
+                    self.reload()
+                self.iterate()
+            stopping_at = self.clock()
+            if self.flags.stop_signal:
+                log.info("%s received: stopping", self.flags.stop_signal)
+            self.parts.notifier.stopping()
+            self.reporter.summary(stopping_at, final=True)
+            self.close()
+            log.info("stopped cleanly (outputs and source closed in %.2f s)",
+                     self.clock() - stopping_at)
+            return 0
+        finally:
+            self.close()  # idempotent; after an error too
+
+    # -- start-up and shut-down ------------------------------------------------------------
+    def start(self) -> None:
+        """Open the source, start the outputs; everything was built (and checked) before."""
+        cfg, parts = self.config, self.parts
+        parts.source.open()
+        parts.link.start()
+        parts.telemetry.start()
+        log.info(
+            "netpose %s started: source %s, MAVLink %s, telemetry %s, config %s (%s)",
+            __version__, self._url, redact_text(str(cfg.effective["mavlink"]["url"])),
+            "on" if parts.telemetry_enabled else "off", cfg.path or "defaults", cfg.digest,
+        )
+        parts.notifier.ready(status="started, waiting for frames")
+
+    def close(self) -> None:
+        """Withdraw the distance, then close outputs and source (reverse of opening)."""
+        parts = self.parts
+        if self._closed:
+            return
+        self._closed = True
+        parts.link.set_range(RangeReading.none(self.clock()))
+        for name, closer in (("telemetry", parts.telemetry.close),
+                             ("MAVLink link", parts.link.close),
+                             ("frame source", parts.source.close)):
+            try:
+                closer()
+            except Exception:
+                log.exception("closing the %s failed", name)
+
+    # -- problems ----------------------------------------------------------------------------
+    def _note_errors(self, result: PipelineResult) -> None:
+        if result.crashed:
+            self.problems.problem("estimator-crash", "estimator failed on a frame: %s",
+                                  result.error)
+        elif result.error:
+            self.problems.problem("estimator-input", "estimator cannot use frames: %s",
+                                  result.error)
+        elif result.estimate is not None:
+            self.problems.cleared("estimator-input", "estimator accepts frames again")
+            self.problems.cleared("estimator-crash", "estimator works again")
+
+    # -- reload ----------------------------------------------------------------------------
+    def reload(self) -> bool:
+        """Re-read the configuration file (SIGHUP). Filter, estimator, mesh and log level take
+        effect at once; camera, MAVLink and telemetry changes need a restart (logged). A bad
+        new configuration is rejected and the running one kept."""
+        if self._load_config is None:
+            log.warning("reload requested, but this daemon has no configuration file to re-read")
+            return False
+        self.parts.notifier.reloading()
+        try:
+            new = self._load_config()
+            changed = self.config.changed_sections(new)
+            if "mesh" in changed or "estimator" in changed:
+                self.pipeline.replace_estimator(make_estimator(new, self.parts.camera))
+            if "filter" in changed:
+                self.pipeline.tracker.reconfigure(new.filter)
+            if "service" in changed:
+                logging.getLogger().setLevel(new.service.log_level)
+                self.pipeline.set_autopilot_distance(new.service.autopilot_distance)
+            needs_restart = sorted(changed & {"camera", "mavlink", "telemetry"})
+        except NetposeError as exc:
+            log.error("configuration reload rejected, keeping the running one: %s", exc)
+            self.parts.notifier.ready(status="reload rejected: " + str(exc))
+            return False
+        # The running parts keep their old settings: record what is really in force.
+        kept = {name: self.config.sections[name] for name in needs_restart}
+        effective = dict(new.effective)
+        for name in needs_restart:
+            effective[name] = self.config.effective[name]
+        self.config = dataclasses.replace(
+            new, sections={**new.sections, **kept}, effective=effective,
+            digest=config_digest(effective),
+        )
+        self._apply_config_to_reporter()
+        log.info(
+            "configuration reloaded (%s), changed: %s%s", self.config.digest,
+            ", ".join(sorted(changed)) or "nothing",
+            f"; restart needed for: {', '.join(needs_restart)}" if needs_restart else "",
+        )
+        self.parts.notifier.ready(status="configuration reloaded")
+        return True
+
+    def _apply_config_to_reporter(self) -> None:
+        self.reporter.set_config(self.config.digest, self.config.effective,
+                                 self.parts.telemetry_enabled)
+        self.track_log.coast_timeout_s = self.config.filter.coast_timeout_s
+        self.track_log.max_rejects = self.config.filter.max_consecutive_rejects

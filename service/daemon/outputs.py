@@ -1,0 +1,150 @@
+"""Per-frame outputs: the reading to the autopilot link, the estimate to telemetry, a preview.
+
+Every call here returns at once: the link and the publisher take the newest value and do their
+I/O on their own threads, so a slow or dead output never stalls the frame loop.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from service.core.errors import NetposeError
+from service.core.messages import (
+    EstimateLatency,
+    EstimateMessage,
+    FilteredView,
+    PreviewMeta,
+    TruthView,
+)
+from service.core.tracking import TrackOutput
+from service.daemon.events import OnceLogger
+from service.daemon.ports import AutopilotLink, Frame, TelemetrySink
+from service.pipeline import PipelineResult, sigma_range_of
+from service.tools.preview import encode_jpeg, estimate_caption, render_preview
+
+
+@dataclass(frozen=True)
+class PreviewSettings:
+    width: int = 320
+    quality: int = 70
+
+
+def filtered_view(track: TrackOutput, result: PipelineResult) -> FilteredView:
+    rate = track.distance_rate_mps
+    return FilteredView(
+        valid=track.valid,
+        autopilot=result.reading.status.value,
+        state=track.state.value,
+        measurement=track.measurement.value,
+        distance_m=track.distance_m,
+        sigma_distance_m=track.sigma_distance_m,
+        range_m=track.range_m,
+        sigma_range_m=sigma_range_of(track),
+        normal=track.normal,
+        closing_speed_mps=None if rate is None else -rate,
+        age_s=track.since_accepted_s,
+    )
+
+
+def truth_view(truth: object | None) -> TruthView | None:
+    """Ground truth of a rendered frame (drivers.synthetic_net.GroundTruth, duck-typed)."""
+    if truth is None:
+        return None
+
+    def number(name: str) -> float | None:
+        value = getattr(truth, name, None)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return None
+        return float(value) if math.isfinite(value) else None
+
+    normal = getattr(truth, "normal", None)
+    vec = None
+    if normal is not None and len(normal) == 3:
+        vec = (float(normal[0]), float(normal[1]), float(normal[2]))
+    return TruthView(net_present=bool(getattr(truth, "net_present", True)),
+                     range_m=number("range_m"), distance_m=number("distance_m"),
+                     tilt_deg=number("tilt_deg"), normal=vec)
+
+
+def estimate_message(
+    *, vehicle: str, seq: int, frame: Frame, result: PipelineResult, now_mono: float,
+    now_unix: float,
+) -> EstimateMessage:
+    """The telemetry message of one processed frame."""
+    est = result.estimate
+    stages = dict(est.timings_ms) if est is not None else {}
+    total = stages.pop("total", None)
+    latency = EstimateLatency(
+        stages=stages,
+        estimator_total=total if total is not None else result.estimate_ms,
+        frame_to_publish=(now_mono - frame.t_monotonic) * 1e3,
+    )
+    return EstimateMessage(
+        vehicle=vehicle, time_unix=now_unix, time_mono=now_mono, seq=seq,
+        frame_time_unix=frame.t_wall, frame_time_mono=frame.t_monotonic,
+        detected=est is not None and est.detected,
+        confidence=est.confidence if est is not None else 0.0,
+        range_m=est.range_m if est is not None else None,
+        sigma_range_m=est.sigma_range_m if est is not None else None,
+        distance_m=est.distance_m if est is not None else None,
+        sigma_distance_m=est.sigma_distance_m if est is not None else None,
+        normal=est.normal if est is not None else None,
+        tilt_deg=est.tilt_deg if est is not None else None,
+        sigma_normal_deg=est.sigma_normal_deg if est is not None else None,
+        rois=len(est.rois) if est is not None else 0,
+        rois_used=est.rois_used if est is not None else 0,
+        reason=est.reason if est is not None else (result.error or "estimator error"),
+        filtered=filtered_view(result.track, result), latency_ms=latency,
+        truth=truth_view(frame.truth),
+    )
+
+
+class FrameOutputs:
+    """Hands each result to the link and to telemetry (and, when someone watches, a preview)."""
+
+    def __init__(
+        self,
+        link: AutopilotLink,
+        telemetry: TelemetrySink,
+        vehicle: str,
+        preview: PreviewSettings,
+        wall_clock: Callable[[], float],
+        problems: OnceLogger,
+    ) -> None:
+        self._link = link
+        self._telemetry = telemetry
+        self._vehicle = vehicle
+        self._preview = preview
+        self._wall_clock = wall_clock
+        self._problems = problems
+        self._seq = 0
+        self.last_estimate: EstimateMessage | None = None
+
+    def to_autopilot(self, result: PipelineResult) -> None:
+        self._link.set_range(result.reading)
+
+    def publish(self, frame: Frame, result: PipelineResult, now: float) -> None:
+        self._seq += 1
+        message = estimate_message(vehicle=self._vehicle, seq=self._seq, frame=frame,
+                                   result=result, now_mono=now, now_unix=self._wall_clock())
+        self.last_estimate = message
+        self._telemetry.publish_estimate(message)
+        if self._telemetry.wants_preview(now):
+            self._publish_preview(frame, result, message.time_unix)
+
+    def _publish_preview(self, frame: Frame, result: PipelineResult, wall: float) -> None:
+        est = result.estimate
+        try:
+            image = render_preview(frame.color if frame.color is not None else frame.image,
+                                   est.rois if est is not None else (),
+                                   estimate_caption(est), width=self._preview.width)
+            jpeg = encode_jpeg(image, self._preview.quality)
+        except NetposeError as exc:
+            self._problems.problem("preview", "cannot draw the preview: %s", exc)
+            return
+        h, w = image.shape[:2]
+        self._telemetry.publish_preview(
+            jpeg, PreviewMeta(vehicle=self._vehicle, seq=self._seq, time_unix=wall, width=w,
+                              height=h))

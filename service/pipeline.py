@@ -1,0 +1,153 @@
+"""The one frame pipeline: image -> estimator -> filter -> what the autopilot is told.
+
+The daemon, `netpose replay`, the benchmarks and the tests all run frames through `Pipeline`,
+so a replay of a recording runs exactly the code the ROV runs (openpilot's process-replay idea).
+Time comes from the data: `process` takes the frame's capture time, `tick` the time at which no
+frame came; nothing here reads a clock that affects the output. The estimator's own stage
+timings are measurements only and never change a result.
+
+The previous frame's detection is fed back to the estimator as its prior (tracking skips the
+scale search). A frame the estimator cannot use gives a result with `error` set and no estimate;
+the filter still steps, so a track that stops being fed coasts and ends in LOST.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy.typing as npt
+
+from service.core.errors import NetposeError
+from service.core.estimator import NetEstimator
+from service.core.readings import RangeReading, RangeStatus
+from service.core.results import NetEstimate
+from service.core.tracking import NetTracker, Outcome, TrackOutput
+
+log = logging.getLogger(__name__)
+
+AutopilotDistance = Literal["perpendicular", "optical_axis"]
+
+
+@dataclass(frozen=True, eq=False)
+class PipelineResult:
+    """Everything the pipeline knows after one frame (or one tick without a frame)."""
+
+    t: float  # capture time of the frame, or the time of the tick (seconds, the frames' clock)
+    index: int | None  # the source's frame number; None for a tick without a frame
+    estimate: NetEstimate | None  # None without a frame, or when the estimator refused it
+    track: TrackOutput
+    reading: RangeReading  # what the autopilot is told
+    failure: Exception | None = None  # why a frame gave no estimate
+    estimate_ms: float = 0.0  # estimator wall time (a measurement, never an input)
+
+    @property
+    def error(self) -> str:
+        """Why a frame gave no estimate ("" when it gave one, or without a frame)."""
+        if self.failure is None:
+            return ""
+        if self.crashed:
+            return f"{type(self.failure).__name__}: {self.failure}"
+        return str(self.failure)
+
+    @property
+    def crashed(self) -> bool:
+        """The estimator raised something unexpected: a bug, not a frame it refused."""
+        return self.failure is not None and not isinstance(self.failure, NetposeError)
+
+    @property
+    def has_frame(self) -> bool:
+        return self.index is not None
+
+    @property
+    def detected(self) -> bool:
+        return self.estimate is not None and self.estimate.detected
+
+
+class Pipeline:
+    """Estimator with prior feedback, then the filter, then the autopilot reading."""
+
+    def __init__(
+        self,
+        estimator: NetEstimator,
+        tracker: NetTracker,
+        autopilot_distance: AutopilotDistance = "optical_axis",
+    ) -> None:
+        self._estimator = estimator
+        self._tracker = tracker
+        self._autopilot_distance: AutopilotDistance = autopilot_distance
+        self._prior: NetEstimate | None = None
+        # Confidence of the last accepted measurement: what a coasting reading is worth.
+        self._last_quality = math.nan
+
+    @property
+    def estimator(self) -> NetEstimator:
+        return self._estimator
+
+    @property
+    def tracker(self) -> NetTracker:
+        return self._tracker
+
+    def replace_estimator(self, estimator: NetEstimator) -> None:
+        """A new estimator (mesh or tuning changed); the old prior does not carry over."""
+        self._estimator = estimator
+        self._prior = None
+
+    def set_autopilot_distance(self, which: AutopilotDistance) -> None:
+        self._autopilot_distance = which
+
+    def process(self, image: npt.NDArray[Any], t: float, index: int) -> PipelineResult:
+        """One frame captured at `t`."""
+        estimate: NetEstimate | None = None
+        failure: Exception | None = None
+        t0 = time.perf_counter()
+        try:
+            estimate = self._estimator.estimate(image, prior=self._prior)
+        except NetposeError as exc:
+            failure = exc
+        except Exception as exc:  # a bug must cost one frame, not the service
+            log.debug("estimator crashed on frame %d", index, exc_info=True)
+            failure = exc
+        estimate_ms = (time.perf_counter() - t0) * 1e3
+        self._prior = estimate if estimate is not None and estimate.detected else None
+        track = self._tracker.step(t, estimate)
+        return PipelineResult(
+            t=t, index=index, estimate=estimate, track=track,
+            reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
+        )
+
+    def tick(self, t: float) -> PipelineResult:
+        """No frame by `t`: time passes for the filter, so coasting ends in LOST."""
+        track = self._tracker.step(t, None)
+        return PipelineResult(t=t, index=None, estimate=None, track=track,
+                              reading=self._reading(track, None, t))
+
+    def _reading(
+        self, track: TrackOutput, estimate: NetEstimate | None, t: float
+    ) -> RangeReading:
+        if track.measurement in (Outcome.ACCEPTED, Outcome.RESET) and estimate is not None:
+            self._last_quality = estimate.confidence
+        if not track.valid or track.distance_m is None:
+            return RangeReading.none(t)
+        distance = track.distance_m
+        sigma = track.sigma_distance_m if track.sigma_distance_m is not None else math.nan
+        if self._autopilot_distance == "optical_axis":
+            if track.range_m is None or track.normal is None:
+                return RangeReading.none(t)
+            cos_tilt = abs(track.normal[2])
+            distance, sigma = track.range_m, sigma / cos_tilt
+        if not (math.isfinite(distance) and distance >= 0.0):
+            return RangeReading.none(t)
+        return RangeReading(RangeStatus.GOOD, t_capture=t, distance_m=distance, sigma_m=sigma,
+                            quality=self._last_quality)
+
+
+def sigma_range_of(track: TrackOutput) -> float | None:
+    """The filtered range's sigma: the distance's, through the tilt."""
+    if track.sigma_distance_m is None or track.normal is None or abs(track.normal[2]) <= 0:
+        return None
+    return track.sigma_distance_m / abs(track.normal[2])
+

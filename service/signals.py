@@ -1,0 +1,59 @@
+"""Signals as flags: handlers only set an event, the owner's loop polls it.
+
+Used by the daemon (stop, reload), `netpose replay` and `netpose monitor` (stop). The previous
+handlers are restored when the `with` block ends, so a library or test that installed its own
+keeps them.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
+from typing import Any
+
+
+class SignalFlags:
+    """Set by signal handlers, polled by a loop (handlers do nothing else)."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.reload = threading.Event()
+        self.stop_signal: str | None = None
+
+    def request_stop(self, name: str) -> None:
+        self.stop_signal = self.stop_signal or name
+        self.stop.set()
+
+
+@contextmanager
+def handle_signals(flags: SignalFlags, *, reload: bool = False) -> Iterator[SignalFlags]:
+    """SIGTERM and SIGINT request a stop; SIGHUP a reload when `reload` is set.
+
+    A second Ctrl-C while a stop is already under way interrupts at once (KeyboardInterrupt).
+    Outside the main thread (where Python cannot handle signals) nothing is installed.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield flags
+        return
+
+    def on_stop(signum: int, _frame: FrameType | None) -> None:
+        if flags.stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        flags.request_stop(signal.Signals(signum).name)
+
+    def on_hup(_signum: int, _frame: FrameType | None) -> None:
+        flags.reload.set()
+
+    handlers: list[tuple[signal.Signals, Any]] = [(signal.SIGTERM, on_stop),
+                                                  (signal.SIGINT, on_stop)]
+    if reload:
+        handlers.append((signal.SIGHUP, on_hup))
+    previous = {sig: signal.signal(sig, handler) for sig, handler in handlers}
+    try:
+        yield flags
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
