@@ -128,15 +128,37 @@ def demo_config(*overrides: str, path: Path | None = None) -> Config:
     return load_daemon_config(str(path or REPO / "config" / "demo.toml"), list(overrides))
 
 
+class RecordingObserver:
+    """A frame observer that keeps what the loop hands it."""
+
+    def __init__(self) -> None:
+        self.started = self.closed = False
+        self.frames: list[tuple[int, Any]] = []
+        self.statuses: list[Any] = []
+
+    def start(self) -> None:
+        self.started = True
+
+    def observe(self, frame: Frame, result: Any, message: Any) -> None:
+        self.frames.append((frame.index, message))
+
+    def observe_status(self, message: Any) -> None:
+        self.statuses.append(message)
+
+    def close(self) -> None:
+        self.closed = True
+
+
 def make_harness(config: Config, script: Iterable[Step], *, start: float = 100.0,
-                 load_config: Callable[[], Config] | None = None) -> Harness:
+                 load_config: Callable[[], Config] | None = None,
+                 observers: tuple[Any, ...] = ()) -> Harness:
     clock = FakeClock(start)
     source = ScriptedSource(script, clock)
     link = RecordingAutopilotLink()
     telemetry = RecordingPublisher()
     notifier = RecordingNotifier(watchdog_interval_s=1.0)
     parts = DaemonParts(source=source, link=link, telemetry=telemetry, notifier=notifier,
-                        camera=builtin_camera(640, 360), vehicle="test")
+                        camera=builtin_camera(640, 360), vehicle="test", observers=observers)
     daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall, load_config=load_config)
     daemon.start()
     return Harness(daemon, clock, source, link, telemetry, notifier)

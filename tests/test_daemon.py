@@ -33,6 +33,7 @@ from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.wiring import load_daemon_config
 from tests.daemon_harness import (
     REPO,
+    RecordingObserver,
     Step,
     demo_config,
     frames_at,
@@ -118,6 +119,18 @@ def test_status_line_and_status_message(frames: list[Frame]) -> None:
     rates = [m.estimator.fps or 0.0 for m in h.telemetry.statuses[1:-1]]
     assert float(np.median(rates)) == pytest.approx(FPS, rel=0.05), rates
     assert h.telemetry.state is not None and h.telemetry.state.status is status
+
+
+def test_observers_get_every_frame_and_status_and_are_closed(frames: list[Frame]) -> None:
+    observer = RecordingObserver()
+    h = make_harness(demo_config("service.status_interval_s=0.5"), steps(frames[:15]),
+                     observers=(observer,))
+    h.run_script()
+    h.daemon.close()
+    assert observer.started and observer.closed
+    assert [i for i, _ in observer.frames] == list(range(15))
+    assert [m for _, m in observer.frames] == h.telemetry.estimates
+    assert observer.statuses == h.telemetry.statuses
 
 
 def test_reporting_does_not_change_what_it_reports(frames: list[Frame]) -> None:

@@ -29,7 +29,13 @@ from service.core.redact import redact_text
 from service.core.tracking import NetTracker, TrackOutput
 from service.daemon.events import OnceLogger, SourceWatch, StateLog, TrackLog
 from service.daemon.outputs import FrameOutputs, PreviewSettings
-from service.daemon.ports import AutopilotLink, FrameSource, Notifier, TelemetrySink
+from service.daemon.ports import (
+    AutopilotLink,
+    FrameObserver,
+    FrameSource,
+    Notifier,
+    TelemetrySink,
+)
 from service.daemon.stats import LoopStats
 from service.daemon.status import ReportContext, StatusReporter
 from service.pipeline import Pipeline, PipelineResult
@@ -52,6 +58,7 @@ class DaemonParts:
     vehicle: str = "rov"
     preview: PreviewSettings = field(default_factory=PreviewSettings)
     telemetry_enabled: bool = True
+    observers: tuple[FrameObserver, ...] = ()
 
 
 def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
@@ -90,7 +97,7 @@ class Daemon:
                                   config.filter.max_consecutive_rejects)
         self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now)
         self.outputs = FrameOutputs(parts.link, parts.telemetry, parts.vehicle, parts.preview,
-                                    wall_clock, self.problems)
+                                    wall_clock, self.problems, parts.observers)
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
                           self.pipeline.tracker, self.track_log, self.source_watch, self.outputs),
@@ -157,6 +164,8 @@ class Daemon:
         parts.source.open()
         parts.link.start()
         parts.telemetry.start()
+        for observer in parts.observers:
+            observer.start()
         log.info(
             "netpose %s started: source %s, MAVLink %s, telemetry %s, config %s (%s)",
             __version__, self._url, redact_text(str(cfg.effective["mavlink"]["url"])),
@@ -171,9 +180,10 @@ class Daemon:
             return
         self._closed = True
         parts.link.set_range(RangeReading.none(self.clock()))
-        for name, closer in (("telemetry", parts.telemetry.close),
-                             ("MAVLink link", parts.link.close),
-                             ("frame source", parts.source.close)):
+        closers = [(type(o).__name__, o.close) for o in parts.observers]
+        closers += [("telemetry", parts.telemetry.close), ("MAVLink link", parts.link.close),
+                    ("frame source", parts.source.close)]
+        for name, closer in closers:
             try:
                 closer()
             except Exception:

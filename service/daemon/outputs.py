@@ -7,7 +7,7 @@ I/O on their own threads, so a slow or dead output never stalls the frame loop.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from service.core.errors import NetposeError
@@ -16,11 +16,12 @@ from service.core.messages import (
     EstimateMessage,
     FilteredView,
     PreviewMeta,
+    StatusMessage,
     TruthView,
 )
 from service.core.tracking import TrackOutput
 from service.daemon.events import OnceLogger
-from service.daemon.ports import AutopilotLink, Frame, TelemetrySink
+from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
 from service.pipeline import PipelineResult, sigma_range_of
 from service.tools.preview import encode_jpeg, estimate_caption, render_preview
 
@@ -112,6 +113,7 @@ class FrameOutputs:
         preview: PreviewSettings,
         wall_clock: Callable[[], float],
         problems: OnceLogger,
+        observers: Sequence[FrameObserver] = (),
     ) -> None:
         self._link = link
         self._telemetry = telemetry
@@ -119,6 +121,7 @@ class FrameOutputs:
         self._preview = preview
         self._wall_clock = wall_clock
         self._problems = problems
+        self._observers = tuple(observers)
         self._seq = 0
         self.last_estimate: EstimateMessage | None = None
 
@@ -131,8 +134,14 @@ class FrameOutputs:
                                    result=result, now_mono=now, now_unix=self._wall_clock())
         self.last_estimate = message
         self._telemetry.publish_estimate(message)
+        for observer in self._observers:
+            observer.observe(frame, result, message)
         if self._telemetry.wants_preview(now):
             self._publish_preview(frame, result, message.time_unix)
+
+    def publish_status(self, message: StatusMessage) -> None:
+        for observer in self._observers:
+            observer.observe_status(message)
 
     def _publish_preview(self, frame: Frame, result: PipelineResult, wall: float) -> None:
         est = result.estimate

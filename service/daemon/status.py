@@ -129,6 +129,7 @@ class StatusReporter:
         message = self._status_message(now, link, period, seconds, usage)
         ctx.notifier.status(self.status_line(last, period, seconds, link.state))
         ctx.telemetry.publish_status(message)
+        ctx.outputs.publish_status(message)
         ctx.telemetry.set_state(StateMessage(
             vehicle=self._vehicle, time_unix=message.time_unix, time_mono=now, status=message,
             config=self._config_redacted, estimate=ctx.outputs.last_estimate))
