@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.lifecycle import Closeable
+from drivers.net import free_port
 
 
 def _mavlink2() -> Any:
@@ -38,13 +39,6 @@ def _mavlink2() -> Any:
     from pymavlink.dialects.v20 import ardupilotmega
 
     return ardupilotmega
-
-
-def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    """A loopback port that was free a moment ago (for a link that must bind it itself)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Transport(ABC):
@@ -95,7 +89,7 @@ class UdpClientTransport(Transport):
     """The link listens (udpin:) on a free port; the autopilot sends to it first."""
 
     def __init__(self) -> None:
-        self._target = ("127.0.0.1", free_port())
+        self._target = ("127.0.0.1", free_port(socket.SOCK_DGRAM))
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind(("127.0.0.1", 0))
         self.url = f"udpin:127.0.0.1:{self._target[1]}"

@@ -24,6 +24,7 @@ import pytest
 from drivers.mavlink_link import MavlinkLink, RecordingAutopilotLink
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key
 from drivers.mavlink_wire import covariance_cm2, distance_sensor_fields, signal_quality
+from drivers.net import free_port
 from service.config import build_section
 from service.core.errors import ConfigError
 from service.core.messages import AutopilotHealth, json_value
@@ -34,7 +35,6 @@ from tests.fake_autopilot import (
     TcpServerTransport,
     UdpClientTransport,
     UdpServerTransport,
-    free_port,
 )
 
 pytestmark = pytest.mark.timeout(60)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from drivers.net import free_port
 from drivers.telemetry import TelemetrySettings, ZenohPublisher
 from service.core.messages import (
     AutopilotHealth,
@@ -41,9 +41,7 @@ VEHICLE = "rov5"
 
 
 def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def estimate_message(seq: int, distance: float = 1.5, detected: bool = True) -> EstimateMessage:

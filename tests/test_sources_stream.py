@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from drivers.errors import SourceError
+from drivers.net import free_port
 from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
 from drivers.sources.fake_capture import numbered_pattern, read_pattern_number
 
@@ -49,10 +50,7 @@ def ffmpeg_exe() -> str:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
+    return free_port(socket.SOCK_DGRAM)
 
 
 class Streamer:

@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from drivers.net import free_port
 from drivers.telemetry import (
     NullPublisher,
     RecordingPublisher,
@@ -63,12 +64,6 @@ STATE_CONFIG = {"camera": {"url": "rtsp://u:secret@cam/s"}, "n": 1}
 
 
 # --- helpers -------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def endpoint() -> str:
