@@ -6,6 +6,7 @@ real encode/decode round trip the test can check that frame `index` really is fr
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -260,3 +261,57 @@ def read_frames_up_to(source: FrameSource, count: int) -> list[Frame]:
     while len(frames) < count and (frame := source.read(1.0)) is not None:
         frames.append(frame)
     return frames
+
+
+def test_truncated_jpeg_in_a_folder_is_skipped_with_its_reason(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """libjpeg can decode a truncated JPEG with a grey band and only a warning on stderr: such a
+    frame would be measured as if it were whole. It is refused, counted and said why."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for n in range(4):
+        cv2.imwrite(str(folder / f"f{n}.jpg"), numbered_pattern(n, *SIZE))
+    whole = (folder / "f2.jpg").read_bytes()
+    # Depending on the OpenCV build, imdecode returns the padded picture or nothing: the
+    # container check decides the same either way.
+    (folder / "f2.jpg").write_bytes(whole[: len(whole) * 2 // 3])
+    with caplog.at_level(logging.WARNING, logger="drivers.sources"):
+        frames = read_all(f"images:{folder}")
+    assert [f.index for f in frames] == [0, 1, 3]
+    assert "truncated JPEG" in caplog.text
+
+
+def test_looping_folder_emptied_and_refilled_comes_back(tmp_path: Path) -> None:
+    """An images: source of a service (wait_at_start) rides out a folder that goes away for a
+    while (a card re-mounted): DOWN with the reason, then frames again, never ENDED for good."""
+    folder = tmp_path / "frames"
+    write_images(folder, 3)
+    options = SourceOptions(wait_at_start=True, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    with open_source(f"images:{folder}?loop=1", options) as source:
+        first = [source.read(0.5) for _ in range(3)]
+        assert all(f is not None for f in first)
+        moved = tmp_path / "away"
+        folder.rename(moved)
+        states = []
+        for _ in range(10):
+            if source.read(0.1) is not None:
+                continue
+            states.append(source.state)
+        assert SourceState.DOWN in states and SourceState.ENDED not in states
+        assert "no such folder" in source.stats().error
+        moved.rename(folder)
+        back = [f for f in (source.read(0.3) for _ in range(10)) if f is not None]
+    assert back, "frames did not come back after the folder returned"
+    assert back[0].index > max(f.index for f in first if f is not None)  # numbering carries on
+
+
+def test_a_missing_file_at_start_is_waited_for(videos: dict[str, Path], tmp_path: Path) -> None:
+    target = tmp_path / "later.avi"
+    options = SourceOptions(wait_at_start=True, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    with open_source(f"file:{target}", options) as source:
+        assert source.state is SourceState.DOWN and "no such file" in source.stats().error
+        assert source.read(0.1) is None
+        target.write_bytes(videos["mjpg"].read_bytes())
+        frame = next((f for f in (source.read(0.3) for _ in range(10)) if f is not None), None)
+    assert frame is not None and frame.index == 0

@@ -228,3 +228,53 @@ def test_v4l2_read_time_limit_follows_the_stall_timeout(monkeypatch: pytest.Monk
     monkeypatch.setenv(V4L2_SELECT_TIMEOUT_ENV, "7")  # the user's choice wins
     with fast_source(FakeCamera(MODES), options):
         assert os.environ[V4L2_SELECT_TIMEOUT_ENV] == "7"
+
+
+def test_a_service_waits_for_a_camera_absent_at_start(caplog: pytest.LogCaptureFixture) -> None:
+    """wait_at_start (what the daemon asks for): the camera manager may start after netpose, so
+    a missing camera is an outage to ride out, not an error; it is found within a backoff."""
+    camera = FakeCamera(MODES)
+    camera.unplug()
+    options = SourceOptions(stall_timeout_s=0.5, reconnect_min_s=0.05, reconnect_max_s=0.2,
+                            wait_at_start=True)
+    source = V4l2Source("v4l2:/dev/video0?width=320&height=240&fps=200&fourcc=MJPG", options,
+                        capture_factory=camera.open)
+    with caplog.at_level(logging.INFO, logger="drivers.sources"):
+        source.open()  # returns at once: the first open happens on the grabber thread
+        try:
+            assert wait_for(lambda: source.state is SourceState.DOWN)
+            assert "cannot open /dev/video0" in source.stats().error
+            assert source.read(0.1) is None
+            assert wait_for(lambda: camera.opens >= 3)  # retried with backoff
+            plugged_at = time.monotonic()
+            camera.plug()
+            frame = source.read(2.0)
+            found_after = time.monotonic() - plugged_at
+        finally:
+            source.close()
+    assert frame is not None and found_after < 0.2 + 0.1  # within one backoff step
+    assert source.stats().error == ""
+    downs = [r for r in caplog.records if " down: " in r.getMessage()]
+    assert len(downs) == 1 and "cannot open /dev/video0" in downs[0].getMessage()
+
+
+def test_close_does_not_wait_for_a_driver_stuck_in_open() -> None:
+    """A stop must not wait for FFmpeg's open time limit (systemd's stop budget is seconds)."""
+    camera = FakeCamera(MODES)
+    release = threading.Event()
+
+    def slow_open(device: str) -> object:
+        release.wait(5.0)  # an RTSP open against a camera that does not answer
+        return camera.open(device)
+
+    options = SourceOptions(stall_timeout_s=0.5, reconnect_min_s=0.05, reconnect_max_s=0.2,
+                            wait_at_start=True)
+    source = V4l2Source("v4l2:/dev/video0", options, capture_factory=slow_open)  # type: ignore[arg-type]
+    source.open()
+    time.sleep(0.1)
+    started = time.monotonic()
+    source.close()
+    took = time.monotonic() - started
+    release.set()
+    assert took < 0.5
+    assert source.state is SourceState.CLOSED

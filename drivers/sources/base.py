@@ -65,6 +65,7 @@ class SourceStats:
     corrupt: int
     reconnects: int
     fps: float  # recent capture rate, frames per second
+    error: str = ""  # why the source is not delivering (empty while it is)
 
 
 class FrameSource(Closeable):
@@ -81,6 +82,13 @@ class FrameSource(Closeable):
     def camera(self) -> CameraModel | None:
         """The camera this source describes itself (synthetic only); None for real cameras."""
         return None
+
+    @property
+    def rendered(self) -> bool:
+        """True for sources that render a scene instead of filming one (synthetic:, sim:): their
+        distances are not facts about the water and never reach an autopilot unless the
+        configuration says so (mavlink.allow_simulated)."""
+        return False
 
     @abstractmethod
     def open(self) -> None:
@@ -175,6 +183,10 @@ class SourceOptions:
     keep_color: also hand out the BGR image (preview); grey is always there.
     stall_timeout_s: a live source with no frame for this long is re-opened (also the read
         time limit handed to FFmpeg).
+    wait_at_start: a source that cannot be opened at start (camera not plugged in, stream not
+        served yet, file not there) is retried with backoff like one lost later, instead of
+        open() raising: what a service wants (the camera manager may start after it); tools
+        that read one recording want the error at once (the default).
     open_timeout_s: longest single attempt to open a network stream.
     reconnect_min_s / reconnect_max_s: the backoff between re-open attempts doubles from the
         minimum up to the maximum while the source stays down.
@@ -188,6 +200,7 @@ class SourceOptions:
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 10.0
     ffmpeg_options: str | None = None
+    wait_at_start: bool = False
 
     def __post_init__(self) -> None:
         from service.core.errors import ConfigError

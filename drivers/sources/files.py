@@ -25,6 +25,7 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
+from service.core.image_file import DamagedImageError, decode_image
 
 log = logging.getLogger(__name__)
 
@@ -192,8 +193,14 @@ class ImageFolderSource(PacedSource):
             raise EndOfMediaError
         number = self._position
         self._position += 1
-        flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
-        image: Any = cv2.imread(str(self._files[number]), flags)
+        path = self._files[number]
+        image: Any = None
+        try:
+            # Decoded in colour and converted like every other frame (one grey conversion), and
+            # refused when truncated: a half-written JPEG would otherwise decode with a grey band.
+            image = decode_image(path.read_bytes(), path.name)
+        except (OSError, DamagedImageError) as exc:
+            self._note_damage(str(exc))
         return MediaFrame(image=image, number=number, media_time_s=number / self._fps)
 
     def _skip_to(self, number: int) -> int:
@@ -202,7 +209,13 @@ class ImageFolderSource(PacedSource):
         return skipped
 
     def _rewind(self) -> None:
+        # The folder is read again on every pass: images added or removed meanwhile count.
         self._position = 0
+        try:
+            self._start()
+        except SourceError as exc:
+            self._files = []
+            self._note_damage(exc.reason)
 
     def _stop(self) -> None:
         self._files = []

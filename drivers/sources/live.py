@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 # Consecutive failed reads after which the capture is considered lost. One failed read on its
 # own is a frame the decoder rejected (counted as corrupt once a good frame follows).
 MAX_FAILED_READS = 5
+# How long close() waits for the grabber thread before leaving it to finish on its own.
+CLOSE_WAIT_S = 0.3
 
 
 class LiveSource(FrameSource):
@@ -60,6 +62,7 @@ class LiveSource(FrameSource):
         self._reconnects = 0
         self._last_frame_mono = 0.0
         self._rate = RateMeter()
+        self._error = ""
 
     # -- what a subclass provides -----------------------------------------------------------
     @abstractmethod
@@ -76,10 +79,17 @@ class LiveSource(FrameSource):
             raise SourceError(redact_text(self.url), "the source was closed; create a new one")
         if self._thread is not None:
             return
-        cap = self._connect()  # a source that cannot be opened at start is an error
-        with self._cond:
-            self._last_frame_mono = time.monotonic()
-        self._set_state(SourceState.UP, "opened")
+        cap: VideoCaptureLike | None = None
+        if self._options.wait_at_start:
+            # The first open happens on the grabber thread (state OPENING until it answers): an
+            # RTSP open can take seconds, and the caller's loop must keep its watchdog and its
+            # stop requests meanwhile.
+            pass
+        else:
+            cap = self._connect()  # a source that cannot be opened at start is an error
+            with self._cond:
+                self._last_frame_mono = time.monotonic()
+            self._set_state(SourceState.UP, "opened")
         self._thread = threading.Thread(
             target=self._run, args=(cap,), name=f"frame-source-{type(self).__name__}", daemon=True
         )
@@ -116,6 +126,9 @@ class LiveSource(FrameSource):
                 corrupt=self._corrupt,
                 reconnects=self._reconnects,
                 fps=self._rate.rate(now),
+                error=self._error or (
+                    "no frame for more than the stall time"
+                    if self._effective_state(now) is SourceState.DOWN else ""),
             )
 
     def close(self) -> None:
@@ -127,11 +140,15 @@ class LiveSource(FrameSource):
         thread, self._thread = self._thread, None
         if thread is None:
             return
-        # The grabber leaves within one read or open time limit.
-        thread.join(self._options.stall_timeout_s + self._options.open_timeout_s + 1.0)
+        # The grabber sees the stop after its current read or open. An open can take up to
+        # open_timeout_s inside FFmpeg, and a stop must not wait for it (systemd's stop budget):
+        # the thread is a daemon, releases its capture when the open returns, and dies with the
+        # process at the latest.
+        thread.join(CLOSE_WAIT_S)
         if thread.is_alive():
-            log.warning(
-                "frame source %s: the capture thread is stuck in the driver and was abandoned",
+            log.info(
+                "frame source %s: not waiting for the capture driver to return (it is opening "
+                "or reading); it is released when it does",
                 redact_text(self.url),
             )
 
@@ -148,7 +165,10 @@ class LiveSource(FrameSource):
     def _set_state(self, new: SourceState, reason: str) -> None:
         with self._cond:
             old = self._state
-            if old is new or old is SourceState.CLOSED:
+            if old is SourceState.CLOSED:
+                return
+            self._error = reason if new is SourceState.DOWN else ""
+            if old is new:
                 return
             self._state = new
             self._cond.notify_all()
@@ -212,7 +232,7 @@ class LiveSource(FrameSource):
             self._last_frame_mono = time.monotonic()  # the stall clock restarts
         return cap
 
-    def _run(self, first_cap: VideoCaptureLike) -> None:
+    def _run(self, first_cap: VideoCaptureLike | None) -> None:
         opts = self._options
         cap: VideoCaptureLike | None = first_cap
         backoff = Backoff(opts.reconnect_min_s, opts.reconnect_max_s)

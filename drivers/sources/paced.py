@@ -20,6 +20,7 @@ import time
 from abc import abstractmethod
 from dataclasses import dataclass
 
+from drivers.errors import SourceError
 from drivers.sources.base import (
     Frame,
     FrameSource,
@@ -29,6 +30,7 @@ from drivers.sources.base import (
     SourceStats,
     split_gray_color,
 )
+from service.core.backoff import Backoff
 from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
@@ -76,6 +78,10 @@ class PacedSource(FrameSource):
         self._drops = 0
         self._corrupt = 0
         self._rate = RateMeter()
+        self._error = ""
+        self._damage = ""
+        self._backoff = Backoff(self._options.reconnect_min_s, self._options.reconnect_max_s)
+        self._retry_at = 0.0
 
     # -- what a subclass provides -----------------------------------------------------------
     @abstractmethod
@@ -106,9 +112,30 @@ class PacedSource(FrameSource):
 
     # -- FrameSource ------------------------------------------------------------------------
     def open(self) -> None:
-        if self._state is not SourceState.OPENING:
+        if self._state not in (SourceState.OPENING, SourceState.DOWN):
             return
-        self._start()
+        try:
+            self._start()
+        except SourceError as exc:
+            if not self._options.wait_at_start:
+                raise
+            # Not there yet (a file still being copied, a folder not mounted): retried by
+            # read() with backoff, like a camera that is not plugged in.
+            if self._state is not SourceState.DOWN or exc.reason != self._error:
+                log.warning("frame source %s down: %s; retrying with backoff",
+                            redact_text(self.url), exc.reason)
+            self._state, self._error = SourceState.DOWN, exc.reason
+            self._retry_at = time.monotonic() + self._backoff.next_delay(time.monotonic())
+            return
+        if self._state is SourceState.DOWN:
+            # Back after an outage: a new clock origin, frame numbers carry on after the last.
+            self._loop_index += self._highest_number + 1
+            self._loop_time_s = 0.0
+            self._highest_number = -1
+            self._good_since_rewind = 0
+            self._pending = None
+        self._backoff.reset()
+        self._error = ""
         self._t0_mono = time.monotonic()
         self._t0_wall = time.time()
         self._state = SourceState.UP
@@ -121,6 +148,14 @@ class PacedSource(FrameSource):
         )
 
     def read(self, timeout_s: float) -> Frame | None:
+        if self._state is SourceState.DOWN:
+            wait = self._retry_at - time.monotonic()
+            if wait > timeout_s:
+                time.sleep(max(0.0, timeout_s))
+                return None
+            time.sleep(max(0.0, wait))
+            self.open()
+            return None
         if self._state is not SourceState.UP:
             if self._state is SourceState.ENDED:
                 # Nothing will come: wait like a quiet camera, so a polling loop does not spin.
@@ -164,6 +199,7 @@ class PacedSource(FrameSource):
             corrupt=self._corrupt,
             reconnects=0,
             fps=self._rate.rate(time.monotonic()),
+            error=self._error,
         )
 
     def close(self) -> None:
@@ -180,13 +216,17 @@ class PacedSource(FrameSource):
         self._rate.tick(time.monotonic())
         return frame
 
+    def _note_damage(self, reason: str) -> None:
+        """Why the frame about to be counted as corrupt could not be used (for the log)."""
+        self._damage = reason
+
     def _count_corrupt(self, count: int) -> None:
         if count <= 0:
             return
         if self._corrupt == 0:
             log.warning(
-                "frame source %s: skipped an undecodable frame (further ones are only counted)",
-                redact_text(self.url),
+                "frame source %s: skipped an undecodable frame%s (further ones are only "
+                "counted)", redact_text(self.url), f": {self._damage}" if self._damage else "",
             )
         self._corrupt += count
 
@@ -205,6 +245,17 @@ class PacedSource(FrameSource):
                     self._highest_number = -1
                     self._rewind()
                     continue
+                if self.loop and self._options.wait_at_start:
+                    # Nothing decodable in a whole pass (a folder emptied, a file replaced):
+                    # for a service that is an outage, retried, not the end.
+                    self._stop()
+                    self._state = SourceState.DOWN
+                    self._error = "no decodable frame in a whole pass"
+                    log.warning("frame source %s down: %s; retrying with backoff",
+                                redact_text(self.url), self._error)
+                    self._retry_at = time.monotonic() + self._backoff.next_delay(
+                        time.monotonic())
+                    return None
                 if self.loop:
                     log.warning("frame source %s: no decodable frame to loop",
                                 redact_text(self.url))

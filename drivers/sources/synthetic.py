@@ -151,6 +151,10 @@ class SyntheticSource(PacedSource):
             raise url_error(parsed.raw, f"the built-in camera is 16:9 ({exc})") from None
 
     @property
+    def rendered(self) -> bool:
+        return True
+
+    @property
     def camera(self) -> CameraModel:
         return self._camera
 
