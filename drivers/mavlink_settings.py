@@ -8,12 +8,16 @@ about the estimator.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 from service.core.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 # Component ids a BlueOS vehicle already uses (191 = MAVLink2Rest/onboard computer, 194 = the
 # camera manager, 100-105 = cameras), plus ids that are never valid for a companion service:
@@ -65,6 +69,9 @@ class MavlinkSettings:
     heartbeat_timeout_s: float = 3.0
     retry_initial_s: float = 0.5
     retry_max_s: float = 10.0
+    # Distances measured in rendered frames (synthetic:, sim: sources) are not facts about the
+    # water: they reach an autopilot only when this says so (SITL, a bench demo).
+    allow_simulated: bool = False
 
     def __post_init__(self) -> None:
         self._check_url()
@@ -146,8 +153,13 @@ def load_signing_key(path: str) -> bytes:
     key = "mavlink.signing_key_file"
     try:
         data = Path(path).read_bytes()
+        mode = Path(path).stat().st_mode
     except OSError as exc:
         raise ConfigError(key, f"cannot read {path}: {exc.strerror or exc}") from exc
+    if mode & stat.S_IROTH:
+        # Anyone on the companion computer could sign commands to the autopilot with it.
+        log.warning("%s: %s is readable by every user; chmod 600 it (or 640 for the "
+                    "service's group)", key, path)
     if len(data) == 32:
         return data
     text = data.strip()

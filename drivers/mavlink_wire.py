@@ -39,7 +39,8 @@ def covariance_cm2(sigma_m: float) -> int:
     if not math.isfinite(sigma_m) or sigma_m < 0.0:
         return COVARIANCE_UNKNOWN
     variance = (sigma_m * 100.0) ** 2
-    return round(variance) if variance < 254.5 else COVARIANCE_UNKNOWN
+    # 0 would claim a perfect sensor: a sigma below 0.7 cm is still 1 cm^2.
+    return max(1, round(variance)) if variance < 254.5 else COVARIANCE_UNKNOWN
 
 
 def distance_cm(distance_m: float) -> int:

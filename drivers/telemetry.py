@@ -15,6 +15,7 @@ a missing, slow or vanishing router can never stall the frame loop or the MAVLin
 from __future__ import annotations
 
 import collections
+import ipaddress
 import json
 import logging
 import math
@@ -53,7 +54,51 @@ DEFAULT_MODE = "client"
 DEFAULT_CONNECT = ("tcp/127.0.0.1:7447",)
 # One key chunk: no '/', no wildcards or Zenoh's reserved characters.
 _CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
-_ENDPOINT = re.compile(r"^[a-z][a-z0-9-]*/\S+$")
+# Zenoh endpoints: <protocol>/<address>[?metadata][#config]. Protocols whose address is
+# host:port, and the host forms accepted (IPv4, [IPv6], a DNS name).
+_IP_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+_OTHER_PROTOCOLS = frozenset({"unixsock-stream", "serial", "unixpipe", "vsock"})
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+                       r"(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+# A client re-connects to a returning router on this schedule (Zenoh's own default waits up
+# to 4 s between attempts; a vehicle's links mostly drop for seconds).
+RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
+def endpoint_problem(endpoint: str, listening: bool) -> str | None:
+    """Why `endpoint` is not a usable Zenoh endpoint, or None. Zenoh itself accepts any string
+    at configuration time and then retries it forever, so the check happens here."""
+    protocol, slash, rest = endpoint.partition("/")
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    if not slash or not address:
+        return "is not an endpoint like tcp/127.0.0.1:7447"
+    if protocol in _OTHER_PROTOCOLS:
+        return None
+    if protocol not in _IP_PROTOCOLS:
+        known = ", ".join(sorted(_IP_PROTOCOLS | _OTHER_PROTOCOLS))
+        return f"has an unknown protocol {protocol!r} (known: {known})"
+    host, colon, port = address.rpartition(":")
+    if not colon or not port.isdigit():
+        return "needs a port (like tcp/127.0.0.1:7447)"
+    low = 0 if listening else 1
+    if not low <= int(port) <= 65535:
+        return f"has port {port} outside {low}..65535"
+    if host.startswith("[") and host.endswith("]"):
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            return f"has an invalid IPv6 address {host}"
+        return None
+    try:
+        ipaddress.IPv4Address(host)
+        return None
+    except ValueError:
+        pass
+    if host.replace(".", "").isdigit():
+        return f"has an invalid IPv4 address {host}"
+    if not _HOSTNAME.match(host):
+        return f"has an invalid host {host!r}"
+    return None
 
 
 @dataclass(frozen=True)
@@ -91,12 +136,10 @@ class TelemetrySettings:
         if self.mode is not None and self.mode not in MODES:
             raise bad("mode", f"{self.mode!r} is not one of {', '.join(MODES)}")
         for key in ("listen", "connect"):
-            endpoints = getattr(self, key)
-            if endpoints is None:
-                continue
-            for endpoint in endpoints:
-                if not isinstance(endpoint, str) or not _ENDPOINT.match(endpoint):
-                    raise bad(key, f"{endpoint!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447")
+            for endpoint in getattr(self, key) or ():
+                problem = endpoint_problem(endpoint, listening=key == "listen")
+                if problem is not None:
+                    raise bad(key, f"{endpoint!r} {problem}")
         for key in ("preview_hz", "retry_initial_s", "retry_max_s"):
             if getattr(self, key) < 0:
                 raise bad(key, "must be >= 0")
@@ -118,28 +161,6 @@ class TelemetrySettings:
     def key(self, suffix: str) -> str:
         return f"{self.key_root}/{suffix}"
 
-    def effective(self) -> dict[str, Any]:
-        """The values in force (defaults resolved), for logs and the queryable."""
-        def resolved(value: Any, default: Any) -> Any:
-            if value is not None:
-                return list(value) if isinstance(value, tuple) else value
-            return "<config_file>" if self.config_file is not None else default
-
-        return {
-            "enabled": self.enabled,
-            "vehicle": self.vehicle,
-            "key_prefix": self.key_prefix,
-            "mode": resolved(self.mode, DEFAULT_MODE),
-            "listen": resolved(self.listen, []),
-            "connect": resolved(self.connect, list(DEFAULT_CONNECT)),
-            "scouting": resolved(self.scouting, False),
-            "config_file": self.config_file,
-            "preview_hz": self.preview_hz,
-            "preview_width": self.preview_width,
-            "preview_quality": self.preview_quality,
-            "queue_size": self.queue_size,
-        }
-
 
 def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
     """The Zenoh configuration: `config_file` as the base, explicit settings on top.
@@ -154,7 +175,8 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
         try:
             config = zenoh.Config.from_file(str(path))
         except zenoh.ZError as exc:
-            raise ConfigError("telemetry.config_file", f"{path}: {exc}") from exc
+            raise ConfigError("telemetry.config_file",
+                              f"{path}: {zenoh_error_text(exc)}") from None
     else:
         config = zenoh.Config()
 
@@ -166,7 +188,7 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
         try:
             config.insert_json5(zenoh_key, json.dumps(value))
         except zenoh.ZError as exc:
-            raise ConfigError(f"telemetry.{key}", zenoh_error_text(exc)) from exc
+            raise ConfigError(f"telemetry.{key}", zenoh_error_text(exc)) from None
 
     insert("mode", "mode", settings.mode, DEFAULT_MODE)
     listen = None if settings.listen is None else list(settings.listen)
@@ -178,6 +200,8 @@ def build_zenoh_config(settings: TelemetrySettings) -> zenoh.Config:
         list(DEFAULT_CONNECT),
     )
     insert("scouting", "scouting/multicast/enabled", settings.scouting, False)
+    if not from_file or json.loads(config.get_json("connect/retry")) is None:
+        config.insert_json5("connect/retry", json.dumps(RECONNECT_RETRY))
     return config
 
 
@@ -324,8 +348,11 @@ _STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX)
 
 
 def zenoh_error_text(exc: BaseException) -> str:
-    """Zenoh's error message without the Rust source location it appends (" at /...rs:12")."""
-    return str(exc).split(" at /")[0].strip()
+    """Zenoh's error message on one line, without the Rust source locations it appends
+    (" at /...rs:12") and the backtrace lines some errors carry."""
+    lines = [line.split(" at /")[0].strip() for line in str(exc).splitlines()]
+    lines = [line for line in lines if line and not line.startswith(("at ", "Caused by"))]
+    return " ".join(" ".join(lines).split()) or type(exc).__name__
 
 
 class ZenohPublisher(TelemetryPublisher):
@@ -350,7 +377,6 @@ class ZenohPublisher(TelemetryPublisher):
         self._stop = threading.Event()
         self._lock = threading.Lock()  # counters and query state, shared with zenoh's threads
         self._thread: threading.Thread | None = None
-        self._config: zenoh.Config | None = None
         self._state = "idle"
         self._online = False
         self._sent = dict.fromkeys(_STREAMS, 0)
@@ -364,6 +390,9 @@ class ZenohPublisher(TelemetryPublisher):
         self._preview_publisher: zenoh.Publisher | None = None
         self._state_message: StateMessage | None = None
         self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
+        # Built now, so a bad configuration (a json5 file Zenoh refuses) stops the service at
+        # start-up and `netpose run --check` sees it too.
+        self._config = build_zenoh_config(settings)
 
     # --- frame-loop side: O(microseconds), never blocks on the network -------------------
 
@@ -372,10 +401,9 @@ class ZenohPublisher(TelemetryPublisher):
         return self._online
 
     def start(self) -> None:
-        """Validate the Zenoh configuration now (ConfigError) and connect in the background."""
+        """Connect in the background (the configuration was checked at construction)."""
         if self._thread is not None:
             return
-        self._config = build_zenoh_config(self.settings)
         self._state = "connecting"
         self._thread = threading.Thread(target=self._run, name="netpose-telemetry", daemon=True)
         self._thread.start()
@@ -490,7 +518,6 @@ class ZenohPublisher(TelemetryPublisher):
 
     def _connect(self) -> zenoh.Session | None:
         """Open the session, retrying with backoff; None when asked to stop first."""
-        assert self._config is not None
         logged = False
         while not self._stop.is_set():
             self._open_attempts += 1

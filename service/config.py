@@ -46,9 +46,9 @@ BUILTIN_CALIBRATION = "builtin"
 class CameraSettings:
     """`[camera]`: where frames come from and how the lens is described."""
 
-    # Frame source URL; the schemes are those of drivers.sources (synthetic:, rtsp://, v4l2:...,
-    # file paths). See docs/sources.md.
-    url: str = "synthetic:"
+    # REQUIRED. Frame source URL; the schemes are those of drivers.sources (rtsp://, v4l2:...,
+    # file paths, synthetic:). See docs/sources.md.
+    url: str
     # ROS camera_info YAML (or OpenCV FileStorage) for this camera at any resolution of the same
     # aspect ratio; relative paths are relative to the configuration file. "builtin" means the
     # source describes its own camera (only the synthetic source does).
@@ -179,7 +179,8 @@ def parse_override(text: str) -> tuple[str, str, Any]:
 
 def read_toml(path: Path) -> dict[str, Any]:
     try:
-        text = path.read_text(encoding="utf-8")
+        # utf-8-sig: a file saved by an editor that writes a byte-order mark reads the same.
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ConfigError(str(path), "configuration file not found") from None
     except (OSError, UnicodeDecodeError) as exc:

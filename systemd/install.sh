@@ -1,35 +1,48 @@
 #!/bin/sh
 # Install netpose as a systemd service on a Raspberry Pi / Debian bookworm (run as root from a
 # checkout: `sudo systemd/install.sh`). Idempotent: re-running upgrades the code and keeps the
-# configuration in /etc/netpose.
+# configuration in $CONF_DIR.
 #
 #   - system user `netpose` (no login), in the video and dialout groups;
-#   - /opt/netpose/src: a copy of this checkout; /opt/netpose/venv: a venv made with
-#     --system-site-packages, so Debian's python3-opencv/numpy/scipy are reused (no wheels to
-#     build on a 32-bit Pi);
-#   - /etc/netpose/netpose.toml from config/netpose.toml unless one exists (CONFIG=... picks
-#     another example, e.g. CONFIG=config/blueos.toml);
-#   - /etc/systemd/system/netpose.service, daemon-reload, enable (start with START=1).
+#   - $PREFIX/src: a copy of this checkout; $PREFIX/venv: a venv made with
+#     --system-site-packages, so Debian's python3-opencv/numpy/scipy/lxml are reused (no wheels
+#     to build on a 32-bit Pi);
+#   - $CONF_DIR/netpose.toml from a vehicle profile unless one exists: PROFILE=raspberrypi (the
+#     default: V4L2 camera, serial autopilot) or PROFILE=blueos (a BlueOS vehicle; the BlueOS
+#     extension is the usual way there, docs/blueos.md). The profile leaves the net's mesh size
+#     for you to fill: the service refuses to start until it is set;
+#   - $UNIT_DIR/netpose.service with these paths, daemon-reload, enable (start with START=1).
+#
+# Variables: PREFIX (/opt/netpose), CONF_DIR (/etc/netpose), UNIT_DIR (/etc/systemd/system),
+# PROFILE (raspberrypi), CONFIG (a file to install instead of the profile), PYTHON (python3),
+# START (0).
 set -eu
 
 SRC_DIR=$(CDPATH= cd -- "$(dirname -- "$0")/.." && pwd)
 PREFIX=${PREFIX:-/opt/netpose}
 CONF_DIR=${CONF_DIR:-/etc/netpose}
 UNIT_DIR=${UNIT_DIR:-/etc/systemd/system}
-CONFIG=${CONFIG:-config/netpose.toml}
+PROFILE=${PROFILE:-raspberrypi}
+CONFIG=${CONFIG:-config/$PROFILE.toml}
 PYTHON=${PYTHON:-python3}
 START=${START:-0}
+SERVICE_USER=netpose
 
 if [ "$(id -u)" -ne 0 ]; then
     echo "install.sh: run as root (sudo $0)" >&2
+    exit 1
+fi
+if [ ! -f "$SRC_DIR/$CONFIG" ]; then
+    echo "install.sh: no such configuration: $SRC_DIR/$CONFIG (PROFILE=raspberrypi|blueos)" >&2
     exit 1
 fi
 
 echo "netpose: Debian packages (skipped when present)"
 if command -v apt-get >/dev/null 2>&1; then
     missing=""
+    # python3-lxml: pymavlink's XML parser, prebuilt (pip would compile it on a Pi).
     for pkg in python3-venv python3-numpy python3-scipy python3-opencv python3-yaml \
-               python3-serial; do
+               python3-serial python3-lxml; do
         dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"
     done
     if [ -n "$missing" ]; then
@@ -38,12 +51,12 @@ if command -v apt-get >/dev/null 2>&1; then
 fi
 
 echo "netpose: user and groups"
-if ! id netpose >/dev/null 2>&1; then
+if ! id "$SERVICE_USER" >/dev/null 2>&1; then
     useradd --system --home-dir /var/lib/netpose --no-create-home \
-        --shell /usr/sbin/nologin --user-group netpose
+        --shell /usr/sbin/nologin --user-group "$SERVICE_USER"
 fi
 for group in video dialout; do
-    getent group "$group" >/dev/null && usermod -a -G "$group" netpose
+    getent group "$group" >/dev/null && usermod -a -G "$group" "$SERVICE_USER"
 done
 
 echo "netpose: code in $PREFIX"
@@ -63,30 +76,45 @@ if ! "$PREFIX/venv/bin/python" -c "import cv2" 2>/dev/null; then
 fi
 
 echo "netpose: configuration in $CONF_DIR"
-install -d -m 0750 -o root -g netpose "$CONF_DIR"
+install -d -m 0750 -o root -g "$SERVICE_USER" "$CONF_DIR"
 if [ ! -e "$CONF_DIR/netpose.toml" ]; then
-    install -m 0640 -o root -g netpose "$SRC_DIR/$CONFIG" "$CONF_DIR/netpose.toml"
-    echo "netpose: wrote $CONF_DIR/netpose.toml from $CONFIG: edit it (mesh, camera, MAVLink)"
+    install -m 0640 -o root -g "$SERVICE_USER" "$SRC_DIR/$CONFIG" "$CONF_DIR/netpose.toml"
+    echo "netpose: wrote $CONF_DIR/netpose.toml from $CONFIG: set the mesh size, the camera"
+    echo "         calibration and the MAVLink endpoint (see the comments in the file)"
 else
     echo "netpose: keeping existing $CONF_DIR/netpose.toml"
 fi
 
-# Validate without opening any device (exit 78 names the key to fix); not fatal here, the
-# service would refuse to start with the same message.
-if ! "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" --check; then
-    echo "netpose: fix $CONF_DIR/netpose.toml before starting the service" >&2
-fi
-
 echo "netpose: systemd unit"
-install -m 0644 "$SRC_DIR/systemd/netpose.service" "$UNIT_DIR/netpose.service"
-if command -v systemd-analyze >/dev/null 2>&1; then
-    systemd-analyze verify "$UNIT_DIR/netpose.service"
+# The unit names the paths of this installation (PREFIX, CONF_DIR may differ from the defaults).
+unit_tmp=$(mktemp)
+trap 'rm -f "$unit_tmp"' EXIT
+sed -e "s#/opt/netpose#$PREFIX#g" -e "s#/etc/netpose/netpose.toml#$CONF_DIR/netpose.toml#g" \
+    "$SRC_DIR/systemd/netpose.service" > "$unit_tmp"
+if command -v systemd-analyze >/dev/null 2>&1 && ! systemd-analyze verify "$unit_tmp"; then
+    # Not fatal: a warning about this system must not leave a half-installed service behind.
+    echo "netpose: systemd-analyze verify reported problems (above); installing anyway" >&2
 fi
+install -m 0644 "$unit_tmp" "$UNIT_DIR/netpose.service"
 systemctl daemon-reload
 systemctl enable netpose.service
-if [ "$START" = "1" ]; then
-    systemctl restart netpose.service
-    systemctl --no-pager status netpose.service || true
+
+# Validate as the service user, so files it cannot read fail here and not at start; no device
+# is opened. Exit 78 names the key to fix.
+if command -v runuser >/dev/null 2>&1; then
+    as_service="runuser -u $SERVICE_USER --"
 else
-    echo "netpose: installed and enabled; start with: systemctl start netpose"
+    as_service="setpriv --reuid=$SERVICE_USER --regid=$SERVICE_USER --init-groups"
+fi
+if $as_service "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" --check; then
+    if [ "$START" = "1" ]; then
+        systemctl restart netpose.service
+        systemctl --no-pager status netpose.service || true
+    else
+        echo "netpose: installed and enabled; start with: systemctl start netpose"
+    fi
+else
+    echo "netpose: installed and enabled, but not started: fix $CONF_DIR/netpose.toml as the" >&2
+    echo "         line above says, check again with: $as_service $PREFIX/venv/bin/netpose run \\" >&2
+    echo "         --config $CONF_DIR/netpose.toml --check; then: systemctl start netpose" >&2
 fi

@@ -86,7 +86,7 @@ class ScriptedSource:
         return step.frame
 
     def stats(self) -> Any:
-        return type("Counters", (), {"drops": 0, "corrupt": 0, "reconnects": 0})()
+        return type("Counters", (), {"drops": 0, "corrupt": 0, "reconnects": 0, "error": ""})()
 
     def close(self) -> None:
         self.closed = True
@@ -151,14 +151,15 @@ class RecordingObserver:
 
 def make_harness(config: Config, script: Iterable[Step], *, start: float = 100.0,
                  load_config: Callable[[], Config] | None = None,
-                 observers: tuple[Any, ...] = ()) -> Harness:
+                 observers: tuple[Any, ...] = (), distance_to_autopilot: bool = True) -> Harness:
     clock = FakeClock(start)
     source = ScriptedSource(script, clock)
     link = RecordingAutopilotLink()
     telemetry = RecordingPublisher()
     notifier = RecordingNotifier(watchdog_interval_s=1.0)
     parts = DaemonParts(source=source, link=link, telemetry=telemetry, notifier=notifier,
-                        camera=builtin_camera(640, 360), vehicle="test", observers=observers)
+                        camera=builtin_camera(640, 360), vehicle="test", observers=observers,
+                        distance_to_autopilot=distance_to_autopilot)
     daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall, load_config=load_config)
     daemon.start()
     return Harness(daemon, clock, source, link, telemetry, notifier)

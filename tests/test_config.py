@@ -26,7 +26,7 @@ from service.daemon.wiring import driver_sections
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = REPO / "config"
 
-MINIMAL = '[mesh]\nbar_length_m = 0.025\n'
+MINIMAL = '[camera]\nurl = "synthetic:"\n[mesh]\nbar_length_m = 0.025\n'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +54,7 @@ def write(tmp_path: Path, text: str, name: str = "netpose.toml") -> Path:
 
 def test_defaults_fill_every_section(tmp_path: Path) -> None:
     cfg = load_config(write(tmp_path, MINIMAL))
-    assert cfg.camera == CameraSettings()
+    assert cfg.camera == CameraSettings(url="synthetic:")
     assert cfg.filter == FilterSettings()
     assert cfg.service == ServiceSettings()
     assert cfg.mesh.bar_length_m == 0.025 and cfg.mesh.opening_angle_deg == 90.0
@@ -64,9 +64,22 @@ def test_defaults_fill_every_section(tmp_path: Path) -> None:
 
 def test_missing_required_key_is_named(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
-        load_config(write(tmp_path, "[filter]\ngate_sigma = 3.0\n"))
+        load_config(write(tmp_path, "[camera]\nurl = 'synthetic:'\n[filter]\ngate_sigma = 3.0\n"))
     assert info.value.key == "mesh.bar_length_m"
     assert "required" in info.value.problem
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, "[mesh]\nbar_length_m = 0.02\n"))
+    assert info.value.key == "camera.url" and "required" in info.value.problem
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, "[camera]\nurl = ''\n[mesh]\nbar_length_m = 0.02\n"))
+    assert info.value.key == "camera.url"
+
+
+def test_a_file_with_a_byte_order_mark_reads_like_one_without(tmp_path: Path) -> None:
+    plain = load_config(write(tmp_path, MINIMAL))
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + MINIMAL.encode())
+    assert load_config(p).effective == plain.effective
 
 
 @pytest.mark.parametrize(
@@ -80,7 +93,11 @@ def test_missing_required_key_is_named(tmp_path: Path) -> None:
         ("[filter]\ngate_sigma = -1\n", "filter.gate_sigma", "positive"),
         ("[filter]\ngate_sigma = nan\n", "filter.gate_sigma", "finite"),
         ("[service]\nlog_level = 'LOUD'\n", "service.log_level", "must be one of"),
-        ("[camera]\nread_timeout_s = 2.0\n", "camera.read_timeout_s", "within a second"),
+        ("[camera]\nurl = 'synthetic:'\nread_timeout_s = 2.0\n[mesh]\nbar_length_m = 0.025\n",
+         "camera.read_timeout_s", "within a second"),
+        ("[telemetry]\nconnect = ['tcp/127.0.0.1']\n", "telemetry.connect", "needs a port"),
+        ("[telemetry]\nlisten = ['tcp/10.0.0.300:7447']\n", "telemetry.listen", "invalid IPv4"),
+        ("[mavlink]\nallow_simulated = 'yes'\n", "mavlink.allow_simulated", "true or false"),
         ("[link]\nrate_hz = 500.0\n", "link.rate_hz", "1..50"),
         ("[link]\nendpoints = [1, 2]\n", "link.endpoints", "must be a string"),
         ("[link]\nmode = 'c'\n", "link.mode", "must be one of"),
@@ -90,15 +107,19 @@ def test_missing_required_key_is_named(tmp_path: Path) -> None:
 def test_bad_values_name_the_key(tmp_path: Path, text: str, key: str, words: str) -> None:
     with pytest.raises(ConfigError) as info:
         # Top-level keys must come before the first table to be top-level.
-        full = MINIMAL + text if text.startswith("[") else text + MINIMAL
-        load_config(write(tmp_path, full), extra_sections={"link": LinkSettings})
+        if "[mesh]" in text:
+            full = text  # a complete file
+        else:
+            full = MINIMAL + text if text.startswith("[") else text + MINIMAL
+        load_config(write(tmp_path, full),
+                    extra_sections={"link": LinkSettings, **driver_sections()})
     assert info.value.key == key
     assert words in info.value.problem
 
 
 def test_mesh_range_checked_by_the_mesh_itself(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
-        load_config(write(tmp_path, "[mesh]\nbar_length_m = 5.0\n"))
+        load_config(write(tmp_path, "[camera]\nurl = 'synthetic:'\n[mesh]\nbar_length_m = 5.0\n"))
     assert info.value.key == "mesh.bar_length_m"
 
 
@@ -116,7 +137,8 @@ def test_missing_file(tmp_path: Path) -> None:
 
 
 def test_calibration_path_relative_to_config_and_must_exist(tmp_path: Path) -> None:
-    text = MINIMAL + "[camera]\nurl = 'rtsp://127.0.0.1:8554/x'\ncalibration = 'cam.yaml'\n"
+    text = ("[mesh]\nbar_length_m = 0.025\n[camera]\nurl = 'rtsp://127.0.0.1:8554/x'\n"
+            "calibration = 'cam.yaml'\n")
     p = write(tmp_path, text)
     with pytest.raises(ConfigError) as info:
         load_config(p)
@@ -191,13 +213,28 @@ def _all_sections() -> dict[str, type]:
     return driver_sections()
 
 
-@pytest.mark.parametrize("name", ["netpose.toml", "demo.toml", "blueos.toml", "raspberrypi.toml"])
+@pytest.mark.parametrize("name", ["netpose.toml", "demo.toml"])
 def test_shipped_configs_are_valid(name: str) -> None:
     path = _shipped(name)
     if not path.exists():
         pytest.fail(f"{path} is missing")
     cfg = load_config(path, extra_sections=_all_sections(), check_files=False)
     assert isinstance(cfg, Config)
+
+
+@pytest.mark.parametrize("name", ["blueos.toml", "raspberrypi.toml"])
+def test_vehicle_configs_leave_the_mesh_to_the_user(name: str) -> None:
+    """What install.sh installs is a real vehicle's configuration: it refuses to start until the
+    user has said what net this is (no pre-filled mesh size that would silently scale every
+    distance), and it never sends rendered distances."""
+    path = _shipped(name)
+    with pytest.raises(ConfigError) as info:
+        load_config(path, extra_sections=_all_sections(), check_files=False)
+    assert info.value.key == "mesh.bar_length_m" and "required" in info.value.problem
+    cfg = load_config(path, ["mesh.bar_length_m=0.02"], extra_sections=_all_sections(),
+                      check_files=False)
+    assert cfg.effective["mavlink"]["allow_simulated"] is False
+    assert not cfg.camera.url.startswith(("synthetic:", "sim:"))
 
 
 def test_reference_config_documents_every_key_with_its_default() -> None:

@@ -145,6 +145,7 @@ def test_covariance_is_variance_in_cm2_or_unknown() -> None:
     assert covariance_cm2(0.03) == 9  # (3 cm)^2
     assert covariance_cm2(0.1) == 100
     assert covariance_cm2(0.159) == 253
+    assert covariance_cm2(0.004) == covariance_cm2(0.0) == 1  # never 0, a "perfect" sensor
     assert covariance_cm2(0.2) == 255  # 400 cm^2 does not fit: unknown, not a false 254
     assert covariance_cm2(math.nan) == 255
 

@@ -630,3 +630,20 @@ def test_preview_is_wanted_only_when_someone_subscribes_to_it(
         previews.undeclare()
         wait_for(lambda: not wanted_a_period_later(), 5, "the preview subscriber to leave")
         estimates_only.undeclare()
+
+
+def test_the_documented_tether_security_example_is_a_valid_zenoh_configuration(
+    tmp_path: Path,
+) -> None:
+    """docs/telemetry.md's TLS + access-control file: every key exists in this Zenoh, and
+    netpose builds its session configuration on top of it without overriding its endpoints."""
+    text = DOCS.read_text(encoding="utf-8")
+    example = text.split("### Securing the tether", 1)[1].split("```json5\n", 1)[1]
+    example = example.split("```", 1)[0]
+    path = tmp_path / "zenoh.json5"
+    path.write_text(example)
+    config = build_zenoh_config(TelemetrySettings(config_file=str(path)))
+    assert json.loads(config.get_json("listen/endpoints")) == ["tls/192.168.2.2:7447"]
+    assert json.loads(config.get_json("transport/link/tls/enable_mtls")) is True
+    acl = json.loads(config.get_json("access_control"))
+    assert acl["enabled"] and acl["default_permission"] == "deny"

@@ -348,10 +348,10 @@ def _tuning(path: Path | None, mesh_size: float) -> Tuning:
     from INPUT)."""
     if path is None:
         return Tuning()
-    # A configuration may leave the mesh to be set, or name a calibration file of the vehicle
-    # that is not here: neither matters to the replay.
-    config = load_daemon_config(str(path), [f"mesh.bar_length_m={mesh_size!r}"],
-                                check_files=False)
+    # A configuration may leave the mesh or the camera to be set, or name a calibration file of
+    # the vehicle that is not here: none of that matters to the replay (INPUT is the source).
+    config = load_daemon_config(str(path), [f"mesh.bar_length_m={mesh_size!r}",
+                                            "camera.url=replay-input"], check_files=False)
     return Tuning(config.estimator, config.filter, config.service.autopilot_distance)
 
 

@@ -19,6 +19,7 @@ from service.core.messages import (
     StatusMessage,
     TruthView,
 )
+from service.core.readings import RangeReading
 from service.core.tracking import TrackOutput
 from service.daemon.events import OnceLogger
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
@@ -32,11 +33,11 @@ class PreviewSettings:
     quality: int = 70
 
 
-def filtered_view(track: TrackOutput, result: PipelineResult) -> FilteredView:
+def filtered_view(track: TrackOutput, sent: RangeReading) -> FilteredView:
     rate = track.distance_rate_mps
     return FilteredView(
         valid=track.valid,
-        autopilot=result.reading.status.value,
+        autopilot=sent.status.value,
         state=track.state.value,
         measurement=track.measurement.value,
         distance_m=track.distance_m,
@@ -71,9 +72,10 @@ def truth_view(truth: object | None) -> TruthView | None:
 
 def estimate_message(
     *, vehicle: str, seq: int, frame: Frame, result: PipelineResult, now_mono: float,
-    now_unix: float,
+    now_unix: float, sent: RangeReading | None = None,
 ) -> EstimateMessage:
-    """The telemetry message of one processed frame."""
+    """The telemetry message of one processed frame; `sent` is what the autopilot was given
+    (the pipeline's reading unless the outputs withheld it)."""
     est = result.estimate
     stages = dict(est.timings_ms) if est is not None else {}
     total = stages.pop("total", None)
@@ -97,7 +99,7 @@ def estimate_message(
         rois=len(est.rois) if est is not None else 0,
         rois_used=est.rois_used if est is not None else 0,
         reason=est.reason if est is not None else (result.error or "estimator error"),
-        filtered=filtered_view(result.track, result), latency_ms=latency,
+        filtered=filtered_view(result.track, sent or result.reading), latency_ms=latency,
         truth=truth_view(frame.truth),
     )
 
@@ -114,6 +116,8 @@ class FrameOutputs:
         wall_clock: Callable[[], float],
         problems: OnceLogger,
         observers: Sequence[FrameObserver] = (),
+        *,
+        distance_to_autopilot: bool = True,
     ) -> None:
         self._link = link
         self._telemetry = telemetry
@@ -122,16 +126,22 @@ class FrameOutputs:
         self._wall_clock = wall_clock
         self._problems = problems
         self._observers = tuple(observers)
+        self._distance_to_autopilot = distance_to_autopilot
         self._seq = 0
         self.last_estimate: EstimateMessage | None = None
 
-    def to_autopilot(self, result: PipelineResult) -> None:
-        self._link.set_range(result.reading)
+    def to_autopilot(self, result: PipelineResult) -> RangeReading:
+        """Hand the reading to the link; returns what it was given."""
+        reading = result.reading if self._distance_to_autopilot else RangeReading.none(result.t)
+        self._link.set_range(reading)
+        return reading
 
-    def publish(self, frame: Frame, result: PipelineResult, now: float) -> None:
+    def publish(self, frame: Frame, result: PipelineResult, sent: RangeReading,
+                now: float) -> None:
         self._seq += 1
         message = estimate_message(vehicle=self._vehicle, seq=self._seq, frame=frame,
-                                   result=result, now_mono=now, now_unix=self._wall_clock())
+                                   result=result, now_mono=now, now_unix=self._wall_clock(),
+                                   sent=sent)
         self.last_estimate = message
         self._telemetry.publish_estimate(message)
         for observer in self._observers:

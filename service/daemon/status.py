@@ -23,6 +23,7 @@ from service.core.messages import (
     StateMessage,
     StatusLatency,
     StatusMessage,
+    TelemetryHealth,
 )
 from service.core.redact import redact_config
 from service.core.tracking import NetTracker, TrackOutput
@@ -121,12 +122,13 @@ class StatusReporter:
         ctx = self._ctx
         link = ctx.link.status()
         self._log_link(link.state, link.url, now)
-        self._log_telemetry(ctx.telemetry.online, now)
+        telemetry = ctx.telemetry.status() if self.telemetry_enabled else None
+        self._log_telemetry(telemetry, now)
         snapshot = ctx.stats.snapshot()
         period = snapshot.minus(self._mark)
         seconds = now - self._mark_at
         usage = self._usage()
-        message = self._status_message(now, link, period, seconds, usage)
+        message = self._status_message(now, link, telemetry, period, seconds, usage)
         ctx.notifier.status(self.status_line(last, period, seconds, link.state))
         ctx.telemetry.publish_status(message)
         ctx.outputs.publish_status(message)
@@ -138,8 +140,8 @@ class StatusReporter:
         return message
 
     def _status_message(
-        self, now: float, link: AutopilotHealth, period: StatsSnapshot, seconds: float,
-        usage: ProcessUsage,
+        self, now: float, link: AutopilotHealth, telemetry: TelemetryHealth | None,
+        period: StatsSnapshot, seconds: float, usage: ProcessUsage,
     ) -> StatusMessage:
         ctx = self._ctx
         counters = ctx.source.stats()
@@ -150,12 +152,17 @@ class StatusReporter:
             source_state = "streaming"
         else:
             source_state = "starting" if watch.last_frame_at is None else "reconnecting"
+        refusing = period.frames > 0 and period.errors == period.frames
+        # Degraded: a part that should work does not (no frames, every frame refused, an
+        # autopilot that answered and stopped). An autopilot that never answered is shown in
+        # `autopilot.state` ("waiting") without degrading: a demo has none.
+        degraded = not watch.up or refusing or link.state == "lost"
         return StatusMessage(
             vehicle=self._vehicle,
             time_unix=self._wall_clock(),
             time_mono=now,
             version=__version__,
-            state="running" if watch.up and link.state == "connected" else "degraded",
+            state="degraded" if degraded else "running",
             uptime_s=now - self._started_at,
             config_digest=self.config_digest,
             frame_source=FrameSourceHealth(
@@ -163,6 +170,7 @@ class StatusReporter:
                 dropped=ctx.stats.skipped + counters.drops, corrupt=counters.corrupt,
                 last_frame_age_s=None if watch.last_frame_at is None
                 else now - watch.last_frame_at,
+                error=counters.error,
             ),
             autopilot=link,
             estimator=EstimatorHealth(
@@ -172,12 +180,12 @@ class StatusReporter:
                 errors=ctx.stats.errors, last_error=ctx.stats.last_error,
             ),
             cpu=CpuHealth(
-                cores=os.cpu_count(), load_1m=os.getloadavg()[0],
+                cores=os.cpu_count(), load_1m=_load_1m(),
                 process_percent=(usage.cpu_s - self._mark_cpu) / seconds * 100
                 if seconds > 0 else None,
                 rss_mb=usage.rss_mb,
             ),
-            telemetry=ctx.telemetry.status() if self.telemetry_enabled else None,
+            telemetry=telemetry,
             filter=FilterHealth(
                 state=ctx.track_log.state.value, accepted=ctx.tracker.accepted_total,
                 rejected=ctx.tracker.rejected_total, resets=ctx.tracker.resets_total,
@@ -193,7 +201,10 @@ class StatusReporter:
         fps = period.frames / seconds if seconds > 0 else 0.0
         det = 100.0 * period.detected / period.frames if period.frames else 0.0
         if not self._ctx.source_watch.up:
-            head = "no frames"
+            error = self._ctx.source.stats().error
+            head = "no frames" + (f" ({error})" if error else "")
+        elif period.frames and period.errors == period.frames:
+            head = f"estimator cannot use the frames: {self._ctx.stats.last_error}"
         elif out is None or out.distance_m is None:
             head = "searching"
         else:
@@ -228,9 +239,26 @@ class StatusReporter:
             log.log(level, "MAVLink link %s (%s)%s", state, url,
                     f" (after {between} more change(s))" if between else "")
 
-    def _log_telemetry(self, online: bool, now: float) -> None:
-        if not self.telemetry_enabled:
+    def _log_telemetry(self, health: TelemetryHealth | None, now: float) -> None:
+        """Online means someone can receive: a session with no router or peer linked is said
+        as such, and so is the last peer leaving."""
+        if health is None:
             return
-        due, _, _ = self._states.update("telemetry", online, now)
+        if health.state != "online":
+            state = "offline"
+        elif health.linked is False:
+            state = "online, nobody connected"
+        else:
+            state = "online, linked"
+        due, _, between = self._states.update("telemetry", state, now)
         if due:
-            log.info("telemetry %s", "online" if online else "offline")
+            log.info("telemetry %s%s", state,
+                     f" (after {between} more change(s))" if between else "")
+
+
+def _load_1m() -> float | None:
+    """The system's 1-minute load, or None where /proc hides it (systemd's ProcSubset=pid)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 from drivers.mavlink_link import MavlinkLink
 from drivers.mavlink_settings import MavlinkSettings
-from drivers.sdnotify import notifier_from_environment
+from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
 from drivers.sources import SourceOptions, create_source
 from drivers.telemetry import TelemetrySettings, make_publisher
@@ -38,9 +38,10 @@ def load_daemon_config(
 
 
 def build_source(config: Config) -> DriverFrameSource:
-    """The frame source for `camera.url`, built but not yet opened."""
+    """The frame source for `camera.url`, built but not yet opened. A source that is not there
+    at start (the camera manager starts after us) is waited for, like one lost later."""
     # A live source that delivers nothing for stale_after_s is re-opened by the source itself.
-    options = SourceOptions(stall_timeout_s=config.camera.stale_after_s)
+    options = SourceOptions(stall_timeout_s=config.camera.stale_after_s, wait_at_start=True)
     return create_source(config.camera.url, options)
 
 
@@ -52,36 +53,42 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     if source.camera is None:
         raise ConfigError(
             "camera.calibration",
-            "this source does not describe its camera: give a calibration file",
+            f"required for {source.url.split(':', 1)[0]}: sources (only rendered sources "
+            "describe their own camera): give the camera's calibration file",
         )
     return source.camera
 
 
 def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
+    """Every part of the daemon, built and checked, nothing opened: what `run` starts and what
+    `run --check` validates are the same objects."""
     source = build_source(config)
+    camera = resolve_camera(config, source)
+    mavlink = config.section("mavlink", MavlinkSettings)
     telemetry = config.section("telemetry", TelemetrySettings)
     return DaemonParts(
         source=source,
-        link=MavlinkLink(config.section("mavlink", MavlinkSettings)),
-        telemetry=make_publisher(telemetry),
+        link=MavlinkLink(mavlink),  # reads and checks the signing key
+        telemetry=make_publisher(telemetry),  # builds the Zenoh configuration
         notifier=notifier,
-        camera=resolve_camera(config, source),
+        camera=camera,
         vehicle=telemetry.vehicle,
         preview=PreviewSettings(width=telemetry.preview_width,
                                 quality=telemetry.preview_quality),
         telemetry_enabled=telemetry.enabled,
+        distance_to_autopilot=not source.rendered or mavlink.allow_simulated,
     )
 
 
 def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
-    """`netpose run --check`: validate everything that can be checked without opening a device
-    (settings, calibration file, source URL); raises ConfigError/CalibrationError."""
+    """`netpose run --check`: the same loading and building as `run`, stopping before anything
+    is opened; raises ConfigError/CalibrationError."""
     config = load_daemon_config(config_path, overrides)
-    path = config.calibration_path()
-    if path is not None:
-        load_camera(path)
-    build_source(config)  # built, not opened: parses and checks the URL and its options
-    return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
+    parts = build_parts(config, NullNotifier())
+    parts.source.close()
+    notes = "" if parts.distance_to_autopilot else (
+        "; rendered source: no distance goes to the autopilot (mavlink.allow_simulated)")
+    return f"configuration OK: {config.path or 'defaults'} ({config.digest}){notes}"
 
 
 def main(

@@ -1,0 +1,140 @@
+"""What `netpose run` builds before it opens anything, and what `--check` therefore catches.
+
+`run --check` and `run` share one validation (`service.daemon.wiring.build_parts`): a
+configuration that `--check` passes starts, one it refuses never starts, and both name the same
+key. Rendered distances never reach an autopilot unless the configuration says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.sdnotify import NullNotifier
+from service.core.errors import ConfigError
+from service.core.readings import RangeStatus
+from service.daemon.wiring import build_parts, check_config, load_daemon_config
+from tests.daemon_harness import REPO, Step, demo_config, frames_at, make_harness, render_frames
+from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
+
+DEMO = REPO / "config" / "demo.toml"
+CAMERA = "camera.url=rtsp://127.0.0.1:9/none"
+
+
+def bad_cases(tmp: Path) -> list[tuple[list[str], str, str]]:
+    """(overrides, the key named, words of the problem) for configurations run must refuse."""
+    short_key = tmp / "short.key"
+    short_key.write_bytes(b"0123456789")
+    broken_json5 = tmp / "broken.json5"
+    broken_json5.write_text("{ mode: 'peer', connect: { endpoints: [ } ")
+    return [
+        ([CAMERA, "camera.calibration=builtin"], "camera.calibration", "rtsp"),
+        ([f"mavlink.signing_key_file={tmp / 'absent.key'}"], "mavlink.signing_key_file",
+         "cannot read"),
+        ([f"mavlink.signing_key_file={short_key}"], "mavlink.signing_key_file", "32 raw bytes"),
+        ([f"telemetry.config_file={tmp / 'absent.json5'}"], "telemetry.config_file",
+         "does not exist"),
+        ([f"telemetry.config_file={broken_json5}"], "telemetry.config_file", "broken.json5"),
+        (["telemetry.connect=['tcp/127.0.0.1']"], "telemetry.connect", "needs a port"),
+        (["telemetry.listen=['tcp/300.0.0.1:7447']"], "telemetry.listen", "invalid IPv4"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(7))
+def test_check_refuses_what_run_would_refuse(tmp_path: Path, case: int) -> None:
+    overrides, key, words = bad_cases(tmp_path)[case]
+    with pytest.raises(ConfigError) as info:
+        check_config(str(DEMO), overrides)
+    assert info.value.key == key and words in str(info.value), str(info.value)
+    assert "\n" not in str(info.value)  # one line, however the library words its error
+
+
+def test_check_and_run_exit_78_with_the_same_line(tmp_path: Path) -> None:
+    """The real command: both refuse before anything is opened, with the same one line."""
+    lines = []
+    for overrides, key, _ in bad_cases(tmp_path)[3:5]:
+        for extra in (["--check"], ["--duration", "5"]):
+            cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(DEMO)]
+            for o in overrides:
+                cmd += ["--set", o]
+            proc = subprocess.run(cmd + extra, cwd=REPO, capture_output=True, text=True,
+                                  timeout=60)
+            assert proc.returncode == 78, proc.stderr
+            last = proc.stderr.strip().splitlines()[-1]
+            assert last.startswith(f"netpose: configuration error: {key}: "), proc.stderr
+            assert "READY" not in proc.stderr and "started" not in proc.stderr
+            lines.append(last)
+    assert lines[0] == lines[1] and lines[2] == lines[3]
+
+
+def test_check_builds_what_run_starts_and_opens_nothing(tmp_path: Path) -> None:
+    text = check_config(str(DEMO))
+    assert text.startswith("configuration OK") and "sha256:" in text
+    # The demo's rendered distances may go to its ground station: it says so explicitly.
+    assert "allow_simulated" not in text
+    refused = check_config(str(DEMO), ["mavlink.allow_simulated=false"])
+    assert "rendered source: no distance goes to the autopilot" in refused
+
+
+def test_rendered_distances_are_withheld_without_allow_simulated(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = demo_config("mavlink.allow_simulated=false")
+    parts = build_parts(config, NullNotifier())
+    parts.source.close()
+    assert parts.distance_to_autopilot is False
+    assert build_parts(demo_config(), NullNotifier()).distance_to_autopilot is True
+    frames = render_frames("synthetic:?width=640&height=360&fps=10&trajectory=static&seed=2", 8)
+    caplog.set_level(logging.WARNING, logger="netpose.daemon")
+    h = make_harness(config, [Step(frame=f) for f in frames_at(frames, 10.0, 100.0)],
+                     distance_to_autopilot=False)
+    h.run_script()
+    assert all(r.status is RangeStatus.NONE for r in h.link.ranges)
+    believed = [e.filtered for e in h.telemetry.estimates if e.filtered and e.filtered.valid]
+    assert believed, "the filter did track the rendered net"
+    assert all(f.autopilot == "none" for f in believed)  # telemetry says what was withheld
+    assert "rendered source" in caplog.text and "allow_simulated" in caplog.text
+
+
+def test_the_daemon_process_sends_no_rendered_distance_to_an_autopilot() -> None:
+    """The QA finding, end to end: a rendered source and a real (fake) autopilot on MAVLink,
+    without allow_simulated. Heartbeats flow, not one DISTANCE_SENSOR does."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(DEMO),
+               "--duration", "6", "--set", f"mavlink.url={autopilot.url}",
+               "--set", "mavlink.allow_simulated=false", "--set", "telemetry.enabled=false"]
+        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60,
+                              env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        time.sleep(0.2)
+        heartbeats = autopilot.received("HEARTBEAT")
+        distances = autopilot.received("DISTANCE_SENSOR")
+    assert proc.returncode == 0, proc.stderr
+    assert "net acquired" in proc.stderr  # the estimator and filter did see the net
+    assert len(heartbeats) >= 3 and distances == []
+
+
+def test_a_world_readable_signing_key_is_named_in_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    key = tmp_path / "mavlink.key"
+    key.write_bytes(os.urandom(32))
+    key.chmod(0o644)
+    caplog.set_level(logging.WARNING, logger="drivers.mavlink_settings")
+    check_config(str(DEMO), [f"mavlink.signing_key_file={key}"])
+    assert "readable by every user" in caplog.text and str(key) in caplog.text
+    caplog.clear()
+    key.chmod(0o600)
+    check_config(str(DEMO), [f"mavlink.signing_key_file={key}"])
+    assert "readable by every user" not in caplog.text
+
+
+def test_vehicle_profile_refuses_to_start_until_the_mesh_is_set() -> None:
+    with pytest.raises(ConfigError) as info:
+        load_daemon_config(str(REPO / "config" / "raspberrypi.toml"), check_files=False)
+    assert info.value.key == "mesh.bar_length_m"
