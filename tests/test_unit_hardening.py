@@ -29,18 +29,19 @@ PR_MDWE_REFUSE_EXEC_GAIN = 1
 SCMP_ACT_ALLOW = 0x7FFF0000
 SCMP_ACT_ERRNO_EPERM = 0x00050000 | 1  # SCMP_ACT_ERRNO(EPERM)
 # systemd 252's @privileged and @resources sets, flattened (`systemd-analyze syscall-filter`).
-DENIED = """
-    _sysctl acct bpf capset chroot fanotify_init fanotify_mark nfsservctl open_by_handle_at
-    pivot_root quotactl quotactl_fd setdomainname setfsuid setfsuid32 setgroups setgroups32
-    sethostname setresuid setresuid32 setreuid setreuid32 setuid setuid32 vhangup
-    chown chown32 fchown fchown32 fchownat lchown lchown32 adjtimex clock_adjtime
-    clock_adjtime64 clock_settime clock_settime64 settimeofday delete_module finit_module
-    init_module ioperm iopl pciconfig_iobase pciconfig_read pciconfig_write kexec_file_load
-    kexec_load reboot swapoff swapon
-    ioprio_set mbind migrate_pages move_pages nice sched_setaffinity sched_setattr
-    sched_setparam sched_setscheduler set_mempolicy set_mempolicy_home_node setpriority
-    setrlimit
-""".split()
+DENIED = (
+    "_sysctl", "acct", "bpf", "capset", "chroot", "fanotify_init", "fanotify_mark",
+    "nfsservctl", "open_by_handle_at", "pivot_root", "quotactl", "quotactl_fd", "setdomainname",
+    "setfsuid", "setfsuid32", "setgroups", "setgroups32", "sethostname", "setresuid",
+    "setresuid32", "setreuid", "setreuid32", "setuid", "setuid32", "vhangup", "chown",
+    "chown32", "fchown", "fchown32", "fchownat", "lchown", "lchown32", "adjtimex",
+    "clock_adjtime", "clock_adjtime64", "clock_settime", "clock_settime64", "settimeofday",
+    "delete_module", "finit_module", "init_module", "ioperm", "iopl", "pciconfig_iobase",
+    "pciconfig_read", "pciconfig_write", "kexec_file_load", "kexec_load", "reboot", "swapoff",
+    "swapon", "ioprio_set", "mbind", "migrate_pages", "move_pages", "nice", "sched_setaffinity",
+    "sched_setattr", "sched_setparam", "sched_setscheduler", "set_mempolicy",
+    "set_mempolicy_home_node", "setpriority", "setrlimit",
+)
 
 
 def _libs() -> tuple[ctypes.CDLL, ctypes.CDLL]:
