@@ -475,7 +475,7 @@ class ZenohPublisher(TelemetryPublisher):
                 last_error=self._last_error,
             )
 
-    def close(self, timeout: float = 3.0) -> None:
+    def close(self, timeout: float = 0.3) -> None:
         """Stop and join the worker. If it is stuck inside a Zenoh open (bounded by Zenoh's
         open timeout) this waits at most `timeout`; the daemon thread then ends on its own."""
         self._stop.set()

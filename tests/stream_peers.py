@@ -38,7 +38,8 @@ class Streamer:
     test patterns (the number tells how fresh a frame is), or `frames` (grey images, looped)."""
 
     def __init__(self, exe: str, output: list[str], first_number: int = 0, *,
-                 frames: Sequence[npt.NDArray[np.uint8]] | None = None, fps: int = FPS) -> None:
+                 frames: Sequence[npt.NDArray[np.uint8]] | None = None, fps: int = FPS,
+                 gop: int | None = None) -> None:
         self._frames = frames
         height, width = (HEIGHT, WIDTH) if frames is None else frames[0].shape[:2]
         self._size = (width, height)
@@ -49,7 +50,7 @@ class Streamer:
                 "-f", "rawvideo", "-pix_fmt", "gray", "-s", f"{width}x{height}", "-r", str(fps),
                 "-i", "-",
                 "-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency",
-                "-g", str(fps), "-pix_fmt", "yuv420p", "-flush_packets", "1",
+                "-g", str(gop or fps), "-pix_fmt", "yuv420p", "-flush_packets", "1",
                 *output,
             ],
             stdin=subprocess.PIPE,
@@ -213,14 +214,14 @@ class RtspServer:
 
 def rtp_to_rtsp(exe: str, tmp_path: Path, streamers: list[Streamer],
                 frames: Sequence[npt.NDArray[np.uint8]] | None = None,
-                fps: int = FPS) -> tuple[str, socket.socket]:
+                fps: int = FPS, gop: int | None = None) -> tuple[str, socket.socket]:
     """Start an RTP streamer into a fresh UDP socket; the SDP the RTSP server will describe."""
     rtp_in = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rtp_in.bind(("127.0.0.1", 0))
     sdp_file = tmp_path / "rtsp.sdp"
     streamers.append(Streamer(exe, ["-f", "rtp", "-sdp_file", str(sdp_file),
                                     f"rtp://127.0.0.1:{rtp_in.getsockname()[1]}"],
-                              frames=frames, fps=fps))
+                              frames=frames, fps=fps, gop=gop))
     assert wait_for(lambda: sdp_file.exists() and "rtpmap" in sdp_file.read_text(), 10.0)
     sdp = re.sub(r"c=IN IP4 \S+", "c=IN IP4 0.0.0.0", sdp_file.read_text()).strip()
     return "\r\n".join([*sdp.splitlines(), "a=control:trackID=0", ""]), rtp_in
