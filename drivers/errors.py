@@ -7,6 +7,7 @@ hardware/link problem from a bug.
 from __future__ import annotations
 
 from service.core.errors import NetposeError
+from service.core.redact import redact_text
 
 
 class DriverError(NetposeError):
@@ -22,9 +23,12 @@ class MavlinkLinkError(DriverError):
 
 
 class SourceError(DriverError):
-    """A frame source cannot be opened (or re-opened); `url` names it, `reason` says why."""
+    """A frame source cannot be opened (or re-opened); `url` names it, `reason` says why.
+
+    Both are redacted here, once: a camera's password or an SRT passphrase in the URL (or in a
+    library's error text that repeats it) never reaches a log, a status or an error line."""
 
     def __init__(self, url: str, reason: str) -> None:
-        super().__init__(f"frame source {url}: {reason}")
-        self.url = url
-        self.reason = reason
+        self.url = redact_text(url)
+        self.reason = redact_text(reason)
+        super().__init__(f"frame source {self.url}: {self.reason}")

@@ -7,6 +7,7 @@ key. Rendered distances never reach an autopilot unless the configuration says s
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import subprocess
@@ -16,11 +17,25 @@ from pathlib import Path
 
 import pytest
 
+from drivers.mavlink_link import RecordingAutopilotLink
 from drivers.sdnotify import NullNotifier
+from drivers.sources.synthetic import builtin_camera
+from drivers.telemetry import RecordingPublisher
+from service.core.camera import save_camera
 from service.core.errors import ConfigError
+from service.core.messages import to_json
 from service.core.readings import RangeStatus
+from service.daemon.loop import Daemon
 from service.daemon.wiring import build_parts, check_config, load_daemon_config
-from tests.daemon_harness import REPO, Step, demo_config, frames_at, make_harness, render_frames
+from tests.daemon_harness import (
+    REPO,
+    FakeClock,
+    Step,
+    demo_config,
+    frames_at,
+    make_harness,
+    render_frames,
+)
 from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 
 DEMO = REPO / "config" / "demo.toml"
@@ -138,3 +153,38 @@ def test_vehicle_profile_refuses_to_start_until_the_mesh_is_set() -> None:
     with pytest.raises(ConfigError) as info:
         load_daemon_config(str(REPO / "config" / "raspberrypi.toml"), check_files=False)
     assert info.value.key == "mesh.bar_length_m"
+
+
+def test_secrets_in_the_camera_url_reach_no_log_status_or_state(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An SRT passphrase, a token and a password containing '@', in a camera URL that cannot be
+    opened: the daemon logs, reports and answers about it without any of them."""
+    calibration = tmp_path / "camera.yaml"
+    save_camera(builtin_camera(640, 360), calibration)
+    secrets = ("s3cretPass", "tok3n42", "p@ss@word")
+    url = ("rtsp://admin:p@ss@word@127.0.0.1:9/stream?token=tok3n42&passphrase=s3cretPass"
+           "&latency=20")
+    config = load_daemon_config(str(DEMO), [f"camera.url={url}",
+                                            f"camera.calibration={calibration}"])
+    parts = build_parts(config, NullNotifier())
+    telemetry = RecordingPublisher()
+    parts = dataclasses.replace(parts, link=RecordingAutopilotLink(), telemetry=telemetry)
+    caplog.set_level(logging.DEBUG)
+    clock = FakeClock()
+    daemon = Daemon(config, parts, clock=time.monotonic, wall_clock=clock.wall)
+    daemon.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not daemon.parts.source.stats().error:
+            daemon.iterate()
+        daemon.reporter.report(time.monotonic(), None)
+    finally:
+        daemon.close()
+    assert daemon.parts.source.stats().error, "the source never said why it is down"
+    published = str([to_json(m) for m in telemetry.statuses])
+    published += str(to_json(telemetry.state)) if telemetry.state is not None else ""
+    for secret in secrets:
+        assert secret not in caplog.text
+        assert secret not in published
+    assert "<redacted>" in published and "latency=20" in published

@@ -163,6 +163,7 @@ class LiveSource(FrameSource):
         return self._state
 
     def _set_state(self, new: SourceState, reason: str) -> None:
+        reason = redact_text(reason)  # a library's error text may repeat the URL
         with self._cond:
             old = self._state
             if old is SourceState.CLOSED:
