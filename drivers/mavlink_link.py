@@ -16,7 +16,9 @@ meaning of "invalid" for a MAVLink rangefinder.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -55,6 +57,11 @@ MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_NOTICE = 5
+# STATUSTEXT.text is 50 characters; texts queued while the link is down wait, up to this many.
+STATUSTEXT_LENGTH = 50
+_MAX_QUEUED_TEXTS = 16
 # Heartbeat types that are never the autopilot even if they claim an autopilot field.
 NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, ADS-B, camera
 
@@ -75,6 +82,11 @@ class AutopilotLink(Closeable):
     @abstractmethod
     def set_vision_pose(self, pose: VisionPose | None) -> None:
         """Newest vehicle pose in the net frame (sent only when vision is enabled)."""
+
+    @abstractmethod
+    def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
+        """Queue a STATUSTEXT for the pilot's ground station (at most 50 characters are sent;
+        rate limiting is the caller's: this sends what it is given, oldest first)."""
 
     @abstractmethod
     def status(self) -> AutopilotHealth:
@@ -181,8 +193,10 @@ class MavlinkLink(AutopilotLink):
         self._autopilot_alive = False
         self._autopilot_boot: float | None = None
         self._sent: SendTimes = dict.fromkeys(
-            ("HEARTBEAT", "DISTANCE_SENSOR", "VISION_POSITION_ESTIMATE"), 0
+            ("HEARTBEAT", "DISTANCE_SENSOR", "VISION_POSITION_ESTIMATE", "STATUSTEXT"), 0
         )
+        self._texts: collections.deque[tuple[int, str]] = collections.deque(
+            maxlen=_MAX_QUEUED_TEXTS)
         self._received = 0
         self._errors = 0
         self._last_error: str | None = None
@@ -205,6 +219,10 @@ class MavlinkLink(AutopilotLink):
     def set_vision_pose(self, pose: VisionPose | None) -> None:
         with self._lock:
             self._pose = pose
+
+    def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
+        with self._lock:
+            self._texts.append((severity, text[:STATUSTEXT_LENGTH]))
 
     def start(self) -> None:
         if self._thread is not None:
@@ -328,6 +346,7 @@ class MavlinkLink(AutopilotLink):
                 next_heartbeat = _advance(next_heartbeat, HEARTBEAT_PERIOD_S, now)
             if now >= next_output:
                 self._send_outputs(conn, now)
+                self._send_texts(conn)
                 next_output = _advance(next_output, period, now)
             self._check_autopilot_timeout(now)
             wait = min(next_heartbeat, next_output) - self._clock()
@@ -338,6 +357,16 @@ class MavlinkLink(AutopilotLink):
                 if msg is None:
                     break
                 self._handle(msg, self._clock())
+
+    def _send_texts(self, conn: Any) -> None:
+        while True:
+            with self._lock:
+                if not self._texts:
+                    return
+                severity, text = self._texts.popleft()
+            self._send(conn, "STATUSTEXT",
+                       functools.partial(conn.mav.statustext_send, severity,
+                                         text.encode("utf-8")))
 
     def _send(self, conn: Any, name: str, send: Callable[[], None]) -> None:
         send()
@@ -543,6 +572,7 @@ class RecordingAutopilotLink(AutopilotLink):
         self.closed = False
         self.ranges: list[RangeReading] = []
         self.poses: list[VisionPose | None] = []
+        self.texts: list[tuple[int, str]] = []
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -555,6 +585,10 @@ class RecordingAutopilotLink(AutopilotLink):
     def set_vision_pose(self, pose: VisionPose | None) -> None:
         with self._lock:
             self.poses.append(pose)
+
+    def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
+        with self._lock:
+            self.texts.append((severity, text[:STATUSTEXT_LENGTH]))
 
     @property
     def sent(self) -> list[RangeReading]:

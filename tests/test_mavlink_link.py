@@ -589,3 +589,16 @@ def test_ardusub_sitl_reads_too_close_as_out_of_range_low(tmp_path: Path) -> Non
         context = sitl.context()
     assert seen.count("OutOfRangeLow") >= 3, f"{seen}\n{context}"
     assert "NoData" not in seen[-3:]
+
+
+def test_pilot_notices_go_out_as_statustext_in_order() -> None:
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link:
+            autopilot.wait_for("HEARTBEAT", count=1, where=from_link)
+            link.notify_pilot("netpose: net too close to measure")
+            link.notify_pilot("x" * 80, severity=5)
+            texts = autopilot.wait_for("STATUSTEXT", count=2)
+    assert [(r.msg.severity, r.msg.text) for r in texts] == [
+        (4, "netpose: net too close to measure"), (5, "x" * 50)]
+    assert link.status().sent["STATUSTEXT"] == 2
