@@ -158,3 +158,47 @@ def test_bad_settings_name_the_key(kwargs: dict[str, float], key: str) -> None:
     with pytest.raises(ConfigError) as info:
         FilterSettings(**kwargs)  # type: ignore[arg-type]
     assert info.value.key == key
+
+
+def test_the_filter_is_filterpys_own_class_loaded_without_scipy_stats() -> None:
+    """service.core.filterpy_kalman loads filterpy's KalmanFilter source alone (no scipy.stats,
+    70 MB and a second of start-up less); it must compute exactly what filterpy's package
+    export computes, and its logpdf what scipy's does."""
+    import subprocess
+    import sys
+
+    from filterpy.kalman import KalmanFilter as PackageKalmanFilter
+    from scipy.stats import multivariate_normal
+
+    from service.core.filterpy_kalman import load_kalman_filter, logpdf
+
+    rng = np.random.default_rng(4)
+    mine, theirs = load_kalman_filter()(dim_x=4, dim_z=2), PackageKalmanFilter(dim_x=4, dim_z=2)
+    assert type(mine).__name__ == "KalmanFilter" and type(mine) is not PackageKalmanFilter
+    F = np.eye(4) + np.diag([0.1, 0.0, 0.1], k=1)
+    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    for kf in (mine, theirs):
+        kf.x = np.array([[1.0], [0.0], [2.0], [0.0]])
+        kf.P = np.eye(4)
+        kf.F, kf.H, kf.R, kf.Q = F, H, np.eye(2) * 0.01, np.eye(4) * 1e-3
+    for _ in range(20):
+        z = rng.normal(size=(2, 1))
+        for kf in (mine, theirs):
+            kf.predict()
+            kf.update(z)
+        np.testing.assert_array_equal(mine.x, theirs.x)
+        np.testing.assert_array_equal(mine.P, theirs.P)
+    cov = np.array([[2.0, 0.3], [0.3, 0.5]])
+    for x in ([0.0, 0.0], [1.0, -2.0]):
+        assert logpdf(x, [0.5, 0.1], cov) == pytest.approx(
+            multivariate_normal.logpdf(x, [0.5, 0.1], cov), rel=1e-12)
+    singular = np.array([[1.0, 1.0], [1.0, 1.0]])
+    assert logpdf([1.0, 1.0], [0.0, 0.0], singular) == pytest.approx(
+        multivariate_normal.logpdf([1.0, 1.0], [0.0, 0.0], singular, allow_singular=True),
+        rel=1e-9)
+    probe = subprocess.run(
+        [sys.executable, "-c", "import sys; from service.core.tracking import NetTracker, "
+         "FilterSettings; NetTracker(FilterSettings()); "
+         "print('scipy.stats' in sys.modules, 'filterpy' in sys.modules)"],
+        capture_output=True, text=True, timeout=60, check=True)
+    assert probe.stdout.split() == ["False", "False"]

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from filterpy.kalman import KalmanFilter
 
 from service.core.errors import ConfigError
+from service.core.filterpy_kalman import load_kalman_filter
 from service.core.results import NetEstimate
 
 FloatArray = npt.NDArray[np.float64]
@@ -202,7 +202,7 @@ class NetTracker:
 
     def __init__(self, settings: FilterSettings) -> None:
         self._settings = settings
-        self._kf = KalmanFilter(dim_x=6, dim_z=3)
+        self._kf = load_kalman_filter()(dim_x=6, dim_z=3)
         self._kf.F = np.eye(6)
         self._kf.H = np.zeros((3, 6))
         self._kf.H[0, _D] = self._kf.H[1, _YAW] = self._kf.H[2, _PITCH] = 1.0
