@@ -5,8 +5,9 @@ value under a lock, a bounded queue of depth one where the newest value wins. On
 (`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
 with backoff (service.core.backoff), sends HEARTBEAT at 1 Hz as an onboard controller, tracks
 the autopilot's heartbeat (waiting -> connected -> lost -> connected), and sends DISTANCE_SENSOR
-at `rate_hz` only while the newest reading is sendable (service.core.readings.RangeStatus) and
-its frame is younger than `max_age_s`. Every message is stamped with the capture time of the
+at `rate_hz` while the newest reading is sendable (service.core.readings.RangeStatus) and fresh
+(drivers.distance_gate: a freshness limit that follows the measured frame interval and latency,
+up to `max_age_s`, and start/stop hysteresis). Every message is stamped with the capture time of the
 frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
 ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
 meaning of "invalid" for a MAVLink rangefinder.
@@ -29,6 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.distance_gate import DistanceGate
 from drivers.errors import MavlinkLinkError
 from drivers.lifecycle import Closeable
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key, serial_device
@@ -209,12 +211,15 @@ class MavlinkLink(AutopilotLink):
         self._foreign_autopilots: set[int] = set()
         self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
         self._url = redact_text(settings.url)
+        self._gate = DistanceGate(ceiling_s=settings.max_age_s, send_period_s=settings.period_s)
 
     # ---- frame-loop side: cheap, never blocks on I/O -------------------------------------
 
     def set_range(self, reading: RangeReading) -> None:
+        now = self._clock()
         with self._lock:
             self._range = reading
+            self._gate.observe(reading, now)
 
     def set_vision_pose(self, pose: VisionPose | None) -> None:
         with self._lock:
@@ -265,6 +270,8 @@ class MavlinkLink(AutopilotLink):
                 last_error=self._last_error or "",
                 reconnects=self._reconnects,
                 sending_distance=self._sending_distance,
+                freshness_s=self._gate.freshness_s,
+                sending_changes=self._gate.changes,
                 sending_vision=self._sending_vision,
                 vision_reset_counter=self._vision_reset_counter,
             )
@@ -387,8 +394,8 @@ class MavlinkLink(AutopilotLink):
     def _send_outputs(self, conn: Any, now: float) -> None:
         with self._lock:
             reading, pose = self._range, self._pose
-        max_age = self.settings.max_age_s
-        fresh_range = reading.sendable and now - reading.t_capture <= max_age
+        with self._lock:
+            fresh_range = self._gate.decide(reading, now)
         self._note_sending("distance", fresh_range)
         if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
@@ -412,7 +419,8 @@ class MavlinkLink(AutopilotLink):
             )
         if not self.settings.vision_enabled:
             return
-        fresh_pose = pose is not None and pose.usable and now - pose.t_capture <= max_age
+        fresh_pose = (pose is not None and pose.usable
+                      and now - pose.t_capture <= self.settings.max_age_s)
         self._note_sending("vision", fresh_pose)
         if fresh_pose and pose is not None:
             self._update_reset_counter(pose)

@@ -57,7 +57,9 @@ class MavlinkSettings:
     source_system: int = 1
     source_component: int = DEFAULT_COMPONENT_ID
     rate_hz: float = 10.0
-    max_age_s: float = 0.3
+    # The oldest reading ever repeated; below it, the link's limit follows the measured frame
+    # interval and latency (drivers.distance_gate).
+    max_age_s: float = 0.8
     orientation: int = 0
     min_distance_m: float = 0.3
     max_distance_m: float = 8.0

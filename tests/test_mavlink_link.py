@@ -373,7 +373,7 @@ def test_vision_position_fields_and_reset_counter() -> None:
     pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, t_capture=0.0, covariance=covariance,
                       frame_id=7)
     with FakeAutopilot(UdpServerTransport()) as autopilot:
-        link = MavlinkLink(settings(autopilot.url, vision_enabled=True))
+        link = MavlinkLink(settings(autopilot.url, vision_enabled=True, max_age_s=0.3))
         with link:
             with feeding(link, pose=pose):
                 first = autopilot.wait_for("VISION_POSITION_ESTIMATE", count=3)

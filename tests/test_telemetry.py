@@ -312,7 +312,7 @@ def test_docs_carry_the_schema_generated_from_the_message_types() -> None:
     begin, end = "<!-- schema:begin (netpose schema) -->\n", "<!-- schema:end -->"
     assert begin in text and end in text
     documented = text.split(begin, 1)[1].split(end, 1)[0]
-    assert documented == schema_markdown(), "regenerate: netpose schema > the block in the doc"
+    assert documented == schema_markdown(), "regenerate: netpose schema --update docs/telemetry.md"
     settings = set(TelemetrySettings.__dataclass_fields__)
     assert sorted(k for k in settings if f"`{k}`" not in text) == []
 

@@ -181,6 +181,10 @@ class AutopilotHealth:
     last_error: str = doc("the last of those, empty if none", "")
     reconnects: int = doc("times the transport came back after an outage", 0)
     sending_distance: bool = doc("DISTANCE_SENSOR is being sent right now", False)
+    freshness_s: float | None = doc(
+        "age beyond which a reading is not repeated (follows the measured frame interval)", None
+    )
+    sending_changes: int = doc("times sending started or stopped (total)", 0)
     sending_vision: bool = doc("VISION_POSITION_ESTIMATE is being sent right now", False)
     vision_reset_counter: int = doc("reset_counter of the vision pose (bumped on each jump)", 0)
 

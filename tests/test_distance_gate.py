@@ -1,0 +1,73 @@
+"""The link's send decision: a freshness limit that follows the measured frames, hysteresis
+that keeps a wavering reading from flipping the autopilot's rangefinder, and an immediate stop
+when nothing is believed."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from drivers.distance_gate import DistanceGate
+from service.core.readings import RangeReading, RangeStatus
+
+PERIOD = 0.1  # 10 Hz sends
+
+
+def good(t_capture: float) -> RangeReading:
+    return RangeReading(RangeStatus.GOOD, t_capture, distance_m=1.0, sigma_m=0.01, quality=0.9)
+
+
+def test_the_freshness_limit_follows_a_slow_frame_rate() -> None:
+    """A loaded Pi: 3 frames/s, 0.15 s from capture to the link. A fixed 0.3 s limit would stop
+    between frames; the gate's limit covers latency + interval, and the output never gaps."""
+    gate = DistanceGate(ceiling_s=1.0, send_period_s=PERIOD)
+    sends, t, frame_t = [], 0.0, 0.0
+    reading = good(0.0)
+    gate.observe(reading, 0.15)
+    while t < 10.0:
+        if t >= frame_t + 1 / 3 + 0.15:  # the next frame reaches the link
+            frame_t += 1 / 3
+            reading = good(frame_t)
+            gate.observe(reading, t)
+        sends.append(gate.decide(reading, t))
+        t += PERIOD
+    # latency p95 ~0.25 + interval 0.33 + two send periods
+    assert 0.6 <= gate.freshness_s <= 0.85
+    assert all(sends[5:]) and gate.changes == 1
+
+
+def test_a_wavering_reading_flips_the_output_at_most_once_a_second() -> None:
+    """Readings whose age hovers around the limit (a frame rate that comes and goes): without
+    hysteresis the rangefinder would come and go every 100-200 ms."""
+    gate = DistanceGate(ceiling_s=0.3, send_period_s=PERIOD, floor_s=0.3)
+    rng = np.random.default_rng(3)
+    t, changes_at = 0.0, []
+    last_changes = 0
+    while t < 30.0:
+        age = 0.3 + rng.uniform(-0.12, 0.12)  # around the 0.3 s limit
+        gate.decide(good(t - age), t)
+        if gate.changes != last_changes:
+            changes_at.append(t)
+            last_changes = gate.changes
+        t += PERIOD
+    assert len(changes_at) <= 30 / 1.0 + 1
+    assert all(b - a >= 1.0 - 1e-9 for a, b in itertools.pairwise(changes_at[::2]))
+
+
+def test_nothing_believed_stops_at_once_and_restarts_only_after_a_second() -> None:
+    gate = DistanceGate(ceiling_s=1.0, send_period_s=PERIOD)
+    assert gate.decide(good(0.0), 0.05)
+    assert not gate.decide(RangeReading.none(0.1), 0.1)  # immediate: the safety rule
+    sends = [gate.decide(good(t / 10), t / 10 + 0.05) for t in range(2, 20)]
+    first = 2 + sends.index(True)
+    assert 1.0 <= first / 10 + 0.05 - 0.1 <= 1.1  # a second after the stop, settled by then
+    assert gate.changes == 3
+
+
+def test_a_stale_reading_is_not_repeated_beyond_the_ceiling() -> None:
+    gate = DistanceGate(ceiling_s=0.4, send_period_s=PERIOD)
+    gate.observe(good(0.0), 0.05)
+    sending = [gate.decide(good(0.0), t / 100) for t in range(5, 100, 10)]
+    last_sent = max(t / 100 for t, s in zip(range(5, 100, 10), sending, strict=True) if s)
+    assert last_sent <= 0.4
