@@ -5,7 +5,10 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.netpose-installed
 CONFIG ?= config/demo.toml
 
-.PHONY: run test lint typecheck imports pytest bench install clean
+BOOKWORM_VENV ?= .venv-bookworm
+BOOKWORM_STAMP := $(BOOKWORM_VENV)/.netpose-installed
+
+.PHONY: run test test-bookworm lint typecheck imports pytest bench install clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +34,18 @@ imports: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/pytest -q
 
+# The suite again on Debian bookworm's versions (numpy 1.24, scipy 1.10, OpenCV 4.6): what a
+# Raspberry Pi runs. .ci/run calls it after `make test`.
+$(BOOKWORM_STAMP): pyproject.toml .ci/bookworm-constraints.txt
+	$(PYTHON) -m venv $(BOOKWORM_VENV)
+	$(BOOKWORM_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(BOOKWORM_VENV)/bin/python -m pip install --quiet -c .ci/bookworm-constraints.txt \
+		-e '.[opencv,plot,test]'
+	touch $(BOOKWORM_STAMP)
+
+test-bookworm: $(BOOKWORM_STAMP)
+	$(BOOKWORM_VENV)/bin/pytest -q
+
 bench: $(STAMP)
 	$(BIN)/netpose bench speed
 	$(BIN)/netpose bench accuracy
@@ -40,4 +55,4 @@ install:
 	systemd/install.sh
 
 clean:
-	rm -rf $(VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(BOOKWORM_VENV) build *.egg-info .mypy_cache .pytest_cache .ruff_cache
