@@ -6,7 +6,6 @@ I/O on their own threads, so a slow or dead output never stalls the frame loop.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -25,6 +24,7 @@ from service.daemon.events import OnceLogger
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
 from service.pipeline import PipelineResult, sigma_range_of
 from service.tools.preview import encode_jpeg, estimate_caption, render_preview
+from service.tools.replay import truth_from_object
 
 
 @dataclass(frozen=True)
@@ -51,23 +51,12 @@ def filtered_view(track: TrackOutput, sent: RangeReading) -> FilteredView:
 
 
 def truth_view(truth: object | None) -> TruthView | None:
-    """Ground truth of a rendered frame (drivers.synthetic_net.GroundTruth, duck-typed)."""
-    if truth is None:
+    """Ground truth of a rendered frame as the estimate message carries it."""
+    known = truth_from_object(truth)
+    if known is None:
         return None
-
-    def number(name: str) -> float | None:
-        value = getattr(truth, name, None)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return None
-        return float(value) if math.isfinite(value) else None
-
-    normal = getattr(truth, "normal", None)
-    vec = None
-    if normal is not None and len(normal) == 3:
-        vec = (float(normal[0]), float(normal[1]), float(normal[2]))
-    return TruthView(net_present=bool(getattr(truth, "net_present", True)),
-                     range_m=number("range_m"), distance_m=number("distance_m"),
-                     tilt_deg=number("tilt_deg"), normal=vec)
+    return TruthView(net_present=known.net_present, range_m=known.range_m,
+                     distance_m=known.distance_m, tilt_deg=known.tilt_deg, normal=known.normal)
 
 
 def estimate_message(
