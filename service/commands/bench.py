@@ -27,12 +27,12 @@ def add_parser(subparsers: Any) -> None:
     speed.add_argument("--seed", type=int, default=1)
     speed.set_defaults(handler=_speed)
 
-    soak = sub.add_parser("soak", help="run the daemon for minutes: CPU, latency, memory growth")
-    soak.add_argument("--duration", type=float, default=300.0, help="seconds (default 300)")
+    soak = sub.add_parser("soak", help="the daemon for minutes on a 720p camera-like source, "
+                          "unconstrained and held to 25 % of a core")
+    soak.add_argument("--duration", type=float, default=120.0,
+                      help="seconds per case (default 120)")
+    soak.add_argument("--size", default="1280x720", help="frame size (default 1280x720)")
     soak.add_argument("--fps", type=float, default=30.0, help="source frame rate (default 30)")
-    soak.add_argument("--config", type=Path, default=None,
-                      help="daemon configuration to soak (default: the built-in soak setup)")
-    soak.add_argument("--source", default=None, help="frame-source URL overriding the config")
     soak.add_argument("--json", type=Path, default=None, help="also write the report as JSON")
     soak.set_defaults(handler=_soak)
 
@@ -53,5 +53,6 @@ def _speed(args: argparse.Namespace) -> int:
 def _soak(args: argparse.Namespace) -> int:
     from service.benchmarks.soak import main_soak
 
-    return main_soak(args.duration, args.fps, config=args.config, source_url=args.source,
+    width, _, height = args.size.partition("x")
+    return main_soak(args.duration, width=int(width), height=int(height), fps=args.fps,
                      json_out=args.json)

@@ -1,0 +1,39 @@
+"""The soak benchmark's machinery, briefly: the real daemon on a pre-rendered video, a MAVLink
+peer playing the autopilot's clock, a Zenoh subscriber, and the CPU limit. The figures the
+targets are judged by come from `netpose bench soak` (docs/benchmarks.md); here only what the
+bench measures must be measured, and the limit must hold."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from service.benchmarks import soak
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture
+def video(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, Path]:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    return soak.prepare_video(640, 360, 15.0)
+
+
+def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None:
+    path, calibration = video
+    free = soak.run_case(soak.SoakCase("free", None), path, calibration, duration_s=12.0)
+    held = soak.run_case(soak.SoakCase("held", 0.25), path, calibration, duration_s=12.0)
+    for report in (free, held):
+        assert report.exit_status == 0, report.notes
+        assert report.frames_per_s > 0 and report.detected_fraction > 0.8
+        assert report.distance_rate_hz > 5.0  # the link repeats readings at 10 Hz
+        # Latency from the frames' own capture stamps, read on the autopilot's clock: positive
+        # and below the link's freshness ceiling (0.8 s), or the link would not have sent it.
+        assert 0.0 < report.latency_ms_median < 800.0
+        assert math.isfinite(report.latency_ms_p99) and math.isfinite(report.rss_mb)
+    assert held.how  # cgroup quota or pinned competitors, named in the report
+    # The limit holds: a quarter of a core (and the scheduler's slack), far below free.
+    assert held.cpu_percent <= 25.0 + 7.0
+    assert held.frames_per_s < free.frames_per_s
