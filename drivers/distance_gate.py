@@ -6,11 +6,13 @@ A fixed limit is wrong on both sides: on a loaded Pi that processes 3 frames/s, 
 latency plus the gap between frames exceeds 0.3 s in normal operation, and a fixed 0.3 s made
 the rangefinder come and go every 100-200 ms. So the limit follows what is measured:
 
-    freshness = clamp(p95(latency) + p95(frame interval) + 2 send periods, floor, ceiling)
+    freshness = clamp(MARGIN * (max latency + max frame interval) + 2 send periods,
+                      floor, ceiling)
 
 where latency is capture -> hand-over to the link and the interval is between the capture
-times of consecutive readings (both over the last `WINDOW` readings); `ceiling` is
-`mavlink.max_age_s`, the oldest distance the configuration ever accepts.
+times of consecutive readings, both the worst of the last `WINDOW` readings (a few seconds:
+one slow frame of a loaded machine must not cut the distance), with a margin on top; `ceiling`
+is `mavlink.max_age_s`, the oldest distance the configuration ever accepts.
 
 Until a few frame intervals have been measured the limit is the ceiling.
 
@@ -29,14 +31,10 @@ from dataclasses import dataclass, field
 from service.core.readings import RangeReading
 
 WINDOW = 64
+MARGIN = 1.5
 START_FRACTION = 0.75
 # Frame intervals needed before the measured limit replaces the ceiling.
 MIN_INTERVALS = 4
-
-
-def _p95(values: collections.deque[float]) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(0.95 * len(ordered)))]
 
 
 @dataclass
@@ -68,7 +66,8 @@ class DistanceGate:
         """The age beyond which the newest reading is not repeated."""
         if len(self._intervals) < MIN_INTERVALS:
             return self.ceiling_s
-        measured = 2.0 * self.send_period_s + _p95(self._latencies) + _p95(self._intervals)
+        worst = max(self._latencies) + max(self._intervals)
+        measured = MARGIN * worst + 2.0 * self.send_period_s
         return min(self.ceiling_s, max(self.floor_s, measured))
 
     def decide(self, reading: RangeReading, now: float) -> bool:

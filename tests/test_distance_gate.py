@@ -32,8 +32,8 @@ def test_the_freshness_limit_follows_a_slow_frame_rate() -> None:
             gate.observe(reading, t)
         sends.append(gate.decide(reading, t))
         t += PERIOD
-    # latency p95 ~0.25 + interval 0.33 + two send periods
-    assert 0.6 <= gate.freshness_s <= 0.85
+    # 1.5 x (latency 0.25 + interval 0.33) + two send periods, under the 1 s ceiling
+    assert 0.85 <= gate.freshness_s <= 1.0
     assert all(sends[5:]) and gate.changes == 1
 
 
