@@ -394,9 +394,12 @@ class MavlinkLink(AutopilotLink):
     def _send_outputs(self, conn: Any, now: float) -> None:
         with self._lock:
             reading, pose = self._range, self._pose
-        with self._lock:
             fresh_range = self._gate.decide(reading, now)
-        self._note_sending("distance", fresh_range)
+            limit = self._gate.freshness_s
+        why = "" if reading.sendable else "nothing believed"
+        if reading.sendable and not fresh_range:
+            why = f"newest reading {now - reading.t_capture:.2f} s old, limit {limit:.2f} s"
+        self._note_sending("distance", fresh_range, why)
         if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
             time_boot_ms = self._autopilot_time_ms(reading.t_capture)
@@ -421,7 +424,7 @@ class MavlinkLink(AutopilotLink):
             return
         fresh_pose = (pose is not None and pose.usable
                       and now - pose.t_capture <= self.settings.max_age_s)
-        self._note_sending("vision", fresh_pose)
+        self._note_sending("vision", fresh_pose, "no fresh pose")
         if fresh_pose and pose is not None:
             self._update_reset_counter(pose)
             usec = self._autopilot_time_ms(pose.t_capture) * 1000
@@ -443,7 +446,7 @@ class MavlinkLink(AutopilotLink):
                 ),
             )
 
-    def _note_sending(self, what: str, sending: bool) -> None:
+    def _note_sending(self, what: str, sending: bool, why: str = "") -> None:
         attribute = f"_sending_{what}"
         with self._lock:
             changed = getattr(self, attribute) != sending
@@ -455,7 +458,7 @@ class MavlinkLink(AutopilotLink):
             if sending:
                 log.info("MAVLink: sending %s", what)
             else:
-                log.info("MAVLink: no valid fresh %s; not sending it", what)
+                log.info("MAVLink: not sending %s (%s)", what, why or "not fresh")
 
     def _update_reset_counter(self, pose: VisionPose) -> None:
         with self._lock:
