@@ -1,6 +1,6 @@
-"""The autopilot link: DISTANCE_SENSOR (and opt-in VISION_POSITION_ESTIMATE) to ArduSub.
+"""The autopilot link: DISTANCE_SENSOR and the net plane (for the net-hold applet) to ArduSub.
 
-The frame loop only calls cheap setters (`set_range`, `set_vision_pose`): each stores the newest
+The frame loop only calls cheap setters (`set_range`, `set_net_plane`): each stores the newest
 value under a lock, a bounded queue of depth one where the newest value wins. One owned thread
 (`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
 with backoff (service.core.backoff), sends HEARTBEAT at 1 Hz as an onboard controller, tracks
@@ -9,7 +9,8 @@ at `rate_hz` only while the newest reading is sendable (service.core.readings.Ra
 its frame is younger than `max_age_s`. Every message is stamped with the capture time of the
 frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
 ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
-meaning of "invalid" for a MAVLink rangefinder.
+meaning of "invalid" for a MAVLink rangefinder. The net plane goes out as DEBUG_VECT named
+`NET_PLANE` (docs/net-hold.md), only while the newest plane is younger than `max_age_s`.
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -30,10 +31,10 @@ from typing import Any
 from drivers.errors import MavlinkLinkError
 from drivers.lifecycle import Closeable
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key, serial_device
-from drivers.mavlink_wire import distance_sensor_fields, vision_covariance
+from drivers.mavlink_wire import NET_PLANE_NAME, distance_sensor_fields
 from service.core.backoff import Backoff
 from service.core.messages import AutopilotHealth, AutopilotIdentity
-from service.core.readings import RangeReading, RangeStatus, VisionPose
+from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
@@ -71,8 +72,8 @@ class AutopilotLink(Closeable):
         """Newest reading, stamped with the capture time of its frame."""
 
     @abstractmethod
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
-        """Newest vehicle pose in the net frame (sent only when vision is enabled)."""
+    def set_net_plane(self, plane: NetPlane) -> None:
+        """Newest net plane, from a frame whose measurement the filter accepted."""
 
     @abstractmethod
     def status(self) -> AutopilotHealth:
@@ -172,24 +173,21 @@ class MavlinkLink(AutopilotLink):
         self._started_at = clock()
         # Inputs, written by the frame loop.
         self._range: RangeReading = RangeReading.none(-math.inf)
-        self._pose: VisionPose | None = None
+        self._plane: NetPlane | None = None
         # Link state, written by the link thread, read by status().
         self._transport_up = False
         self._autopilot: _AutopilotIdentity | None = None
         self._autopilot_alive = False
         self._autopilot_boot: float | None = None
         self._sent: SendTimes = dict.fromkeys(
-            ("HEARTBEAT", "DISTANCE_SENSOR", "VISION_POSITION_ESTIMATE"), 0
+            ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT"), 0
         )
         self._received = 0
         self._errors = 0
         self._last_error: str | None = None
         self._reconnects = 0
         self._sending_distance = False
-        self._sending_vision = False
-        self._vision_reset_counter = 0
-        self._vision_frame_id: int | None = None
-        self._vision_resumed = False
+        self._sending_net_plane = False
         self._foreign_autopilots: set[int] = set()
         self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
         self._url = redact_text(settings.url)
@@ -200,9 +198,9 @@ class MavlinkLink(AutopilotLink):
         with self._lock:
             self._range = reading
 
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
+    def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
-            self._pose = pose
+            self._plane = plane
 
     def start(self) -> None:
         if self._thread is not None:
@@ -242,8 +240,7 @@ class MavlinkLink(AutopilotLink):
                 last_error=self._last_error or "",
                 reconnects=self._reconnects,
                 sending_distance=self._sending_distance,
-                sending_vision=self._sending_vision,
-                vision_reset_counter=self._vision_reset_counter,
+                sending_net_plane=self._sending_net_plane,
             )
 
     def _state_locked(self) -> str:
@@ -352,7 +349,7 @@ class MavlinkLink(AutopilotLink):
 
     def _send_outputs(self, conn: Any, now: float) -> None:
         with self._lock:
-            reading, pose = self._range, self._pose
+            reading, plane = self._range, self._plane
         max_age = self.settings.max_age_s
         fresh_range = reading.sendable and now - reading.t_capture <= max_age
         self._note_sending("distance", fresh_range)
@@ -376,29 +373,17 @@ class MavlinkLink(AutopilotLink):
                     signal_quality=fields.signal_quality,
                 ),
             )
-        if not self.settings.vision_enabled:
+        if not self.settings.send_net_plane:
             return
-        fresh_pose = pose is not None and pose.usable and now - pose.t_capture <= max_age
-        self._note_sending("vision", fresh_pose)
-        if fresh_pose and pose is not None:
-            self._update_reset_counter(pose)
-            usec = self._autopilot_time_ms(pose.t_capture) * 1000
-            covariance = vision_covariance(pose)
-            reset_counter = self._vision_reset_counter
+        fresh_plane = plane is not None and plane.usable and now - plane.t_capture <= max_age
+        self._note_sending("net_plane", fresh_plane)
+        if fresh_plane and plane is not None:
+            usec = self._autopilot_time_ms(plane.t_capture) * 1000
+            x, y, z = plane.foot_m
             self._send(
                 conn,
-                "VISION_POSITION_ESTIMATE",
-                lambda: conn.mav.vision_position_estimate_send(
-                    usec,
-                    pose.x,
-                    pose.y,
-                    pose.z,
-                    pose.roll,
-                    pose.pitch,
-                    pose.yaw,
-                    covariance=covariance,
-                    reset_counter=reset_counter,
-                ),
+                "DEBUG_VECT",
+                lambda: conn.mav.debug_vect_send(NET_PLANE_NAME, usec, x, y, z),
             )
 
     def _note_sending(self, what: str, sending: bool) -> None:
@@ -406,24 +391,12 @@ class MavlinkLink(AutopilotLink):
         with self._lock:
             changed = getattr(self, attribute) != sending
             setattr(self, attribute, sending)
-            if what == "vision" and changed and not sending:
-                # The next pose after a gap starts a new net frame for the EKF.
-                self._vision_resumed = True
         if changed:
+            label = what.replace("_", " ")
             if sending:
-                log.info("MAVLink: sending %s", what)
+                log.info("MAVLink: sending %s", label)
             else:
-                log.info("MAVLink: no valid fresh %s; not sending it", what)
-
-    def _update_reset_counter(self, pose: VisionPose) -> None:
-        with self._lock:
-            jumped = self._vision_frame_id is not None and (
-                pose.frame_id != self._vision_frame_id or self._vision_resumed
-            )
-            if jumped:
-                self._vision_reset_counter = (self._vision_reset_counter + 1) % 256
-            self._vision_frame_id = pose.frame_id
-            self._vision_resumed = False
+                log.info("MAVLink: no valid fresh %s; not sending it", label)
 
     def _autopilot_time_ms(self, t: float) -> int:
         """Instant `t` (this host's monotonic clock) in milliseconds since the autopilot booted
@@ -537,7 +510,7 @@ class RecordingAutopilotLink(AutopilotLink):
         self.started = False
         self.closed = False
         self.ranges: list[RangeReading] = []
-        self.poses: list[VisionPose | None] = []
+        self.planes: list[NetPlane] = []
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -547,9 +520,9 @@ class RecordingAutopilotLink(AutopilotLink):
         with self._lock:
             self.ranges.append(reading)
 
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
+    def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
-            self.poses.append(pose)
+            self.planes.append(plane)
 
     @property
     def sent(self) -> list[RangeReading]:

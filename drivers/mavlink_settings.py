@@ -60,7 +60,10 @@ class MavlinkSettings:
     sensor_id: int = 0
     fov_horizontal_deg: float = 0.0
     fov_vertical_deg: float = 0.0
-    vision_enabled: bool = False
+    # Send the net plane (DEBUG_VECT "NET_PLANE") for the autopilot's net-hold applet.
+    send_net_plane: bool = True
+    # Rendered frames (sim:, synthetic:) reach an autopilot only if this says so explicitly.
+    allow_simulated: bool = False
     signing_key_file: str | None = None
     heartbeat_timeout_s: float = 3.0
     retry_initial_s: float = 0.5

@@ -181,8 +181,8 @@ class AutopilotHealth:
     last_error: str = doc("the last of those, empty if none", "")
     reconnects: int = doc("times the transport came back after an outage", 0)
     sending_distance: bool = doc("DISTANCE_SENSOR is being sent right now", False)
-    sending_vision: bool = doc("VISION_POSITION_ESTIMATE is being sent right now", False)
-    vision_reset_counter: int = doc("reset_counter of the vision pose (bumped on each jump)", 0)
+    sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
+                                  "applet) is being sent right now", False)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -127,6 +127,8 @@ class FrameOutputs:
 
     def to_autopilot(self, result: PipelineResult) -> None:
         self._link.set_range(result.reading)
+        if result.plane is not None:
+            self._link.set_net_plane(result.plane)
 
     def publish(self, frame: Frame, result: PipelineResult, now: float) -> None:
         self._seq += 1

@@ -14,7 +14,7 @@ from drivers.mavlink_link import MavlinkLink
 from drivers.mavlink_settings import MavlinkSettings
 from drivers.sdnotify import notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
-from drivers.sources import SourceOptions, create_source
+from drivers.sources import SourceOptions, create_source, is_rendered
 from drivers.telemetry import TelemetrySettings, make_publisher
 from service.config import Config, load_config
 from service.core.camera import CameraModel, load_camera
@@ -44,6 +44,18 @@ def build_source(config: Config) -> DriverFrameSource:
     return create_source(config.camera.url, options)
 
 
+def check_simulated(config: Config) -> None:
+    """A rendered distance (synthetic:, sim:) reaches an autopilot only when allowed explicitly."""
+    if is_rendered(config.camera.url) and not config.section(
+        "mavlink", MavlinkSettings
+    ).allow_simulated:
+        raise ConfigError(
+            "mavlink.allow_simulated",
+            "camera.url renders its frames: set it to true to send their distance to an "
+            "autopilot (a simulator or a demo), or use a real camera",
+        )
+
+
 def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     """The calibration file's camera, or the one a rendered source describes."""
     path = config.calibration_path()
@@ -58,6 +70,7 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
 
 
 def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
+    check_simulated(config)
     source = build_source(config)
     telemetry = config.section("telemetry", TelemetrySettings)
     return DaemonParts(
@@ -81,6 +94,7 @@ def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
     if path is not None:
         load_camera(path)
     build_source(config)  # built, not opened: parses and checks the URL and its options
+    check_simulated(config)
     return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
 
 
