@@ -114,8 +114,10 @@ class WorldNet:
             point = cam + distance_m * into
             return WorldNet("plane", (float(point[0]), float(point[1])), facing=facing)
         # The camera lies on the line through the centre along `into`.
-        centre = cam - (distance_m - radius_m) * into if inside else cam + (distance_m
-                                                                            + radius_m) * into
+        if inside:  # the wall ahead is at centre + radius * into
+            centre = cam - (radius_m - distance_m) * into
+        else:  # the wall ahead is at centre - radius * into
+            centre = cam + (distance_m + radius_m) * into
         return WorldNet("cage", (float(centre[0]), float(centre[1])), radius_m=radius_m,
                         inside=inside)
 
