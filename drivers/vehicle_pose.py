@@ -58,6 +58,8 @@ class PoseFeedSettings:
     source_component: int = 25  # MAV_COMP_ID_USER1: a simulation tool, not a vehicle part
     rate_hz: float = 20.0
     source: PoseSource = "auto"
+    # Geodetic origin (lat, lon in degrees) of SIM_STATE's local coordinates; None: the first pose.
+    origin: tuple[float, float] | None = None
 
 
 class VehiclePoseFeed:
@@ -214,7 +216,8 @@ class VehiclePoseFeed:
             return None  # an old SIM_STATE without the integer position: too coarse to use
         lat, lon, alt = lat_int * 1e-7, lon_int * 1e-7, float(msg.alt)
         if self._origin is None:
-            self._origin = (lat, lon, alt)
+            given = self.settings.origin
+            self._origin = (lat, lon, alt) if given is None else (given[0], given[1], alt)
         lat0, lon0, alt0 = self._origin
         north = math.radians(lat - lat0) * EARTH_RADIUS_M
         east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))

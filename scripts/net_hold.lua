@@ -10,9 +10,11 @@
 -- with ArduSub's depth hold, lateral motion with the pilot.
 --
 -- The pilot is always in command: a script button (NETH_BTN) or MAV_CMD_USER_1 (param1 = 1 on,
--- 0 off) engages and disengages; pilot stick input on forward or yaw, a mode change, disarming,
--- or a net plane older than NETH_TIMEOUT disengages at once, sets both channels to neutral and
--- says why (STATUSTEXT). It never commands thrust toward the net closer than NETH_DIST_MIN.
+-- 0 off) engages and disengages; pilot stick input on forward or yaw, a mode change or disarming
+-- disengages at once, sets both channels to neutral and says why (STATUSTEXT). A net plane older
+-- than NETH_TIMEOUT (from its frame's capture) stops all thrust at once and says so; if no fresh
+-- plane comes within NETH_GRACE, net hold disengages. It never commands thrust toward the net
+-- closer than NETH_DIST_MIN.
 
 local PARAM_TABLE_KEY = 86
 local PARAM_PREFIX = "NETH_"
@@ -35,19 +37,22 @@ local PARAMS = {
   {"DIST", 1.0},       -- set point, m (clamped to 0.5..3)
   {"DIST_MIN", 0.4},   -- hard minimum, m: no thrust toward the net at or below it
   {"DIST_MAX", 4.0},   -- refuse to engage (and disengage) beyond this distance, m
-  {"TIMEOUT", 0.4},    -- a net plane older than this (from its frame's capture) disengages, s
-  {"KP", 0.6},         -- speed command per metre of distance error, 1/s
+  {"TIMEOUT", 0.4},    -- a net plane older than this (from its capture) stops all thrust, s
+  {"GRACE", 2.0},      -- no fresh plane for this long (from the last capture) disengages, s
+  {"KP", 0.5},         -- speed command per metre of distance error, 1/s
   {"KI", 0.05},        -- integral of the distance error within I_BAND, 1/s^2 (current)
   {"I_BAND", 0.2},     -- the integral runs only within this distance of the set point, m
   {"SPD_MAX", 0.3},    -- speed limit toward and away from the net, m/s
   {"ACC_MAX", 0.3},    -- limit on speeding up toward the net, m/s^2
   {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
+  {"KV", 400},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
   {"FWD_MAX", 150},    -- largest forward PWM offset, us
-  {"YAW_P", 0.8},      -- yaw rate command per degree of heading error, 1/s
-  {"YAW_RATE", 10},    -- yaw rate limit, deg/s
+  {"YAW_P", 0.6},      -- yaw rate command per degree of heading error, 1/s
+  {"YAW_RATE", 8},     -- yaw rate limit, deg/s
+  {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
   {"YAW_GAIN", 3.0},   -- yaw PWM offset per deg/s (SITL: ~3 us per deg/s)
   {"YAW_DZ", 28},      -- yaw channel dead zone to step over, us
-  {"YAW_I", 2.0},      -- integral of the heading error, us per deg*s (overcomes friction, dz)
+  {"YAW_I", 0.5},      -- integral of the heading error, us per deg*s (overcomes friction, dz)
   {"YAW_DB", 0.7},     -- heading error below which yaw is left to ArduSub's heading hold, deg
   {"CAM_TILT", 0},     -- camera tilt on the vehicle, deg (positive = looking down)
   {"BTN", 1},          -- script button (1..4) that toggles net hold; 0 = none
@@ -88,6 +93,8 @@ local yaw_channel = nil
 local gcs_sysid = 255
 local my_sysid = 1
 local engaged = false
+local paused = false     -- engaged, but the net plane is stale: no thrust until a fresh one
+local yaw_rate_cmd = 0
 local engaged_mode = nil
 local plane = nil        -- {t = capture time s, x, y, z}
 local prev_plane = nil
@@ -218,7 +225,7 @@ end
 
 disengage = function(why, to_neutral)
   if not engaged then return end
-  engaged = false
+  engaged, paused, yaw_rate_cmd = false, false, 0
   if to_neutral then neutral() end
   v_cmd, integral, yaw_integral = 0, 0, 0
   say(SEV_WARNING, "OFF, " .. why)
@@ -244,7 +251,7 @@ engage = function()
     say(SEV_WARNING, string.format("not engaged: net at %.2f m", plane.d))
     return false
   end
-  engaged = true
+  engaged, paused, yaw_rate_cmd = true, false, 0
   engaged_mode = vehicle:get_mode()
   v_cmd, integral, yaw_integral = 0, 0, 0
   last_update = now
@@ -286,7 +293,12 @@ local function control(now)
     v_cmd = want
   end
   local fwd_max = get("FWD_MAX")
-  local fwd = clamp(v_cmd * get("FWD_GAIN"), -fwd_max, fwd_max)
+  -- Feed-forward of the speed wanted, plus feedback on the measured closing speed: the vehicle
+  -- coasts a long way on its own (mostly quadratic drag), so it must be braked actively.
+  local fwd = v_cmd * get("FWD_GAIN") + (v_cmd - closing_speed) * get("KV")
+  -- Toward the net, never more than the thrust that holds NETH_SPD_MAX: the speed limit holds
+  -- even while the measured speed lags.
+  fwd = clamp(fwd, -fwd_max, math.min(fwd_max, spd * get("FWD_GAIN")))
   if stop_dist <= 0 then fwd = math.min(fwd, 0) end
   fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))
 
@@ -294,9 +306,15 @@ local function control(now)
   local lx, ly = level_vector(plane.x, plane.y, plane.z)
   local heading_err = math.deg(math.atan(ly, lx))  -- positive: net normal to the right
   local yaw_pwm = NEUTRAL
+  local max_rate = get("YAW_RATE")
+  local rate_want = 0
   if math.abs(heading_err) > get("YAW_DB") then
-    local max_rate = get("YAW_RATE")
-    local rate = clamp(get("YAW_P") * heading_err, -max_rate, max_rate)
+    rate_want = clamp(get("YAW_P") * heading_err, -max_rate, max_rate)
+  end
+  local rate_step = get("YAW_ACC") * dt
+  yaw_rate_cmd = clamp(rate_want, yaw_rate_cmd - rate_step, yaw_rate_cmd + rate_step)
+  if math.abs(heading_err) > get("YAW_DB") then
+    local rate = yaw_rate_cmd
     yaw_integral = clamp(yaw_integral + heading_err * dt * get("YAW_I"), -30, 30)
     local offset = math.abs(rate) * get("YAW_GAIN")
     if rate < 0 then offset = -offset end
@@ -334,11 +352,22 @@ local function update()
     disengage("disarmed", true)
   elseif vehicle:get_mode() ~= engaged_mode then
     disengage("mode changed", true)
+  elseif age > get("GRACE") then
+    disengage(string.format("net lost (%.1f s)", math.min(age, 99)), true)
   elseif age > get("TIMEOUT") then
-    disengage(string.format("net lost (%.2f s)", math.min(age, 99)), true)
+    if not paused then
+      paused, v_cmd, yaw_rate_cmd = true, 0, 0
+      say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
+    end
+    neutral()
   elseif plane.d > get("DIST_MAX") then
     disengage(string.format("net too far (%.2f m)", plane.d), true)
   else
+    if paused then
+      paused = false
+      last_update = now
+      say(SEV_INFO, "net back, holding again")
+    end
     control(now)
   end
 end

@@ -178,33 +178,42 @@ class Applet:
 
 @dataclass
 class NetVehicle:
-    """A vehicle in front of a flat net: distance along the net normal and heading error only.
+    """A vehicle in front of a flat net: distance along the net normal and heading error only,
+    with the dynamics measured on ArduSub SITL's vectored model in depth hold.
 
-    Forward speed follows the forward channel like ArduSub SITL's vectored model in depth hold:
-    steady speed = (pwm - 1500) * fwd_mps_per_us, reached with time constant `tau_s` (measured:
-    1550/1600/1700 us give 0.26/0.52/1.03 m/s). Yaw rate follows the yaw channel past its dead
-    zone (measured: ~0.33 deg/s per us beyond ~30 us), heading held otherwise.
+    Forward: steady speed (pwm - 1500) * 0.00515 m/s per us (1550/1600/1700 us gave
+    0.26/0.52/1.03 m/s), drag mostly quadratic (coasting from 0.48 m/s: 0.21 m/s after 0.6 s,
+    0.09 after 2 s, 0.045 after 4.6 s: dv/dt = -0.22 v - 2.18 v|v|), thrust scaled to match the
+    steady speeds. Yaw: rate (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~30 us dead
+    zone, reached with a lag of ~0.4 s; heading held otherwise.
     """
 
     distance_m: float = 2.0
     heading_error_deg: float = 20.0  # yaw right by this to face the net
     speed_mps: float = 0.0  # toward the net
-    fwd_mps_per_us: float = 1.03 / 200.0
-    tau_s: float = 0.6
+    fwd_mps_per_us: float = 0.00515
+    drag_linear: float = 0.22
+    drag_quadratic: float = 2.18
     yaw_dps_per_us: float = 0.33
     yaw_dz_us: float = 30.0
+    yaw_tau_s: float = 0.4
+    yaw_rate_dps: float = 0.0
     cam_tilt_deg: float = 0.0  # camera looking down by this much
     min_distance_seen: float = field(default=math.inf)
 
+    def _drag(self, v: float) -> float:
+        return self.drag_linear * v + self.drag_quadratic * v * abs(v)
+
     def step(self, dt: float, fwd_pwm: int | None, yaw_pwm: int | None) -> None:
-        target = ((fwd_pwm or 1500) - 1500) * self.fwd_mps_per_us
-        self.speed_mps += (target - self.speed_mps) * min(1.0, dt / self.tau_s)
+        thrust = self._drag(((fwd_pwm or 1500) - 1500) * self.fwd_mps_per_us)
+        self.speed_mps += (thrust - self._drag(self.speed_mps)) * dt
         self.distance_m -= self.speed_mps * dt
         offset = (yaw_pwm or 1500) - 1500
-        rate = 0.0
+        target = 0.0
         if abs(offset) > self.yaw_dz_us:
-            rate = math.copysign((abs(offset) - self.yaw_dz_us) * self.yaw_dps_per_us, offset)
-        self.heading_error_deg -= rate * dt
+            target = math.copysign((abs(offset) - self.yaw_dz_us) * self.yaw_dps_per_us, offset)
+        self.yaw_rate_dps += (target - self.yaw_rate_dps) * min(1.0, dt / self.yaw_tau_s)
+        self.heading_error_deg -= self.yaw_rate_dps * dt
         self.min_distance_seen = min(self.min_distance_seen, self.distance_m)
 
     def plane(self) -> tuple[float, float, float]:

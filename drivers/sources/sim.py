@@ -10,7 +10,10 @@ own (not the daemon's autopilot link):
 
 The net is placed when the first pose arrives, relative to the camera then: `distance` metres
 away (perpendicular), its normal turned `turn` degrees to the right of the vehicle's heading
-(so the vehicle must yaw right by `turn` to face it squarely). drivers/sim_world.py has the
+(so the vehicle must yaw right by `turn` to face it squarely). Or it is fixed in the world with
+`facing` (deg, heading of its normal into the net) and `net_north`, `net_east` (m: a point on a
+flat net, the centre of a cage), in local coordinates from `origin=LAT,LON` (SIM_STATE; default:
+the first pose) or the EKF origin. drivers/sim_world.py has the
 geometry. Each frame is rendered from the newest pose and stamped with that pose's time, and
 carries its ground truth (`SimTruth`).
 
@@ -32,7 +35,7 @@ import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import cast
+from typing import Literal, cast
 
 import numpy as np
 
@@ -67,7 +70,7 @@ log = logging.getLogger(__name__)
 SIM_OPTIONS = (
     "fps", "width", "height", "calibration", "net", "distance", "turn", "radius", "side", "bar",
     "angle", "cam_forward", "cam_right", "cam_down", "cam_tilt", "style", "seed", "pose",
-    "sysid", "compid", "pose_timeout", "blind",
+    "sysid", "compid", "pose_timeout", "blind", "facing", "net_north", "net_east", "origin",
 )  # fmt: skip
 # A stand-in pose for the renderer when the net is out of view (the net is not drawn).
 _NO_NET = NetPose(range_m=1.0)
@@ -104,13 +107,18 @@ class SimScene:
     pose_source: PoseSource
     pose_timeout_s: float
     blind: Path | None
+    facing_deg: float | None = None  # fixed in the world (with net_ne) instead of `distance`
+    net_ne: tuple[float, float] = (0.0, 0.0)
 
     def place_net(self, first: VehiclePose) -> WorldNet:
+        kind: Literal["plane", "cage"] = "cage" if self.net_kind == "cage" else "plane"
+        if self.facing_deg is not None:
+            return WorldNet(kind, self.net_ne, facing=math.radians(self.facing_deg),
+                            radius_m=self.radius_m, inside=self.inside)
         cam = first.position + first.body_to_world() @ self.mount.offset
         return WorldNet.ahead_of(
             (float(cam[0]), float(cam[1])), first.yaw, self.distance_m,
-            math.radians(self.turn_deg), kind="cage" if self.net_kind == "cage" else "plane",
-            radius_m=self.radius_m, inside=self.inside,
+            math.radians(self.turn_deg), kind=kind, radius_m=self.radius_m, inside=self.inside,
         )
 
 
@@ -134,6 +142,18 @@ def parse_sim_url(url: str) -> tuple[SourceUrl, SimScene, PoseFeedSettings]:
     except ConfigError as exc:
         raise url_error(url, exc.problem) from None
     blind = parsed.options.get("blind")
+    facing = parsed.number("facing", None, -360.0, 360.0)
+    net_ne = (parsed.number_or("net_north", 0.0, -1e4, 1e4), parsed.number_or("net_east", 0.0,
+                                                                              -1e4, 1e4))
+    origin = None
+    if "origin" in parsed.options:
+        try:
+            lat, lon = (float(v) for v in parsed.options["origin"].split(","))
+        except ValueError:
+            raise url_error(url, "option origin must be LAT,LON in degrees") from None
+        if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            raise url_error(url, "option origin must be LAT,LON in degrees")
+        origin = (lat, lon)
     scene = SimScene(
         fps=parsed.number_or("fps", 10.0, 0.5, 60.0),
         net_kind=net_kind,
@@ -153,12 +173,14 @@ def parse_sim_url(url: str) -> tuple[SourceUrl, SimScene, PoseFeedSettings]:
         pose_source=cast(PoseSource, parsed.choice("pose", "auto", ("auto", "sim", "ekf"))),
         pose_timeout_s=parsed.number_or("pose_timeout", 0.5, 0.05, 10.0),
         blind=Path(blind) if blind else None,
+        facing_deg=facing,
+        net_ne=net_ne,
     )
     try:
         feed = PoseFeedSettings(
             url=parsed.path, source_system=parsed.integer_or("sysid", 1, 1, 254),
             source_component=parsed.integer_or("compid", 25, 1, 254),
-            rate_hz=max(20.0, scene.fps), source=scene.pose_source,
+            rate_hz=max(20.0, scene.fps), source=scene.pose_source, origin=origin,
         )
         MavlinkSettings(url=feed.url, source_system=feed.source_system,
                         source_component=feed.source_component)
@@ -243,8 +265,9 @@ class SimSource(FrameSource):
         self._note_fresh(now)
         if self.net is None:
             self.net = self.scene.place_net(pose)
-            log.info("frame source %s: net (%s) placed %.2f m from the camera, turned %.1f deg",
-                     self.url, self.net.kind, self.scene.distance_m, self.scene.turn_deg)
+            log.info("frame source %s: %s net at %.2f m from the camera, normal %.1f deg from "
+                     "the heading", self.url, self.net.kind, self.view_of(pose).distance_m,
+                     self.view_of(pose).heading_error_deg)
         frame = self._render(pose)
         self._last_pose_t = pose.t
         # Frames are due at `fps`; a render slower than that makes the next one due at once.
