@@ -10,7 +10,8 @@ its frame is younger than `max_age_s`. Every message is stamped with the capture
 frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
 ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
 meaning of "invalid" for a MAVLink rangefinder. The net plane goes out as DEBUG_VECT named
-`NET_PLANE` (docs/net-hold.md), only while the newest plane is younger than `max_age_s`.
+`NET_PLANE` (docs/net-hold.md), only while the newest plane is younger than `max_age_s` (a zero
+vector when that frame did not confirm the net).
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -375,8 +376,11 @@ class MavlinkLink(AutopilotLink):
             )
         if not self.settings.send_net_plane:
             return
-        fresh_plane = plane is not None and plane.usable and now - plane.t_capture <= max_age
-        self._note_sending("net_plane", fresh_plane)
+        # A fresh plane goes out whether it confirms the net or not (a zero vector: "no net in
+        # that frame"), so the applet stops at once rather than at its timeout.
+        fresh_plane = plane is not None and now - plane.t_capture <= max_age and all(
+            math.isfinite(v) for v in plane.foot_m)
+        self._note_sending("net_plane", fresh_plane and plane is not None and plane.usable)
         if fresh_plane and plane is not None:
             usec = self._autopilot_time_ms(plane.t_capture) * 1000
             x, y, z = plane.foot_m

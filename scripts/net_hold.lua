@@ -5,16 +5,16 @@
 -- point of the net plane in the camera frame (x right, y down, z forward; metres), stamped with
 -- the capture time of the frame it was measured in (time_usec, autopilot boot clock). netpose
 -- sends it only for frames whose measurement its filter accepted, so its age is the age of the
--- evidence.
+-- evidence; for a frame that did not confirm the net it sends a zero vector ("no net").
 -- Output: RC overrides of the forward (RCMAP_FORWARD) and yaw (RCMAP_YAW) channels. Depth stays
 -- with ArduSub's depth hold, lateral motion with the pilot.
 --
 -- The pilot is always in command: a script button (NETH_BTN) or MAV_CMD_USER_1 (param1 = 1 on,
 -- 0 off) engages and disengages; pilot stick input on forward or yaw, a mode change or disarming
--- disengages at once, sets both channels to neutral and says why (STATUSTEXT). A net plane older
--- than NETH_TIMEOUT (from its frame's capture) stops all thrust at once and says so; if no fresh
--- plane comes within NETH_GRACE, net hold disengages. It never commands thrust toward the net
--- closer than NETH_DIST_MIN.
+-- disengages at once, sets both channels to neutral and says why (STATUSTEXT). A frame without
+-- the net, or a net plane older than NETH_TIMEOUT (from its frame's capture), stops all thrust at
+-- once and says so; if no fresh plane comes within NETH_GRACE, net hold disengages. It never
+-- commands thrust toward the net closer than NETH_DIST_MIN.
 
 local PARAM_TABLE_KEY = 86
 local PARAM_PREFIX = "NETH_"
@@ -47,13 +47,13 @@ local PARAMS = {
   {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
   {"KV", 400},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
   {"FWD_MAX", 150},    -- largest forward PWM offset, us
-  {"YAW_P", 0.6},      -- yaw rate command per degree of heading error, 1/s
+  {"YAW_P", 0.5},      -- yaw rate command per degree of heading error, 1/s
   {"YAW_RATE", 8},     -- yaw rate limit, deg/s
   {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
   {"YAW_GAIN", 3.0},   -- yaw PWM offset per deg/s (SITL: ~3 us per deg/s)
-  {"YAW_DZ", 28},      -- yaw channel dead zone to step over, us
+  {"YAW_DZ", 20},      -- yaw dead zone to step over, us (RC4_DZ 40 x joystick gain 0.5)
   {"YAW_I", 0.5},      -- integral of the heading error, us per deg*s (overcomes friction, dz)
-  {"YAW_DB", 0.7},     -- heading error below which yaw is left to ArduSub's heading hold, deg
+  {"YAW_DB", 1.0},     -- heading error below which yaw is left to ArduSub's heading hold, deg
   {"CAM_TILT", 0},     -- camera tilt on the vehicle, deg (positive = looking down)
   {"BTN", 1},          -- script button (1..4) that toggles net hold; 0 = none
   {"PILOT_DZ", 100},   -- pilot stick beyond this (of +-1000) on forward or yaw disengages
@@ -96,7 +96,10 @@ local engaged = false
 local paused = false     -- engaged, but the net plane is stale: no thrust until a fresh one
 local yaw_rate_cmd = 0
 local engaged_mode = nil
-local plane = nil        -- {t = capture time s, x, y, z}
+local plane = nil        -- {t = capture time s, x, y, z}: the newest plane with the net
+local no_net_t = nil     -- capture time of the newest frame without the net, if newer than plane
+local last_pause_text = -math.huge
+local said_pause = false
 local prev_plane = nil
 local closing_speed = 0  -- toward the net, m/s, from successive planes
 local v_cmd = 0          -- speed command toward the net, m/s
@@ -153,6 +156,12 @@ local function on_plane(msg)
   if name:gsub("%z", "") ~= PLANE_NAME then return end
   local t = t_us * 1e-6
   if plane ~= nil and t <= plane.t then return end  -- repeated or out of order
+  if x == 0 and y == 0 and z == 0 then  -- netpose: this frame did not confirm the net
+    if no_net_t == nil or t > no_net_t then no_net_t = t end
+    return
+  end
+  if no_net_t ~= nil and no_net_t >= t then return end  -- older than a frame without the net
+  no_net_t = nil
   prev_plane = plane
   plane = {t = t, x = x, y = y, z = z, d = math.sqrt(x * x + y * y + z * z)}
   if prev_plane ~= nil then
@@ -243,7 +252,7 @@ engage = function()
     say(SEV_WARNING, "not engaged: disarmed")
     return false
   end
-  if plane_age(now) > get("TIMEOUT") then
+  if plane_age(now) > get("TIMEOUT") or no_net_t ~= nil then
     say(SEV_WARNING, "not engaged: no net in view")
     return false
   end
@@ -354,10 +363,19 @@ local function update()
     disengage("mode changed", true)
   elseif age > get("GRACE") then
     disengage(string.format("net lost (%.1f s)", math.min(age, 99)), true)
-  elseif age > get("TIMEOUT") then
+  elseif age > get("TIMEOUT") or no_net_t ~= nil then
     if not paused then
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
-      say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
+      -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
+      said_pause = now - last_pause_text > 3.0
+      if said_pause then
+        last_pause_text = now
+        if no_net_t ~= nil then
+          say(SEV_WARNING, "net not seen: thrust stopped")
+        else
+          say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
+        end
+      end
     end
     neutral()
   elseif plane.d > get("DIST_MAX") then
@@ -366,7 +384,7 @@ local function update()
     if paused then
       paused = false
       last_update = now
-      say(SEV_INFO, "net back, holding again")
+      if said_pause then say(SEV_INFO, "net back, holding again") end
     end
     control(now)
   end

@@ -184,7 +184,7 @@ class NetVehicle:
     Forward: steady speed (pwm - 1500) * 0.00515 m/s per us (1550/1600/1700 us gave
     0.26/0.52/1.03 m/s), drag mostly quadratic (coasting from 0.48 m/s: 0.21 m/s after 0.6 s,
     0.09 after 2 s, 0.045 after 4.6 s: dv/dt = -0.22 v - 2.18 v|v|), thrust scaled to match the
-    steady speeds. Yaw: rate (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~30 us dead
+    steady speeds. Yaw: rate (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~20 us dead
     zone, reached with a lag of ~0.4 s; heading held otherwise.
     """
 
@@ -195,7 +195,7 @@ class NetVehicle:
     drag_linear: float = 0.22
     drag_quadratic: float = 2.18
     yaw_dps_per_us: float = 0.33
-    yaw_dz_us: float = 30.0
+    yaw_dz_us: float = 20.0
     yaw_tau_s: float = 0.4
     yaw_rate_dps: float = 0.0
     cam_tilt_deg: float = 0.0  # camera looking down by this much
@@ -225,11 +225,12 @@ class NetVehicle:
 
 def run_closed_loop(applet: Applet, vehicle: NetVehicle, seconds: float, *,
                     t0: float | None = None, frame_period_s: float = 0.1,
-                    latency_s: float = 0.15, sees_net: Any = None,
+                    latency_s: float = 0.15, sees_net: Any = None, netpose_alive: Any = None,
                     pilot: Any = None, pilot_period_s: float = 0.04,
                     dt: float = 0.01) -> list[tuple[float, float, float, int, int]]:
     """Simulate `seconds`: netpose sends a plane per frame (capture time = frame time, arriving
-    `latency_s` later); the pilot's joystick sends MANUAL_CONTROL every `pilot_period_s`
+    `latency_s` later; a zero vector while `sees_net(t)` is false, nothing while
+    `netpose_alive(t)` is false); the pilot's joystick sends MANUAL_CONTROL every `pilot_period_s`
     (`pilot(t)` gives (x, r), default neutral). Returns (t, distance, heading error, fwd, yaw)."""
     t = applet.now if t0 is None else t0
     end = t + seconds
@@ -239,9 +240,13 @@ def run_closed_loop(applet: Applet, vehicle: NetVehicle, seconds: float, *,
     trace = []
     while t < end:
         if t >= next_frame:
-            if sees_net is None or sees_net(t):
+            if netpose_alive is not None and not netpose_alive(t):
+                pass  # netpose (or its link) is gone: nothing at all
+            elif sees_net is None or sees_net(t):
                 x, y, z = vehicle.plane()
                 pending.append((t + latency_s, debug_vect(b"NET_PLANE", t, x, y, z)))
+            else:  # netpose says "no net in this frame" with a zero vector
+                pending.append((t + latency_s, debug_vect(b"NET_PLANE", t, 0.0, 0.0, 0.0)))
             next_frame += frame_period_s
         if t >= next_pilot:
             px, pr = pilot(t) if pilot is not None else (0, 0)

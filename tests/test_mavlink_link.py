@@ -517,3 +517,14 @@ def test_ardusub_sitl_reports_our_distance(tmp_path: Path) -> None:
     assert echoed.current_distance in (sent_cm, sent_cm - 1), (echoed.current_distance, sent_cm)
     # The issue's requirement: within 1 cm of the distance handed to the link.
     assert abs(echoed.current_distance - 100 * READING.distance_m) <= 1.0
+
+
+def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
+    """So the net-hold applet stops on the first frame without the net, not at its timeout."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link, feeding(link, plane=NetPlane.none(0.0)):
+            zero = autopilot.wait_for("DEBUG_VECT", count=2)[-1].msg
+            status = link.status()
+    assert (zero.name, zero.x, zero.y, zero.z) == ("NET_PLANE", 0.0, 0.0, 0.0)
+    assert status.sending_net_plane is False  # nothing valid is being sent

@@ -63,11 +63,18 @@ class NetPlane:
     direction is the net normal pointing away from the camera. It is made only from a frame whose
     measurement the filter accepted, and `t_capture` is that frame's capture time (monotonic
     seconds), so its age on the autopilot is the age of the evidence: a coasting filter never
-    produces one. (Why no VISION_POSITION_ESTIMATE: docs/net-hold.md.)
+    produces one. Every other frame gives `NetPlane.none` (a zero vector): "no net in this
+    frame". (Why no VISION_POSITION_ESTIMATE: docs/net-hold.md.)
     """
 
     t_capture: float
     foot_m: tuple[float, float, float]
+
+    @classmethod
+    def none(cls, t_capture: float) -> NetPlane:
+        """The frame at `t_capture` did not confirm the net: sent as a zero vector, so the
+        applet stops at once instead of waiting for its timeout."""
+        return cls(t_capture, (0.0, 0.0, 0.0))
 
     @classmethod
     def from_distance_normal(

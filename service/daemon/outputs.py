@@ -19,6 +19,7 @@ from service.core.messages import (
     StatusMessage,
     TruthView,
 )
+from service.core.readings import NetPlane
 from service.core.tracking import TrackOutput
 from service.daemon.events import OnceLogger
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
@@ -127,8 +128,9 @@ class FrameOutputs:
 
     def to_autopilot(self, result: PipelineResult) -> None:
         self._link.set_range(result.reading)
-        if result.plane is not None:
-            self._link.set_net_plane(result.plane)
+        if result.has_frame:  # each frame confirms the net plane, or says it did not
+            self._link.set_net_plane(
+                result.plane if result.plane is not None else NetPlane.none(result.t))
 
     def publish(self, frame: Frame, result: PipelineResult, now: float) -> None:
         self._seq += 1
