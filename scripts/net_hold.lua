@@ -99,6 +99,10 @@ local engaged_mode = nil
 local plane = nil        -- {t = capture time s, x, y, z}: the newest plane with the net
 local no_net_t = nil     -- capture time of the newest frame without the net, if newer than plane
 local last_pause_text = -math.huge
+-- The vehicle's own heading over the last second and a half (AHRS, no delay), so the net's
+-- heading measured in a frame captured a few hundred ms ago becomes a heading to hold now.
+local yaw_history = {}   -- {t, yaw rad}, oldest first
+local target_yaw = nil   -- heading (rad) that faces the net squarely, from the newest plane
 local said_pause = false
 local prev_plane = nil
 local closing_speed = 0  -- toward the net, m/s, from successive planes
@@ -144,6 +148,26 @@ local function level_vector(x, y, z)
   return lx, y1
 end
 
+local function wrap_pi(a)
+  return (a + math.pi) % (2 * math.pi) - math.pi
+end
+
+local function record_yaw(now)
+  table.insert(yaw_history, {now, ahrs:get_yaw_rad()})
+  while #yaw_history > 1 and now - yaw_history[1][1] > 1.5 do
+    table.remove(yaw_history, 1)
+  end
+end
+
+local function yaw_at(t)
+  -- The recorded heading nearest to time t (the history is 10 ms apart).
+  local best = nil
+  for _, sample in ipairs(yaw_history) do
+    if best == nil or math.abs(sample[1] - t) < math.abs(best[1] - t) then best = sample end
+  end
+  return best and best[2] or ahrs:get_yaw_rad()
+end
+
 -- Messages ------------------------------------------------------------------------------------
 local function send_ack(chan, command, result)
   mavlink:send_chan(chan, MSG_COMMAND_ACK, string.pack("<HB", command, result))
@@ -164,6 +188,8 @@ local function on_plane(msg)
   no_net_t = nil
   prev_plane = plane
   plane = {t = t, x = x, y = y, z = z, d = math.sqrt(x * x + y * y + z * z)}
+  local lx, ly = level_vector(x, y, z)
+  target_yaw = wrap_pi(yaw_at(t) + math.atan(ly, lx))
   if prev_plane ~= nil then
     local dt = plane.t - prev_plane.t
     if dt > 0.01 and dt < 1.0 then
@@ -312,8 +338,9 @@ local function control(now)
   fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))
 
   -- Heading: yaw until the net's normal is straight ahead in the level frame.
-  local lx, ly = level_vector(plane.x, plane.y, plane.z)
-  local heading_err = math.deg(math.atan(ly, lx))  -- positive: net normal to the right
+  -- Heading error now: the heading that faces the net (from the plane, at its capture time)
+  -- minus the heading now. Positive: yaw right.
+  local heading_err = math.deg(wrap_pi(target_yaw - ahrs:get_yaw_rad()))
   local yaw_pwm = NEUTRAL
   local max_rate = get("YAW_RATE")
   local rate_want = 0
@@ -350,6 +377,7 @@ local function control(now)
 end
 
 local function update()
+  record_yaw(now_s())
   read_messages()
   check_button()
   if not engaged then return end

@@ -27,7 +27,7 @@ ALT_HOLD = 2
 STUBS = r"""
 stub = {now_ms = 0, params = {}, overrides = {}, history = {}, texts = {}, named = {},
         rx = {}, sent = {}, blocked = {}, buttons = {0, 0, 0, 0}, armed = true, mode = 2,
-        roll = 0, pitch = 0, logs = 0, rx_ids = {}}
+        roll = 0, pitch = 0, yaw = 0, logs = 0, rx_ids = {}}
 function millis()
   return {tofloat = function(self) return stub.now_ms end}
 end
@@ -76,6 +76,7 @@ function vehicle:get_mode() return stub.mode end
 ahrs = {}
 function ahrs:get_roll_rad() return stub.roll end
 function ahrs:get_pitch_rad() return stub.pitch end
+function ahrs:get_yaw_rad() return stub.yaw end
 logger = {}
 function logger:write(...) stub.logs = stub.logs + 1 end
 """
@@ -258,6 +259,7 @@ def run_closed_loop(applet: Applet, vehicle: NetVehicle, seconds: float, *,
             next_pilot += pilot_period_s
         while pending and pending[0][0] <= t:
             applet.receive(pending.pop(0)[1])
+        applet.stub.yaw = -math.radians(vehicle.heading_error_deg)  # the AHRS heading
         applet.run_until(t)
         fwd, yaw = applet.override(5), applet.override(4)
         vehicle.step(dt, fwd, yaw)
