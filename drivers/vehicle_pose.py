@@ -7,7 +7,11 @@ SET_MESSAGE_INTERVAL (per link, so other links are not affected; asked again eve
 until they flow, in case a request was lost or the autopilot rebooted) and keeps the newest pose.
 
   SIM_STATE            the simulator's true pose (SITL only): position from lat_int/lon_int
-                       (1e-7 deg, ~1 cm), altitude, roll/pitch/yaw. Preferred.
+                       (1e-7 deg: steps of ~1 cm), altitude, roll/pitch/yaw. Preferred. The
+                       steps are smoothed out with SIM_STATE's own (exact) velocity: the
+                       position follows the velocity, pulled toward the stepped fixes with a
+                       1 s time constant, so a rendered distance does not jump by a centimetre
+                       (which, differenced over a frame, reads as 0.1 m/s).
   LOCAL_POSITION_NED   the EKF's position and ATTITUDE its attitude: used when no SIM_STATE
   + ATTITUDE           comes (a vehicle or simulator without it), once both are flowing.
 
@@ -47,6 +51,8 @@ _REQUEST_PERIOD_S = 3.0
 _SIM_STATE_GRACE_S = 3.0
 # An EKF attitude older than this is not combined with a new position.
 _ATTITUDE_MAX_AGE_S = 0.2
+# Time constant of the pull of the velocity-propagated position toward SIM_STATE's fixes.
+_SMOOTHING_S = 1.0
 
 PoseSource = Literal["auto", "sim", "ekf"]
 
@@ -85,6 +91,7 @@ class VehiclePoseFeed:
         self._thread: threading.Thread | None = None
         self._pose: VehiclePose | None = None
         self._origin: tuple[float, float, float] | None = None  # lat, lon (deg), alt (m)
+        self._smoothed: tuple[float, float, float, float] | None = None  # t, north, east, down
         self._attitude: tuple[float, float, float, float] | None = None  # t, roll, pitch, yaw
         self._first_request: float | None = None
         self._sim_state_seen = False
@@ -221,7 +228,19 @@ class VehiclePoseFeed:
         lat0, lon0, alt0 = self._origin
         north = math.radians(lat - lat0) * EARTH_RADIUS_M
         east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
-        return VehiclePose(now, north, east, -(alt - alt0), float(msg.roll), float(msg.pitch),
+        down = -(alt - alt0)
+        previous = self._smoothed
+        if previous is not None and 0.0 < now - previous[0] < 0.5:
+            dt = now - previous[0]
+            gain = min(1.0, dt / _SMOOTHING_S)
+            velocity = (float(msg.vn), float(msg.ve), float(msg.vd))
+            fix = (north, east, down)
+            north, east, down = (
+                p + v * dt + gain * (f - (p + v * dt))
+                for p, v, f in zip(previous[1:], velocity, fix, strict=True)
+            )
+        self._smoothed = (now, north, east, down)
+        return VehiclePose(now, north, east, down, float(msg.roll), float(msg.pitch),
                            float(msg.yaw), source="sim_state")
 
     def _publish(self, pose: VehiclePose) -> None:

@@ -194,7 +194,7 @@ local function on_plane(msg)
     local dt = plane.t - prev_plane.t
     if dt > 0.01 and dt < 1.0 then
       local rate = (prev_plane.d - plane.d) / dt
-      closing_speed = closing_speed + 0.5 * (rate - closing_speed)
+      closing_speed = closing_speed + 0.35 * (rate - closing_speed)
     end
   end
 end
@@ -307,7 +307,9 @@ end
 local function control(now)
   local dt = clamp(now - (last_update or now), 0.0, 0.1)
   last_update = now
-  local d = plane.d
+  -- The distance now: the plane's, carried forward over its age at the measured closing speed
+  -- (netpose's frames are 0.1-0.4 s old when they arrive; the vehicle keeps moving meanwhile).
+  local d = plane.d - closing_speed * clamp(now - plane.t, 0, get("TIMEOUT"))
   local err = d - set_point()  -- positive: too far, move toward the net
   -- Speed toward the net: P + I, limited in speed, and in acceleration toward the net.
   -- The integral only trims a steady offset near the set point (no wind-up on the approach).
