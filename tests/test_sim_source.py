@@ -120,12 +120,13 @@ class Vehicle:
         self.mav = autopilot.mavlink.MAVLink(_Writer(autopilot.transport), srcSystem=1,
                                              srcComponent=1)
 
-    def sim_state(self, north: float, east: float, alt: float, yaw: float) -> float:
+    def sim_state(self, north: float, east: float, alt: float, yaw: float,
+                  vn: float = 0.0, ve: float = 0.0) -> float:
         lat = LAT0 + math.degrees(north / 6378137.0)
         lon = LON0 + math.degrees(east / (6378137.0 * math.cos(math.radians(LAT0))))
         sent = time.monotonic()
         self.mav.sim_state_send(1, 0, 0, 0, 0.0, 0.0, yaw, 0, 0, 0, 0, 0, 0, lat * 1e7,
-                                lon * 1e7, alt, 0, 0, 0, 0, 0, int(round(lat * 1e7)),
+                                lon * 1e7, alt, 0, 0, vn, ve, 0, int(round(lat * 1e7)),
                                 int(round(lon * 1e7)))
         return sent
 
@@ -206,6 +207,33 @@ def test_renders_what_the_vehicle_sees_and_the_estimator_measures_it(
         # No pose: no frame (after pose_timeout), never an old pose rendered as new.
         time.sleep(0.6)
         assert source.read(0.2) is None
+
+
+def test_sim_state_position_steps_are_smoothed_with_its_velocity(
+    autopilot: FakeAutopilot
+) -> None:
+    """SIM_STATE's lat_int/lon_int come in ~1.1 cm steps; following its velocity, the source's
+    positions stay within a few millimetres of the true, moving position."""
+    url = f"sim:udpout:{autopilot.url.split(':', 1)[1]}?distance=2&fps=20"
+    vehicle = Vehicle(autopilot)
+    t0 = time.monotonic()
+    speed = 0.1  # m/s north
+
+    def feed() -> None:
+        vehicle.sim_state(speed * (time.monotonic() - t0), 0.0, -1.0, 0.0, vn=speed)
+        time.sleep(0.05)
+
+    samples = []
+    with SimSource(url) as source:
+        while time.monotonic() - t0 < 4.0:
+            frame = read_frame(source, feed)
+            if time.monotonic() - t0 > 2.0:  # after the smoothing's time constant
+                samples.append((frame.truth.vehicle.t, frame.truth.vehicle.north))
+    t, north = np.array(samples).T
+    slope, offset = np.polyfit(t - t0, north, 1)
+    residual = north - (slope * (t - t0) + offset)
+    assert slope == pytest.approx(speed, rel=0.05)
+    assert np.max(np.abs(residual)) < 0.003  # raw fixes step by 11 mm
 
 
 def test_ekf_pose_when_asked(autopilot: FakeAutopilot) -> None:
