@@ -38,7 +38,7 @@ local PARAMS = {
   {"DIST_MIN", 0.4},   -- hard minimum, m: no thrust toward the net at or below it
   {"DIST_MAX", 4.0},   -- refuse to engage (and disengage) beyond this distance, m
   {"TIMEOUT", 0.4},    -- a net plane older than this (from its capture) stops all thrust, s
-  {"GRACE", 2.0},      -- no fresh plane for this long (from the last capture) disengages, s
+  {"GRACE", 3.0},      -- no fresh plane for this long (from the last capture) disengages, s
   {"KP", 0.5},         -- speed command per metre of distance error, 1/s
   {"KI", 0.05},        -- integral of the distance error within I_BAND, 1/s^2 (current)
   {"I_BAND", 0.2},     -- the integral runs only within this distance of the set point, m

@@ -188,7 +188,7 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
                 pwm > 1520 for _, pwm in forward_pwm_after(pilot, time.monotonic() - 0.05)), 15)
             blind.touch()
             blocked_at = time.monotonic()
-            pilot.wait_text("OFF, net lost", blocked_at, 5)  # after NETH_GRACE
+            pilot.wait_text("OFF, net lost", blocked_at, 6)  # after NETH_GRACE
             time.sleep(6.0)
             # Thrust toward the net ends when the forward channel is last seen above neutral.
             after = forward_pwm_after(pilot, blocked_at)
