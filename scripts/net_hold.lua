@@ -47,6 +47,8 @@ local PARAMS = {
   {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
   {"KV", 400},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
   {"FWD_MAX", 150},    -- largest forward PWM offset, us
+  {"FWD_DZ", 0},       -- ESC dead band to step over, us (0: off; see docs/net-hold.md)
+  {"FWD_DZ_RAMP", 20}, -- the step is blended in over this command, us (continuous through 0)
   {"YAW_P", 0.5},      -- yaw rate command per degree of heading error, 1/s
   {"YAW_RATE", 8},     -- yaw rate limit, deg/s
   {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
@@ -335,6 +337,9 @@ local function control(now)
   local fwd = v_cmd * get("FWD_GAIN") + (v_cmd - closing_speed) * get("KV")
   -- Toward the net, never more than the thrust that holds NETH_SPD_MAX: the speed limit holds
   -- even while the measured speed lags.
+  -- Step over (part of) the ESCs' dead band (no thrust within 25 us of neutral), blended in over
+  -- the first FWD_DZ_RAMP us so that the output stays continuous through zero.
+  fwd = fwd + get("FWD_DZ") * clamp(fwd / get("FWD_DZ_RAMP"), -1.0, 1.0)
   fwd = clamp(fwd, -fwd_max, math.min(fwd_max, spd * get("FWD_GAIN")))
   if stop_dist <= 0 then fwd = math.min(fwd, 0) end
   fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))

@@ -185,8 +185,9 @@ class NetVehicle:
     Forward: steady speed (pwm - 1500) * 0.00515 m/s per us (1550/1600/1700 us gave
     0.26/0.52/1.03 m/s), drag mostly quadratic (coasting from 0.48 m/s: 0.21 m/s after 0.6 s,
     0.09 after 2 s, 0.045 after 4.6 s: dv/dt = -0.22 v - 2.18 v|v|), thrust scaled to match the
-    steady speeds. Yaw: rate (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~20 us dead
-    zone, reached with a lag of ~0.4 s; heading held otherwise.
+    steady speeds, none within the ESCs' 25 us dead band (SIM_Submarine.cpp). Yaw: rate
+    (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~20 us dead zone, reached with a lag of
+    ~0.4 s; heading held otherwise.
     """
 
     distance_m: float = 2.0
@@ -195,6 +196,7 @@ class NetVehicle:
     fwd_mps_per_us: float = 0.00515
     drag_linear: float = 0.22
     drag_quadratic: float = 2.18
+    esc_dead_band_us: float = 25.0
     yaw_dps_per_us: float = 0.33
     yaw_dz_us: float = 20.0
     yaw_tau_s: float = 0.4
@@ -206,7 +208,10 @@ class NetVehicle:
         return self.drag_linear * v + self.drag_quadratic * v * abs(v)
 
     def step(self, dt: float, fwd_pwm: int | None, yaw_pwm: int | None) -> None:
-        thrust = self._drag(((fwd_pwm or 1500) - 1500) * self.fwd_mps_per_us)
+        offset = (fwd_pwm or 1500) - 1500
+        if abs(offset) <= self.esc_dead_band_us:  # SIM_Submarine.cpp: no thrust within 25 us
+            offset = 0
+        thrust = self._drag(offset * self.fwd_mps_per_us)
         self.speed_mps += (thrust - self._drag(self.speed_mps)) * dt
         self.distance_m -= self.speed_mps * dt
         offset = (yaw_pwm or 1500) - 1500

