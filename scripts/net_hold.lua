@@ -40,15 +40,15 @@ local PARAMS = {
   {"TIMEOUT", 0.4},    -- a net plane older than this (from its capture) stops all thrust, s
   {"GRACE", 3.0},      -- no fresh plane for this long (from the last capture) disengages, s
   {"KP", 0.5},         -- speed command per metre of distance error, 1/s
-  {"KI", 0.05},        -- integral of the distance error within I_BAND, 1/s^2 (current)
+  {"KI", 0.0},         -- integral of the distance error within I_BAND, 1/s^2 (current)
   {"I_BAND", 0.2},     -- the integral runs only within this distance of the set point, m
   {"SPD_MAX", 0.3},    -- speed limit toward and away from the net, m/s
   {"ACC_MAX", 0.3},    -- limit on speeding up toward the net, m/s^2
   {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
-  {"KV", 400},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
+  {"KV", 150},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
   {"FWD_MAX", 150},    -- largest forward PWM offset, us
-  {"FWD_DZ", 0},       -- ESC dead band to step over, us (0: off; see docs/net-hold.md)
-  {"FWD_DZ_RAMP", 20}, -- the step is blended in over this command, us (continuous through 0)
+  {"FWD_DZ", 20},      -- ESC dead band to step over, us (ESCs: no thrust within 25 us)
+  {"FWD_DZ_RAMP", 5},  -- the step is blended in over this command, us (continuous through 0)
   {"YAW_P", 0.5},      -- yaw rate command per degree of heading error, 1/s
   {"YAW_RATE", 8},     -- yaw rate limit, deg/s
   {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
@@ -91,6 +91,7 @@ end
 
 -- State -------------------------------------------------------------------------------------
 local fwd_channel = nil
+local lateral_rc = 6
 local yaw_channel = nil
 local gcs_sysid = 255
 local my_sysid = 1
@@ -124,6 +125,7 @@ local function setup()
   setup_params()
   fwd_channel = rc:get_channel(math.floor(param_or("RCMAP_FORWARD", 5)))
   yaw_channel = rc:get_channel(math.floor(param_or("RCMAP_YAW", 4)))
+  lateral_rc = math.floor(param_or("RCMAP_LATERAL", 6))
   gcs_sysid = math.floor(param_or("MAV_GCS_SYSID", param_or("SYSID_MYGCS", 255)))
   my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
   mavlink:init(10, 3)
@@ -339,7 +341,11 @@ local function control(now)
   -- even while the measured speed lags.
   -- Step over (part of) the ESCs' dead band (no thrust within 25 us of neutral), blended in over
   -- the first FWD_DZ_RAMP us so that the output stays continuous through zero.
-  fwd = fwd + get("FWD_DZ") * clamp(fwd / get("FWD_DZ_RAMP"), -1.0, 1.0)
+  -- Only while the thrusters idle: a lateral command (the pilot sweeping along the net) already
+  -- takes them out of the dead band, and the step would then double the loop's gain.
+  local lateral = rc:get_pwm(lateral_rc) or NEUTRAL
+  local dz = get("FWD_DZ") * clamp(1.0 - math.abs(lateral - NEUTRAL) / 25.0, 0.0, 1.0)
+  fwd = fwd + dz * clamp(fwd / get("FWD_DZ_RAMP"), -1.0, 1.0)
   fwd = clamp(fwd, -fwd_max, math.min(fwd_max, spd * get("FWD_GAIN")))
   if stop_dist <= 0 then fwd = math.min(fwd, 0) end
   fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))

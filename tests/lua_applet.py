@@ -44,6 +44,7 @@ function Parameter(name)
   return {get = function(self) return stub.params[name] end}
 end
 rc = {}
+function rc:get_pwm(n) return stub.overrides[n] or 1500 end
 function rc:get_channel(n)
   return {set_override = function(self, pwm)
     stub.overrides[n] = pwm

@@ -11,6 +11,7 @@ from tests.lua_applet import (
     MSG_COMMAND_LONG,
     MSG_DEBUG_VECT,
     MSG_MANUAL_CONTROL,
+    SCRIPT,
     Applet,
     NetVehicle,
     command_user_1,
@@ -219,3 +220,29 @@ def test_camera_tilt_is_taken_out_of_the_heading() -> None:
     assert applet.named("NH_YAWERR") == pytest.approx(10.0, abs=1.0)
     run_closed_loop(applet, vehicle, 15.0)
     assert abs(vehicle.heading_error_deg) < 1.5
+
+
+def test_every_parameter_is_documented_with_its_default() -> None:
+    applet = Applet()
+    docs = (SCRIPT.parents[1] / "docs" / "net-hold.md").read_text()
+    params = {str(k): float(v) for k, v in applet.stub.params.items()
+              if str(k).startswith("NETH_")}
+    assert len(params) >= 20
+    for name, default in params.items():
+        row = next((line for line in docs.splitlines() if line.startswith(f"| `{name}` |")), "")
+        assert row, f"{name} is not in docs/net-hold.md's parameter table"
+        assert f"| {default:g}" in row, (name, default, row)
+
+
+def test_the_dead_band_step_only_while_the_thrusters_idle() -> None:
+    """Stepping over the ESC dead band is right at rest, and wrong while the pilot sweeps
+    sideways (the thrusters are out of the dead band already)."""
+    outputs = {}
+    for lateral in (1500, 1560):
+        vehicle = NetVehicle(distance_m=1.03, heading_error_deg=0.0)
+        applet = engaged_applet(vehicle)
+        applet.stub.overrides[6] = lateral
+        applet.receive(debug_vect(b"NET_PLANE", applet.now, 0.0, 0.0, 1.03))
+        applet.run_until(applet.now + 0.02)
+        outputs[lateral] = (applet.override(FWD) or 1500) - 1500
+    assert outputs[1500] >= 20 + outputs[1560] - 1 and 0 < outputs[1560] < 20, outputs
