@@ -271,11 +271,11 @@ def write_plot(pilot: Pilot, truth: Truth, t0: float, path: Path,
     ax.axhline(DIST_MIN, color="r", lw=0.8, ls=":", label="hard minimum")
     for name, t in marks.items():
         ax.axvline(t - t0, color="grey", lw=0.6)
-        ax.text(t - t0 + 0.5, 2.15, name, fontsize=8, color="grey")
+        ax.text(t - t0 + 0.5, 2.25, name, fontsize=8, color="grey")
     ax.set_xlabel("time since net hold engaged (s)")
     ax.set_ylabel("camera to net (m)")
     ax.set_ylim(0.0, 2.4)
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="lower left", fontsize=8)
     ax.set_title("Net hold in ArduSub SITL: engage at 2 m / 20 deg, sweep, pilot, camera blocked",
                  fontsize=9)
     fig.tight_layout()
