@@ -1,6 +1,6 @@
-"""The autopilot link: DISTANCE_SENSOR (and opt-in VISION_POSITION_ESTIMATE) to ArduSub.
+"""The autopilot link: DISTANCE_SENSOR and the net plane (for the net-hold applet) to ArduSub.
 
-The frame loop only calls cheap setters (`set_range`, `set_vision_pose`): each stores the newest
+The frame loop only calls cheap setters (`set_range`, `set_net_plane`): each stores the newest
 value under a lock, a bounded queue of depth one where the newest value wins. One owned thread
 (`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
 with backoff (service.core.backoff), sends HEARTBEAT at 1 Hz as an onboard controller, tracks
@@ -10,7 +10,9 @@ at `rate_hz` while the newest reading is sendable (service.core.readings.RangeSt
 up to `max_age_s`, and start/stop hysteresis). Every message is stamped with the capture time of the
 frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
 ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
-meaning of "invalid" for a MAVLink rangefinder.
+meaning of "invalid" for a MAVLink rangefinder. The net plane goes out as DEBUG_VECT named
+`NET_PLANE` (docs/net-hold.md), only while the newest plane is younger than `max_age_s` (a zero
+vector when that frame did not confirm the net).
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -34,10 +36,10 @@ from drivers.distance_gate import DistanceGate
 from drivers.errors import MavlinkLinkError
 from drivers.lifecycle import Closeable
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key, serial_device
-from drivers.mavlink_wire import distance_sensor_fields, vision_covariance
+from drivers.mavlink_wire import NET_PLANE_NAME, distance_sensor_fields
 from service.core.backoff import Backoff
 from service.core.messages import AutopilotHealth, AutopilotIdentity
-from service.core.readings import RangeReading, RangeStatus, VisionPose
+from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
@@ -82,8 +84,8 @@ class AutopilotLink(Closeable):
         """Newest reading, stamped with the capture time of its frame."""
 
     @abstractmethod
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
-        """Newest vehicle pose in the net frame (sent only when vision is enabled)."""
+    def set_net_plane(self, plane: NetPlane) -> None:
+        """Newest net plane, from a frame whose measurement the filter accepted."""
 
     @abstractmethod
     def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
@@ -188,14 +190,14 @@ class MavlinkLink(AutopilotLink):
         self._started_at = clock()
         # Inputs, written by the frame loop.
         self._range: RangeReading = RangeReading.none(-math.inf)
-        self._pose: VisionPose | None = None
+        self._plane: NetPlane | None = None
         # Link state, written by the link thread, read by status().
         self._transport_up = False
         self._autopilot: _AutopilotIdentity | None = None
         self._autopilot_alive = False
         self._autopilot_boot: float | None = None
         self._sent: SendTimes = dict.fromkeys(
-            ("HEARTBEAT", "DISTANCE_SENSOR", "VISION_POSITION_ESTIMATE", "STATUSTEXT"), 0
+            ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT", "STATUSTEXT"), 0
         )
         self._texts: collections.deque[tuple[int, str]] = collections.deque(
             maxlen=_MAX_QUEUED_TEXTS)
@@ -204,10 +206,7 @@ class MavlinkLink(AutopilotLink):
         self._last_error: str | None = None
         self._reconnects = 0
         self._sending_distance = False
-        self._sending_vision = False
-        self._vision_reset_counter = 0
-        self._vision_frame_id: int | None = None
-        self._vision_resumed = False
+        self._sending_net_plane = False
         self._foreign_autopilots: set[int] = set()
         self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
         self._url = redact_text(settings.url)
@@ -221,9 +220,9 @@ class MavlinkLink(AutopilotLink):
             self._range = reading
             self._gate.observe(reading, now)
 
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
+    def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
-            self._pose = pose
+            self._plane = plane
 
     def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
         with self._lock:
@@ -272,8 +271,7 @@ class MavlinkLink(AutopilotLink):
                 sending_distance=self._sending_distance,
                 freshness_s=self._gate.freshness_s,
                 sending_changes=self._gate.changes,
-                sending_vision=self._sending_vision,
-                vision_reset_counter=self._vision_reset_counter,
+                sending_net_plane=self._sending_net_plane,
             )
 
     def _state_locked(self) -> str:
@@ -393,13 +391,14 @@ class MavlinkLink(AutopilotLink):
 
     def _send_outputs(self, conn: Any, now: float) -> None:
         with self._lock:
-            reading, pose = self._range, self._pose
+            reading, plane = self._range, self._plane
             fresh_range = self._gate.decide(reading, now)
             limit = self._gate.freshness_s
         why = "" if reading.sendable else "nothing believed"
         if reading.sendable and not fresh_range:
             why = f"newest reading {now - reading.t_capture:.2f} s old, limit {limit:.2f} s"
         self._note_sending("distance", fresh_range, why)
+        max_age = self.settings.max_age_s
         if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
             time_boot_ms = self._autopilot_time_ms(reading.t_capture)
@@ -420,30 +419,20 @@ class MavlinkLink(AutopilotLink):
                     signal_quality=fields.signal_quality,
                 ),
             )
-        if not self.settings.vision_enabled:
+        if not self.settings.send_net_plane:
             return
-        fresh_pose = (pose is not None and pose.usable
-                      and now - pose.t_capture <= self.settings.max_age_s)
-        self._note_sending("vision", fresh_pose, "no fresh pose")
-        if fresh_pose and pose is not None:
-            self._update_reset_counter(pose)
-            usec = self._autopilot_time_ms(pose.t_capture) * 1000
-            covariance = vision_covariance(pose)
-            reset_counter = self._vision_reset_counter
+        # A fresh plane goes out whether it confirms the net or not (a zero vector: "no net in
+        # that frame"), so the applet stops at once rather than at its timeout.
+        fresh_plane = plane is not None and now - plane.t_capture <= max_age and all(
+            math.isfinite(v) for v in plane.foot_m)
+        self._note_sending("net_plane", fresh_plane and plane is not None and plane.usable)
+        if fresh_plane and plane is not None:
+            usec = self._autopilot_time_ms(plane.t_capture) * 1000
+            x, y, z = plane.foot_m
             self._send(
                 conn,
-                "VISION_POSITION_ESTIMATE",
-                lambda: conn.mav.vision_position_estimate_send(
-                    usec,
-                    pose.x,
-                    pose.y,
-                    pose.z,
-                    pose.roll,
-                    pose.pitch,
-                    pose.yaw,
-                    covariance=covariance,
-                    reset_counter=reset_counter,
-                ),
+                "DEBUG_VECT",
+                lambda: conn.mav.debug_vect_send(NET_PLANE_NAME, usec, x, y, z),
             )
 
     def _note_sending(self, what: str, sending: bool, why: str = "") -> None:
@@ -451,24 +440,12 @@ class MavlinkLink(AutopilotLink):
         with self._lock:
             changed = getattr(self, attribute) != sending
             setattr(self, attribute, sending)
-            if what == "vision" and changed and not sending:
-                # The next pose after a gap starts a new net frame for the EKF.
-                self._vision_resumed = True
         if changed:
+            label = what.replace("_", " ")
             if sending:
-                log.info("MAVLink: sending %s", what)
+                log.info("MAVLink: sending %s", label)
             else:
-                log.info("MAVLink: not sending %s (%s)", what, why or "not fresh")
-
-    def _update_reset_counter(self, pose: VisionPose) -> None:
-        with self._lock:
-            jumped = self._vision_frame_id is not None and (
-                pose.frame_id != self._vision_frame_id or self._vision_resumed
-            )
-            if jumped:
-                self._vision_reset_counter = (self._vision_reset_counter + 1) % 256
-            self._vision_frame_id = pose.frame_id
-            self._vision_resumed = False
+                log.info("MAVLink: not sending %s (%s)", label, why or "not fresh")
 
     def _autopilot_time_ms(self, t: float) -> int:
         """Instant `t` (this host's monotonic clock) in milliseconds since the autopilot booted
@@ -582,7 +559,7 @@ class RecordingAutopilotLink(AutopilotLink):
         self.started = False
         self.closed = False
         self.ranges: list[RangeReading] = []
-        self.poses: list[VisionPose | None] = []
+        self.planes: list[NetPlane] = []
         self.texts: list[tuple[int, str]] = []
         self._lock = threading.Lock()
 
@@ -593,9 +570,9 @@ class RecordingAutopilotLink(AutopilotLink):
         with self._lock:
             self.ranges.append(reading)
 
-    def set_vision_pose(self, pose: VisionPose | None) -> None:
+    def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
-            self.poses.append(pose)
+            self.planes.append(plane)
 
     def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
         with self._lock:

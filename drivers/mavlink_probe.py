@@ -33,10 +33,10 @@ RANGEFINDER_PARAMS = (
     "RNGFND1_MAX",
     "RNGFND_SQ_MIN",
 )
-VISION_PARAMS = ("VISO_TYPE", "EK3_SRC1_POSXY")
+# Lua scripting, and two parameters the net-hold applet (scripts/net_hold.lua) creates once it runs.
+NET_HOLD_PARAMS = ("SCR_ENABLE", "NETH_ENABLE", "NETH_DIST")
 
 RNGFND_TYPE_MAVLINK = 10
-VISO_TYPE_MAVLINK = 1
 ORIENTATION_NAMES = MappingProxyType({0: "forward", 4: "backward", 24: "up", 25: "down"})
 _MAV_CMD_REQUEST_MESSAGE = 512
 _MSG_ID_AUTOPILOT_VERSION = 148
@@ -82,7 +82,7 @@ def _is_autopilot_heartbeat(msg: Any) -> bool:
 def probe_autopilot(
     settings: MavlinkSettings,
     timeout_s: float = 5.0,
-    param_names: tuple[str, ...] = RANGEFINDER_PARAMS + VISION_PARAMS,
+    param_names: tuple[str, ...] = RANGEFINDER_PARAMS + NET_HOLD_PARAMS,
 ) -> AutopilotReport:
     """Wait for the autopilot's heartbeat, ask for AUTOPILOT_VERSION and the named parameters.
 
@@ -171,7 +171,7 @@ def _fmt(value: float) -> str:
     return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
-def advise(report: AutopilotReport, settings: MavlinkSettings) -> Advice:
+def advise(report: AutopilotReport, settings: MavlinkSettings, net_hold: bool = False) -> Advice:
     """What to change on the autopilot (or in netpose's [mavlink] settings) and why."""
     p = report.params
     changes: list[str] = []
@@ -203,15 +203,15 @@ def advise(report: AutopilotReport, settings: MavlinkSettings) -> Advice:
             notes.append(f"RNGFND_SQ_MIN = {_fmt(sq_min)} applies only to the downward "
                          "rangefinder (SURFTRAK); a forward reading is stored, logged and "
                          "readable from Lua scripts whatever its quality")
-    if settings.vision_enabled:
-        viso = p.get("VISO_TYPE")
-        if viso is None or int(viso) != VISO_TYPE_MAVLINK:
-            changes.append(f"set VISO_TYPE = {VISO_TYPE_MAVLINK} (MAVLink) and reboot, or "
-                           "disable mavlink.vision_enabled")
-        posxy = p.get("EK3_SRC1_POSXY")
-        if posxy is not None and int(posxy) == 6:
-            notes.append("EK3_SRC1_POSXY = 6: the EKF treats the net-relative pose as a "
-                         "world-fixed position; a net moves with current and tide")
+    if net_hold:
+        if p.get("SCR_ENABLE") is None or int(p["SCR_ENABLE"]) != 1:
+            changes.append("set SCR_ENABLE = 1 (Lua scripting, for the net-hold applet) and "
+                           "reboot the autopilot")
+        elif "NETH_ENABLE" not in p:
+            changes.append("the net-hold applet is not running: copy scripts/net_hold.lua to the "
+                           "autopilot's scripts folder and reboot (docs/net-hold.md)")
+        if not settings.send_net_plane:
+            changes.append("set mavlink.send_net_plane = true: the applet needs the net plane")
     return Advice(changes=changes, notes=notes)
 
 

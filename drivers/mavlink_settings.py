@@ -66,14 +66,15 @@ class MavlinkSettings:
     sensor_id: int = 0
     fov_horizontal_deg: float = 0.0
     fov_vertical_deg: float = 0.0
-    vision_enabled: bool = False
+    # Send the net plane (DEBUG_VECT "NET_PLANE") for the autopilot's net-hold applet.
+    send_net_plane: bool = True
+    # Distances measured in rendered frames (synthetic:, sim: sources) are not facts about the
+    # water: the service starts with such a source only when this says so (SITL, a demo).
+    allow_simulated: bool = False
     signing_key_file: str | None = None
     heartbeat_timeout_s: float = 3.0
     retry_initial_s: float = 0.5
     retry_max_s: float = 10.0
-    # Distances measured in rendered frames (synthetic:, sim: sources) are not facts about the
-    # water: they reach an autopilot only when this says so (SITL, a bench demo).
-    allow_simulated: bool = False
 
     def __post_init__(self) -> None:
         self._check_url()

@@ -9,13 +9,16 @@ import math
 from dataclasses import dataclass
 
 from drivers.mavlink_settings import MavlinkSettings
-from service.core.readings import RangeReading, RangeStatus, VisionPose
+from service.core.readings import RangeReading, RangeStatus
 
 # MAV_DISTANCE_SENSOR_UNKNOWN: a camera is none of laser/ultrasound/infrared/radar.
 DISTANCE_SENSOR_TYPE_UNKNOWN = 4
 # DISTANCE_SENSOR.covariance is a uint8 in cm^2; 255 means "unknown".
 COVARIANCE_UNKNOWN = 255
 UINT16_MAX = 65535
+# DEBUG_VECT.name of the net plane read by the net-hold applet (scripts/net_hold.lua): at most
+# 10 characters, and the same bytes in both places.
+NET_PLANE_NAME = b"NET_PLANE"
 
 
 def signal_quality(quality: float) -> int:
@@ -89,10 +92,3 @@ def distance_sensor_fields(
         vertical_fov=math.radians(settings.fov_vertical_deg),
         signal_quality=signal_quality(reading.quality),
     )
-
-
-def vision_covariance(pose: VisionPose) -> list[float]:
-    """VISION_POSITION_ESTIMATE.covariance: 21 floats, first element NaN when unknown."""
-    if pose.covariance is None or not all(math.isfinite(c) for c in pose.covariance):
-        return [math.nan] + [0.0] * 20
-    return [float(c) for c in pose.covariance]

@@ -23,9 +23,9 @@ import numpy.typing as npt
 
 from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
-from service.core.readings import RangeReading, RangeStatus
+from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.results import NetEstimate
-from service.core.tracking import NetTracker, Outcome, TrackOutput
+from service.core.tracking import NetTracker, Outcome, TrackOutput, TrackState
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,9 @@ class PipelineResult:
     reading: RangeReading  # what the autopilot is told
     failure: Exception | None = None  # why a frame gave no estimate
     estimate_ms: float = 0.0  # estimator wall time (a measurement, never an input)
+    # The net plane for the autopilot's net hold: only from a frame whose measurement the filter
+    # accepted (never from a coasting prediction), stamped with that frame's capture time.
+    plane: NetPlane | None = None
 
     @property
     def error(self) -> str:
@@ -117,6 +120,7 @@ class Pipeline:
         return PipelineResult(
             t=t, index=index, estimate=estimate, track=track,
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
+            plane=net_plane_of(track, t),
         )
 
     def tick(self, t: float) -> PipelineResult:
@@ -143,6 +147,16 @@ class Pipeline:
             return RangeReading.none(t)
         return RangeReading(RangeStatus.GOOD, t_capture=t, distance_m=distance, sigma_m=sigma,
                             quality=self._last_quality)
+
+
+def net_plane_of(track: TrackOutput, t: float) -> NetPlane | None:
+    """The filtered plane of a frame whose measurement was accepted; None otherwise."""
+    if not (track.valid and track.state is TrackState.TRACKING):
+        return None
+    if track.distance_m is None or track.normal is None:
+        return None
+    plane = NetPlane.from_distance_normal(t, track.distance_m, track.normal)
+    return plane if plane.usable else None
 
 
 def sigma_range_of(track: TrackOutput) -> float | None:

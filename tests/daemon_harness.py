@@ -151,15 +151,14 @@ class RecordingObserver:
 
 def make_harness(config: Config, script: Iterable[Step], *, start: float = 100.0,
                  load_config: Callable[[], Config] | None = None,
-                 observers: tuple[Any, ...] = (), distance_to_autopilot: bool = True) -> Harness:
+                 observers: tuple[Any, ...] = ()) -> Harness:
     clock = FakeClock(start)
     source = ScriptedSource(script, clock)
     link = RecordingAutopilotLink()
     telemetry = RecordingPublisher()
     notifier = RecordingNotifier(watchdog_interval_s=1.0)
     parts = DaemonParts(source=source, link=link, telemetry=telemetry, notifier=notifier,
-                        camera=builtin_camera(640, 360), vehicle="test", observers=observers,
-                        distance_to_autopilot=distance_to_autopilot)
+                        camera=builtin_camera(640, 360), vehicle="test", observers=observers)
     daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall, load_config=load_config)
     daemon.start()
     return Harness(daemon, clock, source, link, telemetry, notifier)

@@ -253,3 +253,19 @@ def test_unreachable_outputs_do_not_stall_the_loop(caplog: pytest.LogCaptureFixt
     assert "MAVLink link waiting" in caplog.text
     assert not parts.telemetry.online
     assert math.isfinite(daemon.stats.latency_since(-math.inf).p99_ms or math.nan)
+
+
+def test_net_plane_of_every_frame_for_the_net_hold_applet(frames: list[Frame]) -> None:
+    """Each confirmed frame gives the filtered plane stamped with its capture time; a frame the
+    estimator cannot use gives "no net" at once (not after the coasting time)."""
+    good = frames_at(frames[:20], FPS, 100.0)
+    bad = frames_at(frames[20:23], FPS, 100.0 + 20 / FPS, image=lambda im: im[:, :360])
+    h = make_harness(demo_config(), [Step(frame=f) for f in [*good, *bad]])
+    h.run_script()
+    planes = h.link.planes
+    assert [p.t_capture for p in planes] == [f.t_monotonic for f in [*good, *bad]]
+    confirmed = [p for p in planes[:20] if p.usable]
+    assert len(confirmed) >= 15  # all but the acquisition
+    distance = RANGE_M * math.cos(math.radians(TILT_DEG))
+    assert all(abs(p.distance_m / distance - 1.0) < 0.02 for p in confirmed)
+    assert all(p.foot_m == (0.0, 0.0, 0.0) for p in planes[20:])

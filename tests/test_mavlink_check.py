@@ -17,11 +17,11 @@ pytestmark = pytest.mark.timeout(60)
 
 ARDUSUB_45_DEFAULTS = {  # cm naming, rangefinder off, SURFTRAK's quality threshold
     "RNGFND1_TYPE": 0, "RNGFND1_ORIENT": 25, "RNGFND1_MIN_CM": 50, "RNGFND1_MAX_CM": 700,
-    "RNGFND_SQ_MIN": 90, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 3,
+    "RNGFND_SQ_MIN": 90, "SCR_ENABLE": 0,
 }
 READY_47 = {  # metre naming, set up for a forward MAVLink rangefinder
     "RNGFND1_TYPE": 10, "RNGFND1_ORIENT": 0, "RNGFND1_MIN": 0.2, "RNGFND1_MAX": 10,
-    "RNGFND_SQ_MIN": 0, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 3,
+    "RNGFND_SQ_MIN": 0, "SCR_ENABLE": 1, "NETH_ENABLE": 1, "NETH_DIST": 1.0,
 }
 
 
@@ -37,7 +37,7 @@ def test_reports_identity_and_what_to_change(capsys: pytest.CaptureFixture[str])
     assert "set RNGFND1_ORIENT = 0 (forward; now 25)" in out
     assert "set RNGFND1_MIN_CM = 30 (now 50 cm)" in out  # default minimum 0.3 m
     assert "set RNGFND1_MAX_CM = 800 (now 700 cm)" in out  # default maximum 8 m
-    assert "VISO_TYPE" not in out  # vision not asked for
+    assert "SCR_ENABLE" not in out  # net hold not asked for
     # Every parameter was asked for by name, from netpose's own identity.
     assert {r.msg.param_id for r in requests} >= set(RANGEFINDER_PARAMS)
     assert {r.src for r in requests} == {(1, 197)}
@@ -45,24 +45,33 @@ def test_reports_identity_and_what_to_change(capsys: pytest.CaptureFixture[str])
 
 def test_ready_vehicle_with_metre_parameters_over_tcp(capsys: pytest.CaptureFixture[str]) -> None:
     with FakeAutopilot(TcpServerTransport(), params=READY_47) as autopilot:
-        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "2", "--vision"])
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "2", "--net-hold"])
     out = capsys.readouterr().out
     assert code == 0, out
-    assert "RNGFND1_MAX      10" in out and "VISO_TYPE        1" in out
+    assert "RNGFND1_MAX      10" in out and "NETH_DIST        1" in out
     assert "Ready" in out and "To change" not in out
 
 
-def test_downward_and_vision_advice(capsys: pytest.CaptureFixture[str]) -> None:
+def test_downward_and_net_hold_advice(capsys: pytest.CaptureFixture[str]) -> None:
     params = {**ARDUSUB_45_DEFAULTS, "RNGFND1_TYPE": 10, "RNGFND1_MIN_CM": 20,
               "RNGFND1_MAX_CM": 1000}
     with FakeAutopilot(UdpServerTransport(), params=params) as autopilot:
         code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1",
-                     "--orientation", "25", "--vision"])
+                     "--orientation", "25", "--net-hold"])
     out = capsys.readouterr().out
     assert code == 3
-    assert "set VISO_TYPE = 1" in out
+    assert "set SCR_ENABLE = 1" in out
     assert "RNGFND1_ORIENT" not in out.split("To change:")[1]  # 25 is what we send
     assert "confidence below 0.90 is not used" in out
+
+
+def test_net_hold_applet_missing(capsys: pytest.CaptureFixture[str]) -> None:
+    params = {k: v for k, v in READY_47.items() if not k.startswith("NETH_")}
+    with FakeAutopilot(UdpServerTransport(), params=params) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1", "--net-hold"])
+    out = capsys.readouterr().out
+    assert code == 3
+    assert "the net-hold applet is not running" in out and "SCR_ENABLE" in out
 
 
 def test_vehicle_with_another_system_id(capsys: pytest.CaptureFixture[str]) -> None:

@@ -28,7 +28,7 @@ from drivers.net import free_port
 from service.config import build_section
 from service.core.errors import ConfigError
 from service.core.messages import AutopilotHealth, json_value
-from service.core.readings import RangeReading, RangeStatus, VisionPose
+from service.core.readings import NetPlane, RangeReading, RangeStatus
 from tests.fake_autopilot import (
     FakeAutopilot,
     PtyTransport,
@@ -51,7 +51,7 @@ def settings(url: str, **overrides: Any) -> MavlinkSettings:
 
 @contextmanager
 def feeding(link: MavlinkLink, reading: RangeReading | None = READING,
-            pose: VisionPose | None = None, period: float = 0.05) -> Iterator[None]:
+            plane: NetPlane | None = None, period: float = 0.05) -> Iterator[None]:
     """Play the frame loop: hand the link a fresh value every `period` seconds."""
     stop = threading.Event()
 
@@ -59,8 +59,8 @@ def feeding(link: MavlinkLink, reading: RangeReading | None = READING,
         while not stop.is_set():
             now = time.monotonic()
             link.set_range(fresh(reading, now))
-            if pose is not None:
-                link.set_vision_pose(dataclasses.replace(pose, t_capture=now))
+            if plane is not None:
+                link.set_net_plane(dataclasses.replace(plane, t_capture=now))
             stop.wait(period)
 
     thread = threading.Thread(target=run, name="test-frame-loop")
@@ -124,15 +124,15 @@ def test_settings_name_the_bad_key(key: str, kwargs: dict[str, Any]) -> None:
 
 def test_settings_from_toml_through_the_one_coercer() -> None:
     s = build_section("mavlink", MavlinkSettings, {"url": "udpout:127.0.0.1:14660",
-                                                   "rate_hz": 20, "vision_enabled": True})
-    assert (s.url, s.rate_hz, s.vision_enabled, s.source_component) == (
-        "udpout:127.0.0.1:14660", 20.0, True, 197)
+                                                   "rate_hz": 20, "send_net_plane": False})
+    assert (s.url, s.rate_hz, s.send_net_plane, s.source_component) == (
+        "udpout:127.0.0.1:14660", 20.0, False, 197)
     with pytest.raises(ConfigError, match="unknown key") as info:
         build_section("mavlink", MavlinkSettings, {"rate": 10})
     assert info.value.key == "mavlink.rate"
     with pytest.raises(ConfigError) as info:
-        build_section("mavlink", MavlinkSettings, {"vision_enabled": "yes"})
-    assert info.value.key == "mavlink.vision_enabled"
+        build_section("mavlink", MavlinkSettings, {"send_net_plane": "yes"})
+    assert info.value.key == "mavlink.send_net_plane"
 
 
 def test_signal_quality_keeps_zero_for_unknown() -> None:
@@ -359,45 +359,39 @@ def test_udpin_answers_the_autopilot() -> None:
     assert sensors[0].msg.current_distance == 235
 
 
-def test_vision_position_is_opt_in() -> None:
-    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, t_capture=0.0)
+def test_net_plane_can_be_switched_off() -> None:
+    plane = NetPlane.from_distance_normal(0.0, 1.2, (0.1, 0.0, -0.995))
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url, send_net_plane=False))
+        with link, feeding(link, plane=plane):
+            autopilot.wait_for("DISTANCE_SENSOR", count=5)
+    assert autopilot.received("DEBUG_VECT") == []
+
+
+def test_net_plane_fields_time_and_staleness() -> None:
+    """DEBUG_VECT NET_PLANE: the foot vector in the camera frame, stamped with the capture time
+    on the autopilot's clock; a plane older than max_age_s is never sent."""
+    normal = (0.17364818, 0.0, -0.98480775)  # net turned 10 degrees, facing the camera
+    plane = NetPlane.from_distance_normal(0.0, 1.25, normal)
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
-        with link, feeding(link, pose=pose):
-            autopilot.wait_for("DISTANCE_SENSOR", count=5)
-    assert autopilot.received("VISION_POSITION_ESTIMATE") == []
-
-
-def test_vision_position_fields_and_reset_counter() -> None:
-    covariance = tuple(float(i + 1) * 1e-3 for i in range(21))
-    pose = VisionPose(-1.5, 0.2, 3.0, 0.01, -0.02, 0.3, t_capture=0.0, covariance=covariance,
-                      frame_id=7)
-    with FakeAutopilot(UdpServerTransport()) as autopilot:
-        link = MavlinkLink(settings(autopilot.url, vision_enabled=True, max_age_s=0.3))
         with link:
-            with feeding(link, pose=pose):
-                first = autopilot.wait_for("VISION_POSITION_ESTIMATE", count=3)
-            time.sleep(0.5)  # pose stale: nothing sent, the net frame must be re-acquired
-            with feeding(link, pose=pose):
-                resumed = autopilot.wait_for("VISION_POSITION_ESTIMATE", count=len(
-                    autopilot.received("VISION_POSITION_ESTIMATE")) + 2)
-            moved = VisionPose(-1.0, 0.0, 3.0, 0.0, 0.0, 0.0, t_capture=0.0, covariance=None,
-                               frame_id=8)
-            with feeding(link, pose=moved):
-                autopilot.wait_for("VISION_POSITION_ESTIMATE", where=lambda r: r.msg.x == -1.0)
-                reacquired = autopilot.received("VISION_POSITION_ESTIMATE")[-1].msg
-
+            with feeding(link, plane=plane):
+                first = autopilot.wait_for("DEBUG_VECT", count=3)
+            link.set_net_plane(dataclasses.replace(plane, t_capture=time.monotonic() - 1.0))
+            time.sleep(0.2)  # anything already on its way has arrived
+            count = len(autopilot.received("DEBUG_VECT"))
+            time.sleep(0.5)
+            stale = autopilot.received("DEBUG_VECT")[count:]
+            status = link.status()
     msg = first[-1].msg
-    assert (msg.x, msg.y, msg.z) == pytest.approx((-1.5, 0.2, 3.0), rel=1e-6)
-    assert (msg.roll, msg.pitch, msg.yaw) == pytest.approx((0.01, -0.02, 0.3), rel=1e-6)
-    assert list(msg.covariance) == pytest.approx(covariance, rel=1e-6)
-    lag_us = autopilot.boot_ms(first[-1].t) * 1000 - msg.usec
-    assert -5_000 <= lag_us <= 100_000
-    counters = [r.msg.reset_counter for r in first]
-    assert len(set(counters)) == 1  # a steady net frame keeps its counter
-    assert resumed[-1].msg.reset_counter == counters[0] + 1  # resumed after a gap
-    assert reacquired.reset_counter == counters[0] + 2  # new frame_id
-    assert math.isnan(reacquired.covariance[0])  # unknown covariance
+    assert msg.name == "NET_PLANE"
+    assert (msg.x, msg.y, msg.z) == pytest.approx((-1.25 * normal[0], 0.0, -1.25 * normal[2]),
+                                                  rel=1e-6)
+    assert math.sqrt(msg.x**2 + msg.y**2 + msg.z**2) == pytest.approx(1.25, rel=1e-6)
+    lag_us = autopilot.boot_ms(first[-1].t) * 1000 - msg.time_usec
+    assert -5_000 <= lag_us <= 100_000  # the frame's capture time, not the send time
+    assert stale == [] and status.sending_net_plane is False
 
 
 def test_signed_link_is_accepted_only_with_the_right_key(tmp_path: Path) -> None:
@@ -602,3 +596,14 @@ def test_pilot_notices_go_out_as_statustext_in_order() -> None:
     assert [(r.msg.severity, r.msg.text) for r in texts] == [
         (4, "netpose: net too close to measure"), (5, "x" * 50)]
     assert link.status().sent["STATUSTEXT"] == 2
+
+
+def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
+    """So the net-hold applet stops on the first frame without the net, not at its timeout."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link, feeding(link, plane=NetPlane.none(0.0)):
+            zero = autopilot.wait_for("DEBUG_VECT", count=2)[-1].msg
+            status = link.status()
+    assert (zero.name, zero.x, zero.y, zero.z) == ("NET_PLANE", 0.0, 0.0, 0.0)
+    assert status.sending_net_plane is False  # nothing valid is being sent

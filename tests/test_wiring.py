@@ -24,17 +24,12 @@ from drivers.telemetry import RecordingPublisher
 from service.core.camera import save_camera
 from service.core.errors import ConfigError
 from service.core.messages import to_json
-from service.core.readings import RangeStatus
 from service.daemon.loop import Daemon
-from service.daemon.wiring import build_parts, check_config, load_daemon_config
+from service.daemon.wiring import build_parts, build_source, check_config, load_daemon_config
 from tests.daemon_harness import (
     REPO,
     FakeClock,
-    Step,
     demo_config,
-    frames_at,
-    make_harness,
-    render_frames,
 )
 from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 
@@ -91,35 +86,24 @@ def test_check_and_run_exit_78_with_the_same_line(tmp_path: Path) -> None:
 def test_check_builds_what_run_starts_and_opens_nothing(tmp_path: Path) -> None:
     text = check_config(str(DEMO))
     assert text.startswith("configuration OK") and "sha256:" in text
-    # The demo's rendered distances may go to its ground station: it says so explicitly.
-    assert "allow_simulated" not in text
-    refused = check_config(str(DEMO), ["mavlink.allow_simulated=false"])
-    assert "rendered source: no distance goes to the autopilot" in refused
 
 
-def test_rendered_distances_are_withheld_without_allow_simulated(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    config = demo_config("mavlink.allow_simulated=false")
-    parts = build_parts(config, NullNotifier())
-    parts.source.close()
-    assert parts.distance_to_autopilot is False
-    assert build_parts(demo_config(), NullNotifier()).distance_to_autopilot is True
-    frames = render_frames("synthetic:?width=640&height=360&fps=10&trajectory=static&seed=2", 8)
-    caplog.set_level(logging.WARNING, logger="netpose.daemon")
-    h = make_harness(config, [Step(frame=f) for f in frames_at(frames, 10.0, 100.0)],
-                     distance_to_autopilot=False)
-    h.run_script()
-    assert all(r.status is RangeStatus.NONE for r in h.link.ranges)
-    believed = [e.filtered for e in h.telemetry.estimates if e.filtered and e.filtered.valid]
-    assert believed, "the filter did track the rendered net"
-    assert all(f.autopilot == "none" for f in believed)  # telemetry says what was withheld
-    assert "rendered source" in caplog.text and "allow_simulated" in caplog.text
+def test_a_rendered_source_needs_allow_simulated_to_start() -> None:
+    """The QA finding: an installed configuration left on the demo source fed a real autopilot
+    283 rendered distances in 25 s. Rendered frames now start only where the configuration
+    says so explicitly (the demo and SITL configurations)."""
+    with pytest.raises(ConfigError) as info:
+        check_config(str(DEMO), ["mavlink.allow_simulated=false"])
+    assert info.value.key == "mavlink.allow_simulated" and "renders" in info.value.problem
+    with pytest.raises(ConfigError):
+        build_parts(demo_config("mavlink.allow_simulated=false"), NullNotifier())
+    assert build_source(demo_config()).rendered  # the demo says so, and starts
+    build_parts(demo_config(), NullNotifier()).source.close()
 
 
-def test_the_daemon_process_sends_no_rendered_distance_to_an_autopilot() -> None:
-    """The QA finding, end to end: a rendered source and a real (fake) autopilot on MAVLink,
-    without allow_simulated. Heartbeats flow, not one DISTANCE_SENSOR does."""
+def test_the_daemon_process_refuses_a_rendered_source_without_allow_simulated() -> None:
+    """End to end: with a real (fake) autopilot listening, the process exits 78 naming the
+    key, and the autopilot never hears a distance (nor anything else)."""
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(DEMO),
                "--duration", "6", "--set", f"mavlink.url={autopilot.url}",
@@ -127,11 +111,11 @@ def test_the_daemon_process_sends_no_rendered_distance_to_an_autopilot() -> None
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=60,
                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
         time.sleep(0.2)
-        heartbeats = autopilot.received("HEARTBEAT")
         distances = autopilot.received("DISTANCE_SENSOR")
-    assert proc.returncode == 0, proc.stderr
-    assert "net acquired" in proc.stderr  # the estimator and filter did see the net
-    assert len(heartbeats) >= 3 and distances == []
+    assert proc.returncode == 78, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith(
+        "netpose: configuration error: mavlink.allow_simulated:")
+    assert distances == []
 
 
 def test_a_world_readable_signing_key_is_named_in_a_warning(

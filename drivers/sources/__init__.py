@@ -11,6 +11,7 @@ URL schemes (docs/sources.md):
     file:recording.mp4?loop=1&realtime=1                       video file (or a bare path)
     images:folder/?fps=10                                      image folder or glob pattern
     synthetic:?trajectory=approach&...                         rendered net with ground truth
+    sim:tcp:127.0.0.1:5764?distance=2&turn=20                   rendered from the vehicle's pose
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from drivers.sources.base import (
     SourceStats,
 )
 from drivers.sources.files import ImageFolderSource, VideoFileSource
+from drivers.sources.sim import SimSource
 from drivers.sources.stream import StreamSource
 from drivers.sources.synthetic import SyntheticSource
 from drivers.sources.url import is_network_url, parse_source_url, url_error
@@ -53,6 +55,8 @@ def create_source(url: str, options: SourceOptions | None = None) -> FrameSource
         return ImageFolderSource(parsed.raw, options)
     if parsed.scheme == "synthetic":
         return SyntheticSource(parsed.raw, options)
+    if parsed.scheme == "sim":
+        return SimSource(parsed.raw, options)
     raise url_error(url, f"unknown scheme {parsed.scheme!r}")  # pragma: no cover - parser guards
 
 

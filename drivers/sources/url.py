@@ -111,7 +111,9 @@ class SourceUrl:
 
 
 # Schemes that netpose parses itself; everything else with "://" goes to FFmpeg.
-OWN_SCHEMES = ("v4l2", "file", "images", "synthetic")
+OWN_SCHEMES = ("v4l2", "file", "images", "synthetic", "sim")
+# Schemes whose frames are rendered, not seen: their distance reaches an autopilot only when
+# the configuration allows it explicitly (mavlink.allow_simulated).
 
 
 def parse_source_url(url: str) -> SourceUrl:

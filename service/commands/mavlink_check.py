@@ -11,7 +11,7 @@ import argparse
 from typing import Any
 
 from drivers.mavlink_link import import_mavutil
-from drivers.mavlink_probe import RANGEFINDER_PARAMS, VISION_PARAMS, advise, probe_autopilot
+from drivers.mavlink_probe import NET_HOLD_PARAMS, RANGEFINDER_PARAMS, advise, probe_autopilot
 from drivers.mavlink_settings import MavlinkSettings
 from service.core.errors import ConfigError
 
@@ -36,8 +36,8 @@ def add_parser(subparsers: Any) -> None:
                    help="MAV_SENSOR_ORIENTATION netpose will send (0 forward, 25 down)")
     p.add_argument("--min-distance", type=float, default=None, help="netpose minimum, metres")
     p.add_argument("--max-distance", type=float, default=None, help="netpose maximum, metres")
-    p.add_argument("--vision", action="store_true",
-                   help="also check VISION_POSITION_ESTIMATE parameters (VISO_TYPE)")
+    p.add_argument("--net-hold", action="store_true",
+                   help="also check Lua scripting and the net-hold applet (docs/net-hold.md)")
     p.add_argument("--signing-key", default=None, help="MAVLink 2 signing key file")
     p.add_argument("--timeout", type=float, default=5.0,
                    help="seconds to wait for the autopilot heartbeat (default 5)")
@@ -50,7 +50,6 @@ def _settings(args: argparse.Namespace) -> Any:
         "baud": args.baud,
         "source_system": args.source_system,
         "orientation": args.orientation,
-        "vision_enabled": args.vision,
         "signing_key_file": args.signing_key,
     }
     for key, value in (
@@ -81,12 +80,12 @@ def run(args: argparse.Namespace) -> int:
           f"{_enum_name('MAV_AUTOPILOT', report.autopilot)}, MAVLink {report.mavlink_version}, "
           f"firmware {firmware}")
     print("Parameters:")
-    names = RANGEFINDER_PARAMS + (VISION_PARAMS if settings.vision_enabled else ())
+    names = RANGEFINDER_PARAMS + (NET_HOLD_PARAMS if args.net_hold else ())
     for name in names:
         value = report.params.get(name)
         shown = "(not on this firmware)" if value is None else f"{value:g}"
         print(f"  {name:<16} {shown}")
-    advice = advise(report, settings)
+    advice = advise(report, settings, net_hold=args.net_hold)
     for note in advice.notes:
         print(f"Note: {note}")
     if not advice.changes:

@@ -185,8 +185,8 @@ class AutopilotHealth:
         "age beyond which a reading is not repeated (follows the measured frame interval)", None
     )
     sending_changes: int = doc("times sending started or stopped (total)", 0)
-    sending_vision: bool = doc("VISION_POSITION_ESTIMATE is being sent right now", False)
-    vision_reset_counter: int = doc("reset_counter of the vision pose (bumped on each jump)", 0)
+    sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
+                                  "applet) is being sent right now", False)
 
 
 @dataclass(frozen=True, kw_only=True)

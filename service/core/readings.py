@@ -55,32 +55,39 @@ class RangeReading:
 
 
 @dataclass(frozen=True)
-class VisionPose:
-    """The vehicle's pose in the net frame (metres, radians), for VISION_POSITION_ESTIMATE.
+class NetPlane:
+    """The net plane as one frame saw it, for the autopilot's net-hold applet.
 
-    Frame: ArduPilot expects a right-handed, z-down frame (x forward, y right, z down at
-    acquisition). `covariance` is the upper triangle (21 values, row-major) of the 6x6
-    covariance of (x, y, z, roll, pitch, yaw), or None if unknown. `frame_id` identifies one
-    acquisition of the net frame: change it whenever the net is re-acquired so the link bumps
-    reset_counter and the EKF does not fuse a jump as motion. `t_capture` is the frame's
-    capture time (monotonic seconds): ArduPilot aligns vision data by its timestamp.
+    `foot_m` is the vector from the camera to the nearest point of the net plane, in the camera
+    frame (x right, y down, z forward; metres): its length is the perpendicular distance and its
+    direction is the net normal pointing away from the camera. It is made only from a frame whose
+    measurement the filter accepted, and `t_capture` is that frame's capture time (monotonic
+    seconds), so its age on the autopilot is the age of the evidence: a coasting filter never
+    produces one. Every other frame gives `NetPlane.none` (a zero vector): "no net in this
+    frame". (Why no VISION_POSITION_ESTIMATE: docs/net-hold.md.)
     """
 
-    x: float
-    y: float
-    z: float
-    roll: float
-    pitch: float
-    yaw: float
     t_capture: float
-    covariance: tuple[float, ...] | None = None
-    frame_id: int = 0
+    foot_m: tuple[float, float, float]
 
-    def __post_init__(self) -> None:
-        if self.covariance is not None and len(self.covariance) != 21:
-            raise ValueError(f"covariance needs 21 values, got {len(self.covariance)}")
+    @classmethod
+    def none(cls, t_capture: float) -> NetPlane:
+        """The frame at `t_capture` did not confirm the net: sent as a zero vector, so the
+        applet stops at once instead of waiting for its timeout."""
+        return cls(t_capture, (0.0, 0.0, 0.0))
+
+    @classmethod
+    def from_distance_normal(
+        cls, t_capture: float, distance_m: float, normal_towards_camera: tuple[float, float, float]
+    ) -> NetPlane:
+        nx, ny, nz = normal_towards_camera
+        return cls(t_capture, (-distance_m * nx, -distance_m * ny, -distance_m * nz))
+
+    @property
+    def distance_m(self) -> float:
+        return math.sqrt(sum(v * v for v in self.foot_m))
 
     @property
     def usable(self) -> bool:
-        values = (self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
-        return all(math.isfinite(v) for v in values)
+        """Finite, and the net in front of the camera (positive forward component)."""
+        return all(math.isfinite(v) for v in self.foot_m) and self.foot_m[2] > 0.0

@@ -59,9 +59,6 @@ class DaemonParts:
     preview: PreviewSettings = field(default_factory=PreviewSettings)
     telemetry_enabled: bool = True
     observers: tuple[FrameObserver, ...] = ()
-    # False for a rendered source without mavlink.allow_simulated: a demo or bench run never
-    # feeds its rendered distances to a real autopilot.
-    distance_to_autopilot: bool = True
 
 
 def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
@@ -100,8 +97,7 @@ class Daemon:
                                   config.filter.max_consecutive_rejects)
         self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now)
         self.outputs = FrameOutputs(parts.link, parts.telemetry, parts.vehicle, parts.preview,
-                                    wall_clock, self.problems, parts.observers,
-                                    distance_to_autopilot=parts.distance_to_autopilot)
+                                    wall_clock, self.problems, parts.observers)
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
                           self.pipeline.tracker, self.track_log, self.source_watch, self.outputs),
@@ -175,10 +171,6 @@ class Daemon:
             __version__, self._url, redact_text(str(cfg.effective["mavlink"]["url"])),
             "on" if parts.telemetry_enabled else "off", cfg.path or "defaults", cfg.digest,
         )
-        if not parts.distance_to_autopilot:
-            log.warning("camera.url is a rendered source: its distances are not sent to the "
-                        "autopilot (set mavlink.allow_simulated = true only for SITL or a bench "
-                        "demo)")
         parts.notifier.ready(status="started, waiting for frames")
 
     def close(self) -> None:

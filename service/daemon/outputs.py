@@ -18,7 +18,7 @@ from service.core.messages import (
     StatusMessage,
     TruthView,
 )
-from service.core.readings import RangeReading
+from service.core.readings import NetPlane, RangeReading
 from service.core.tracking import TrackOutput
 from service.daemon.events import OnceLogger
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
@@ -105,8 +105,6 @@ class FrameOutputs:
         wall_clock: Callable[[], float],
         problems: OnceLogger,
         observers: Sequence[FrameObserver] = (),
-        *,
-        distance_to_autopilot: bool = True,
     ) -> None:
         self._link = link
         self._telemetry = telemetry
@@ -115,15 +113,17 @@ class FrameOutputs:
         self._wall_clock = wall_clock
         self._problems = problems
         self._observers = tuple(observers)
-        self._distance_to_autopilot = distance_to_autopilot
         self._seq = 0
         self.last_estimate: EstimateMessage | None = None
 
     def to_autopilot(self, result: PipelineResult) -> RangeReading:
-        """Hand the reading to the link; returns what it was given."""
-        reading = result.reading if self._distance_to_autopilot else RangeReading.none(result.t)
-        self._link.set_range(reading)
-        return reading
+        """Hand the reading (and, for a frame, the net plane) to the link; returns the reading
+        it was given."""
+        self._link.set_range(result.reading)
+        if result.has_frame:  # each frame confirms the net plane, or says it did not
+            self._link.set_net_plane(
+                result.plane if result.plane is not None else NetPlane.none(result.t))
+        return result.reading
 
     def publish(self, frame: Frame, result: PipelineResult, sent: RangeReading,
                 now: float) -> None:

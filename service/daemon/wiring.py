@@ -45,6 +45,18 @@ def build_source(config: Config) -> DriverFrameSource:
     return create_source(config.camera.url, options)
 
 
+def check_simulated(config: Config, source: DriverFrameSource) -> None:
+    """A rendered distance (synthetic:, sim:) reaches an autopilot only when the configuration
+    says so explicitly: otherwise the service does not start (an installed configuration left
+    on the demo source must not feed a real autopilot rendered distances)."""
+    if source.rendered and not config.section("mavlink", MavlinkSettings).allow_simulated:
+        raise ConfigError(
+            "mavlink.allow_simulated",
+            "camera.url renders its frames: set it to true to send their distance to an "
+            "autopilot (a simulator or a demo), or use a real camera",
+        )
+
+
 def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     """The calibration file's camera, or the one a rendered source describes."""
     path = config.calibration_path()
@@ -63,6 +75,7 @@ def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
     """Every part of the daemon, built and checked, nothing opened: what `run` starts and what
     `run --check` validates are the same objects."""
     source = build_source(config)
+    check_simulated(config, source)
     camera = resolve_camera(config, source)
     mavlink = config.section("mavlink", MavlinkSettings)
     telemetry = config.section("telemetry", TelemetrySettings)
@@ -76,7 +89,6 @@ def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
         preview=PreviewSettings(width=telemetry.preview_width,
                                 quality=telemetry.preview_quality),
         telemetry_enabled=telemetry.enabled,
-        distance_to_autopilot=not source.rendered or mavlink.allow_simulated,
     )
 
 
@@ -86,9 +98,7 @@ def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
     config = load_daemon_config(config_path, overrides)
     parts = build_parts(config, NullNotifier())
     parts.source.close()
-    notes = "" if parts.distance_to_autopilot else (
-        "; rendered source: no distance goes to the autopilot (mavlink.allow_simulated)")
-    return f"configuration OK: {config.path or 'defaults'} ({config.digest}){notes}"
+    return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
 
 
 def main(

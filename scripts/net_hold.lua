@@ -1,0 +1,449 @@
+-- net_hold.lua: ArduSub applet that holds a set distance to a fish-farm net and faces it
+-- squarely, from the net plane netpose measures with the camera (docs/net-hold.md).
+--
+-- Input: netpose's DEBUG_VECT named "NET_PLANE": the vector from the camera to the nearest
+-- point of the net plane in the camera frame (x right, y down, z forward; metres), stamped with
+-- the capture time of the frame it was measured in (time_usec, autopilot boot clock). netpose
+-- sends it only for frames whose measurement its filter accepted, so its age is the age of the
+-- evidence; for a frame that did not confirm the net it sends a zero vector ("no net").
+-- Output: RC overrides of the forward (RCMAP_FORWARD) and yaw (RCMAP_YAW) channels. Depth stays
+-- with ArduSub's depth hold, lateral motion with the pilot.
+--
+-- The pilot is always in command: a script button (NETH_BTN) or MAV_CMD_USER_1 (param1 = 1 on,
+-- 0 off) engages and disengages; pilot stick input on forward or yaw, a mode change or disarming
+-- disengages at once, sets both channels to neutral and says why (STATUSTEXT). A frame without
+-- the net, or a net plane older than NETH_TIMEOUT (from its frame's capture), stops all thrust at
+-- once and says so; if no fresh plane comes within NETH_GRACE, net hold disengages. It never
+-- commands thrust toward the net closer than NETH_DIST_MIN.
+
+local PARAM_TABLE_KEY = 86
+local PARAM_PREFIX = "NETH_"
+local PLANE_NAME = "NET_PLANE"
+local MSG_DEBUG_VECT = 250
+local MSG_MANUAL_CONTROL = 69
+local MSG_COMMAND_LONG = 76
+local MSG_COMMAND_ACK = 77
+local MAV_CMD_USER_1 = 31010
+local MAV_RESULT_ACCEPTED = 0
+local MAV_RESULT_DENIED = 2
+local SEV_WARNING = 4
+local SEV_INFO = 6
+local NEUTRAL = 1500
+local UPDATE_MS = 10  -- re-assert overrides often: the pilot's MANUAL_CONTROL writes them too
+
+-- Parameters: name, default. Units and ranges in docs/net-hold.md.
+local PARAMS = {
+  {"ENABLE", 1},       -- 0: the applet does nothing
+  {"DIST", 1.0},       -- set point, m (clamped to 0.5..3)
+  {"DIST_MIN", 0.4},   -- hard minimum, m: no thrust toward the net at or below it
+  {"DIST_MAX", 4.0},   -- refuse to engage (and disengage) beyond this distance, m
+  {"TIMEOUT", 0.4},    -- a net plane older than this (from its capture) stops all thrust, s
+  {"GRACE", 3.0},      -- no fresh plane for this long (from the last capture) disengages, s
+  {"KP", 0.5},         -- speed command per metre of distance error, 1/s
+  {"KI", 0.0},         -- integral of the distance error within I_BAND, 1/s^2 (current)
+  {"I_BAND", 0.2},     -- the integral runs only within this distance of the set point, m
+  {"SPD_MAX", 0.3},    -- speed limit toward and away from the net, m/s
+  {"ACC_MAX", 0.3},    -- limit on speeding up toward the net, m/s^2
+  {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
+  {"KV", 150},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
+  {"FWD_MAX", 150},    -- largest forward PWM offset, us
+  {"FWD_DZ", 20},      -- ESC dead band to step over, us (ESCs: no thrust within 25 us)
+  {"FWD_DZ_RAMP", 5},  -- the step is blended in over this command, us (continuous through 0)
+  {"YAW_P", 0.5},      -- yaw rate command per degree of heading error, 1/s
+  {"YAW_RATE", 8},     -- yaw rate limit, deg/s
+  {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
+  {"YAW_GAIN", 3.0},   -- yaw PWM offset per deg/s (SITL: ~3 us per deg/s)
+  {"YAW_DZ", 20},      -- yaw dead zone to step over, us (RC4_DZ 40 x joystick gain 0.5)
+  {"YAW_I", 0.5},      -- integral of the heading error, us per deg*s (overcomes friction, dz)
+  {"YAW_DB", 1.0},     -- heading error below which yaw is left to ArduSub's heading hold, deg
+  {"CAM_TILT", 0},     -- camera tilt on the vehicle, deg (positive = looking down)
+  {"BTN", 1},          -- script button (1..4) that toggles net hold; 0 = none
+  {"PILOT_DZ", 100},   -- pilot stick beyond this (of +-1000) on forward or yaw disengages
+}
+
+local P = {}
+
+local function setup_params()
+  assert(param:add_table(PARAM_TABLE_KEY, PARAM_PREFIX, #PARAMS), "net_hold: param table")
+  for i, p in ipairs(PARAMS) do
+    assert(param:add_param(PARAM_TABLE_KEY, i, p[1], p[2]), "net_hold: param " .. p[1])
+    P[p[1]] = Parameter(PARAM_PREFIX .. p[1])
+  end
+end
+
+local function get(name)
+  return P[name]:get()
+end
+
+local function clamp(v, lo, hi)
+  if v < lo then return lo end
+  if v > hi then return hi end
+  return v
+end
+
+local function now_s()
+  return millis():tofloat() * 0.001
+end
+
+local function say(severity, text)
+  gcs:send_text(severity, "NetHold: " .. text)
+end
+
+-- State -------------------------------------------------------------------------------------
+local fwd_channel = nil
+local lateral_rc = 6
+local yaw_channel = nil
+local gcs_sysid = 255
+local my_sysid = 1
+local engaged = false
+local paused = false     -- engaged, but the net plane is stale: no thrust until a fresh one
+local yaw_rate_cmd = 0
+local engaged_mode = nil
+local plane = nil        -- {t = capture time s, x, y, z}: the newest plane with the net
+local no_net_t = nil     -- capture time of the newest frame without the net, if newer than plane
+local last_pause_text = -math.huge
+-- The vehicle's own heading over the last second and a half (AHRS, no delay), so the net's
+-- heading measured in a frame captured a few hundred ms ago becomes a heading to hold now.
+local yaw_history = {}   -- {t, yaw rad}, oldest first
+local target_yaw = nil   -- heading (rad) that faces the net squarely, from the newest plane
+local said_pause = false
+local prev_plane = nil
+local closing_speed = 0  -- toward the net, m/s, from successive planes
+local v_cmd = 0          -- speed command toward the net, m/s
+local integral = 0
+local yaw_integral = 0
+local last_update = nil
+local last_report = 0
+
+local function param_or(name, default)
+  local v = param:get(name)
+  if v == nil then return default end
+  return v
+end
+
+local function setup()
+  setup_params()
+  fwd_channel = rc:get_channel(math.floor(param_or("RCMAP_FORWARD", 5)))
+  yaw_channel = rc:get_channel(math.floor(param_or("RCMAP_YAW", 4)))
+  lateral_rc = math.floor(param_or("RCMAP_LATERAL", 6))
+  gcs_sysid = math.floor(param_or("MAV_GCS_SYSID", param_or("SYSID_MYGCS", 255)))
+  my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
+  mavlink:init(10, 3)
+  mavlink:register_rx_msgid(MSG_DEBUG_VECT)
+  mavlink:register_rx_msgid(MSG_MANUAL_CONTROL)
+  mavlink:register_rx_msgid(MSG_COMMAND_LONG)
+  mavlink:block_command(MAV_CMD_USER_1)
+end
+
+-- Geometry: the plane vector into a level frame (x forward, y right), from the camera tilt and
+-- the vehicle's roll and pitch.
+local function level_vector(x, y, z)
+  local t = math.rad(get("CAM_TILT"))
+  -- camera (x right, y down, z forward) -> body FRD
+  local bx = -math.sin(t) * y + math.cos(t) * z
+  local by = x
+  local bz = math.cos(t) * y + math.sin(t) * z
+  -- body -> level: R = Ry(pitch) Rx(roll)
+  local r, p = ahrs:get_roll_rad(), ahrs:get_pitch_rad()
+  local cr, sr, cp, sp = math.cos(r), math.sin(r), math.cos(p), math.sin(p)
+  local y1 = cr * by - sr * bz
+  local z1 = sr * by + cr * bz
+  local lx = cp * bx + sp * z1
+  return lx, y1
+end
+
+local function wrap_pi(a)
+  return (a + math.pi) % (2 * math.pi) - math.pi
+end
+
+local function record_yaw(now)
+  table.insert(yaw_history, {now, ahrs:get_yaw_rad()})
+  while #yaw_history > 1 and now - yaw_history[1][1] > 1.5 do
+    table.remove(yaw_history, 1)
+  end
+end
+
+local function yaw_at(t)
+  -- The recorded heading nearest to time t (the history is 10 ms apart).
+  local best = nil
+  for _, sample in ipairs(yaw_history) do
+    if best == nil or math.abs(sample[1] - t) < math.abs(best[1] - t) then best = sample end
+  end
+  return best and best[2] or ahrs:get_yaw_rad()
+end
+
+-- Messages ------------------------------------------------------------------------------------
+local function send_ack(chan, command, result)
+  mavlink:send_chan(chan, MSG_COMMAND_ACK, string.pack("<HB", command, result))
+end
+
+local disengage
+
+local function on_plane(msg)
+  local t_us, x, y, z, name = string.unpack("<I8fffc10", msg, 13)
+  if name:gsub("%z", "") ~= PLANE_NAME then return end
+  local t = t_us * 1e-6
+  if plane ~= nil and t <= plane.t then return end  -- repeated or out of order
+  if x == 0 and y == 0 and z == 0 then  -- netpose: this frame did not confirm the net
+    if no_net_t == nil or t > no_net_t then no_net_t = t end
+    return
+  end
+  if no_net_t ~= nil and no_net_t >= t then return end  -- older than a frame without the net
+  no_net_t = nil
+  prev_plane = plane
+  plane = {t = t, x = x, y = y, z = z, d = math.sqrt(x * x + y * y + z * z)}
+  local lx, ly = level_vector(x, y, z)
+  target_yaw = wrap_pi(yaw_at(t) + math.atan(ly, lx))
+  if prev_plane ~= nil then
+    local dt = plane.t - prev_plane.t
+    if dt > 0.01 and dt < 1.0 then
+      local rate = (prev_plane.d - plane.d) / dt
+      closing_speed = closing_speed + 0.35 * (rate - closing_speed)
+    end
+  end
+end
+
+local function pilot_moves(x, r)
+  local dz = get("PILOT_DZ")
+  return math.abs(x) > dz or math.abs(r) > dz
+end
+
+local engage
+
+local function on_manual_control(msg)
+  if string.byte(msg, 8) ~= gcs_sysid then return end
+  local x, _, _, r, _, target = string.unpack("<hhhhHB", msg, 13)
+  if target ~= my_sysid then return end
+  if engaged and pilot_moves(x, r) then
+    -- The pilot's own message has already set the channels: leave them to the pilot.
+    disengage("pilot input", false)
+  end
+end
+
+local function on_command(msg, chan)
+  local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
+  if command ~= MAV_CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
+  if p1 >= 0.5 then
+    send_ack(chan, command, engage() and MAV_RESULT_ACCEPTED or MAV_RESULT_DENIED)
+  else
+    if engaged then disengage("command", true) end
+    send_ack(chan, command, MAV_RESULT_ACCEPTED)
+  end
+end
+
+local function read_messages()
+  for _ = 1, 30 do
+    local msg, chan = mavlink:receive_chan()
+    if msg == nil then return end
+    local msgid = string.unpack("<I3", msg, 10)
+    if msgid == MSG_DEBUG_VECT then
+      on_plane(msg)
+    elseif msgid == MSG_MANUAL_CONTROL then
+      on_manual_control(msg)
+    elseif msgid == MSG_COMMAND_LONG then
+      on_command(msg, chan)
+    end
+  end
+end
+
+-- Engage / disengage ----------------------------------------------------------------------------
+local function plane_age(now)
+  if plane == nil then return math.huge end
+  return now - plane.t
+end
+
+local function set_point()
+  -- Never closer than 10 cm outside the hard minimum, whatever NETH_DIST says.
+  return clamp(get("DIST"), math.max(0.5, get("DIST_MIN") + 0.1), 3.0)
+end
+
+local function neutral()
+  fwd_channel:set_override(NEUTRAL)
+  yaw_channel:set_override(NEUTRAL)
+end
+
+disengage = function(why, to_neutral)
+  if not engaged then return end
+  engaged, paused, yaw_rate_cmd = false, false, 0
+  if to_neutral then neutral() end
+  v_cmd, integral, yaw_integral = 0, 0, 0
+  say(SEV_WARNING, "OFF, " .. why)
+  gcs:send_named_float("NH_ON", 0)
+end
+
+engage = function()
+  if engaged then return true end
+  local now = now_s()
+  if get("ENABLE") < 1 then
+    say(SEV_WARNING, "disabled (NETH_ENABLE = 0)")
+    return false
+  end
+  if not arming:is_armed() then
+    say(SEV_WARNING, "not engaged: disarmed")
+    return false
+  end
+  if plane_age(now) > get("TIMEOUT") or no_net_t ~= nil then
+    say(SEV_WARNING, "not engaged: no net in view")
+    return false
+  end
+  if plane.d > get("DIST_MAX") or plane.d < get("DIST_MIN") then
+    say(SEV_WARNING, string.format("not engaged: net at %.2f m", plane.d))
+    return false
+  end
+  engaged, paused, yaw_rate_cmd = true, false, 0
+  engaged_mode = vehicle:get_mode()
+  v_cmd, integral, yaw_integral = 0, 0, 0
+  last_update = now
+  say(SEV_INFO, string.format("ON, holding %.2f m (net at %.2f m)", set_point(), plane.d))
+  gcs:send_named_float("NH_ON", 1)
+  return true
+end
+
+local function check_button()
+  local button = math.floor(get("BTN"))
+  if button < 1 or button > 4 then return end
+  if sub:get_and_clear_button_count(button) > 0 then
+    if engaged then disengage("button", true) else engage() end
+  end
+end
+
+-- Control -----------------------------------------------------------------------------------------
+local function control(now)
+  local dt = clamp(now - (last_update or now), 0.0, 0.1)
+  last_update = now
+  -- The distance now: the plane's, carried forward over its age at the measured closing speed
+  -- (netpose's frames are 0.1-0.4 s old when they arrive; the vehicle keeps moving meanwhile).
+  local d = plane.d - closing_speed * clamp(now - plane.t, 0, get("TIMEOUT"))
+  local err = d - set_point()  -- positive: too far, move toward the net
+  -- Speed toward the net: P + I, limited in speed, and in acceleration toward the net.
+  -- The integral only trims a steady offset near the set point (no wind-up on the approach).
+  if math.abs(err) < get("I_BAND") and d > get("DIST_MIN") then
+    integral = clamp(integral + err * dt, -2.0, 2.0)
+  elseif d <= get("DIST_MIN") then
+    integral = math.min(integral, 0)
+  end
+  local spd = get("SPD_MAX")
+  local want = clamp(get("KP") * err + get("KI") * integral, -spd, spd)
+  local stop_dist = d - get("DIST_MIN") - math.max(closing_speed, 0) * get("TIMEOUT")
+  if stop_dist <= 0 then
+    want = math.min(want, 0)  -- hard minimum: nothing toward the net
+  end
+  if want > v_cmd then
+    v_cmd = math.min(want, v_cmd + get("ACC_MAX") * dt)
+  else
+    v_cmd = want
+  end
+  local fwd_max = get("FWD_MAX")
+  -- Feed-forward of the speed wanted, plus feedback on the measured closing speed: the vehicle
+  -- coasts a long way on its own (mostly quadratic drag), so it must be braked actively.
+  local fwd = v_cmd * get("FWD_GAIN") + (v_cmd - closing_speed) * get("KV")
+  -- Toward the net, never more than the thrust that holds NETH_SPD_MAX: the speed limit holds
+  -- even while the measured speed lags.
+  -- Step over (part of) the ESCs' dead band (no thrust within 25 us of neutral), blended in over
+  -- the first FWD_DZ_RAMP us so that the output stays continuous through zero.
+  -- Only while the thrusters idle: a lateral command (the pilot sweeping along the net) already
+  -- takes them out of the dead band, and the step would then double the loop's gain.
+  local lateral = rc:get_pwm(lateral_rc) or NEUTRAL
+  local dz = get("FWD_DZ") * clamp(1.0 - math.abs(lateral - NEUTRAL) / 25.0, 0.0, 1.0)
+  fwd = fwd + dz * clamp(fwd / get("FWD_DZ_RAMP"), -1.0, 1.0)
+  fwd = clamp(fwd, -fwd_max, math.min(fwd_max, spd * get("FWD_GAIN")))
+  if stop_dist <= 0 then fwd = math.min(fwd, 0) end
+  fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))
+
+  -- Heading: yaw until the net's normal is straight ahead in the level frame.
+  -- Heading error now: the heading that faces the net (from the plane, at its capture time)
+  -- minus the heading now. Positive: yaw right.
+  local heading_err = math.deg(wrap_pi(target_yaw - ahrs:get_yaw_rad()))
+  local yaw_pwm = NEUTRAL
+  local max_rate = get("YAW_RATE")
+  local rate_want = 0
+  if math.abs(heading_err) > get("YAW_DB") then
+    rate_want = clamp(get("YAW_P") * heading_err, -max_rate, max_rate)
+  end
+  local rate_step = get("YAW_ACC") * dt
+  yaw_rate_cmd = clamp(rate_want, yaw_rate_cmd - rate_step, yaw_rate_cmd + rate_step)
+  if math.abs(heading_err) > get("YAW_DB") then
+    local rate = yaw_rate_cmd
+    yaw_integral = clamp(yaw_integral + heading_err * dt * get("YAW_I"), -30, 30)
+    local offset = math.abs(rate) * get("YAW_GAIN")
+    if rate < 0 then offset = -offset end
+    offset = offset + yaw_integral
+    if offset ~= 0 then
+      offset = offset + (offset > 0 and get("YAW_DZ") or -get("YAW_DZ"))
+    end
+    local yaw_max = get("YAW_DZ") + max_rate * get("YAW_GAIN")
+    yaw_pwm = math.floor(NEUTRAL + clamp(offset, -yaw_max, yaw_max) + 0.5)
+  else
+    yaw_integral = 0  -- square: ArduSub's heading hold keeps it
+  end
+  yaw_channel:set_override(yaw_pwm)
+
+  if now - last_report > 0.5 then
+    last_report = now
+    gcs:send_named_float("NH_ERR", err)
+    gcs:send_named_float("NH_YAWERR", heading_err)
+  end
+  if logger ~= nil then
+    logger:write("NETH", "D,Set,Err,Yaw,Vcmd,Fwd,YawP", "fffffhh", d, set_point(), err,
+                 heading_err, v_cmd, math.floor(fwd), yaw_pwm)
+  end
+end
+
+local function update()
+  record_yaw(now_s())
+  read_messages()
+  check_button()
+  if not engaged then return end
+  local now = now_s()
+  local age = plane_age(now)
+  if get("ENABLE") < 1 then
+    disengage("disabled", true)
+  elseif not arming:is_armed() then
+    disengage("disarmed", true)
+  elseif vehicle:get_mode() ~= engaged_mode then
+    disengage("mode changed", true)
+  elseif age > get("GRACE") then
+    disengage(string.format("net lost (%.1f s)", math.min(age, 99)), true)
+  elseif age > get("TIMEOUT") or no_net_t ~= nil then
+    if not paused then
+      paused, v_cmd, yaw_rate_cmd = true, 0, 0
+      -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
+      said_pause = now - last_pause_text > 3.0
+      if said_pause then
+        last_pause_text = now
+        if no_net_t ~= nil then
+          say(SEV_WARNING, "net not seen: thrust stopped")
+        else
+          say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
+        end
+      end
+    end
+    neutral()
+  elseif plane.d > get("DIST_MAX") then
+    disengage(string.format("net too far (%.2f m)", plane.d), true)
+  else
+    if paused then
+      paused = false
+      last_update = now
+      if said_pause then say(SEV_INFO, "net back, holding again") end
+    end
+    control(now)
+  end
+end
+
+local function protected_update()
+  local ok, err = pcall(update)
+  if not ok then
+    -- A bug must not leave thrust behind: neutral, off, and keep running.
+    if engaged then
+      engaged = false
+      neutral()
+    end
+    gcs:send_text(3, "NetHold: internal error, OFF: " .. tostring(err))
+  end
+  return protected_update, UPDATE_MS
+end
+
+setup()
+say(SEV_INFO, string.format("loaded, set point %.2f m, button %d", set_point(), math.floor(get("BTN"))))
+return protected_update, 1000
