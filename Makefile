@@ -4,6 +4,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.netpose-installed
 CONFIG ?= config/demo.toml
+# Extra options for `make run`, e.g. ARGS="--set web.enabled=true" for the web page.
+ARGS ?=
 
 .PHONY: run test lint typecheck imports pytest bench install clean
 
@@ -14,7 +16,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/netpose run --config $(CONFIG)
+	$(BIN)/netpose run --config $(CONFIG) $(ARGS)
 
 test: lint typecheck imports pytest
 
