@@ -25,8 +25,10 @@ from typing import Any
 
 import pytest
 
+from drivers.sources.synthetic import builtin_camera
 from drivers.web.security import origin_allowed
 from drivers.web.settings import WebSettings
+from service.core.camera import save_camera
 from service.core.errors import ConfigError
 from tests.web_harness import REPO, WebDaemon
 
@@ -317,3 +319,46 @@ def test_a_recording_downloads_and_replays_to_the_daemons_output(
     assert math.isclose(float(rows[1]["t_mono"]) - float(rows[0]["t_mono"]),
                         float(replayed[1]["time_s"]) - float(replayed[0]["time_s"]),
                         abs_tol=2e-6)
+
+
+# -- set-up mode ----------------------------------------------------------------------------------
+def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Path) -> None:
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    autopilot.bind(("127.0.0.1", 0))
+    autopilot.settimeout(3.0)
+    url = f"udpout:127.0.0.1:{autopilot.getsockname()[1]}"
+    d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml"},
+                                      "mavlink": {"url": url}}).start()
+    try:
+        status, settings = d.request("GET", "/api/settings")
+        assert settings["problem"].startswith(
+            "configuration error: camera.calibration: file not found"), settings
+        texts, frames = d.collect(4.0)
+        reasons = {t["reason"] for t in texts if t["kind"] == "estimate"}
+        assert frames and reasons and all(r.startswith("set-up mode:") for r in reasons)
+        with pytest.raises(TimeoutError):
+            autopilot.recv(1024)  # no link at all in set-up mode
+        # The camera the synthetic source renders with, as a calibration file.
+        camera = builtin_camera(1280, 720)
+        path = tmp_path / "upload.yaml"
+        save_camera(camera, path)
+        status, reply = _upload(d, "camera.yaml", path.read_bytes())
+        assert status == 200, reply
+        status, reply = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
+                                  token=True)
+        assert status == 200 and reply["saved"], reply
+        deadline = time.monotonic() + 60.0
+        while True:  # the daemon proper starts: estimates with the net, MAVLink to the autopilot
+            time.sleep(1.0)
+            try:
+                texts, _ = d.collect(2.0)
+            except OSError:
+                texts = []
+            if any(t["kind"] == "estimate" and t["detected"] for t in texts):
+                break
+            assert time.monotonic() < deadline, d.log()
+        assert autopilot.recv(1024)[:1] in (b"\xfd", b"\xfe")  # a MAVLink frame
+        assert "leaving set-up mode" in d.log()
+    finally:
+        autopilot.close()
+        assert d.stop() == 0, d.log()

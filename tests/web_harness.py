@@ -38,56 +38,18 @@ def demo_config(path: Path, web: Mapping[str, Any], **sections: Mapping[str, Any
     for name, values in sections.items():
         for key, value in values.items():
             doc[name][key] = value
-    doc.add("web", dict(web))
+    for key, value in web.items():
+        doc["web"][key] = value
     path.write_text(tomlkit.dumps(doc), encoding="utf-8")
     return path
 
 
-class WebDaemon:
-    def __init__(self, folder: Path, token: str = TOKEN, **web: Any) -> None:
-        self.folder = folder
-        self.port = free_port()
+class PageClient:
+    """HTTP and WebSocket requests to a netpose page on loopback."""
+
+    def __init__(self, port: int, token: str = "") -> None:
+        self.port = port
         self.token = token
-        settings = {"enabled": True, "host": "127.0.0.1", "port": self.port, "token": token,
-                    "max_upload_kb": 64, **web}
-        self.config = demo_config(folder / "netpose.toml", settings)
-        self.log_path = folder / "daemon.log"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self, timeout_s: float = 60.0) -> WebDaemon:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        env.pop("NOTIFY_SOCKET", None)
-        with self.log_path.open("wb") as log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "run", "--config", str(self.config)],
-                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout_s
-        while True:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"daemon exited {self.proc.returncode}:\n{self.log()}")
-            try:
-                status, _ = self.request("GET", "/register_service")
-                if status == 200:
-                    return self
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                raise AssertionError(f"page not answering within {timeout_s} s:\n{self.log()}")
-            time.sleep(0.2)
-
-    def stop(self) -> int:
-        assert self.proc is not None
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(15.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self.proc.returncode
-
-    def log(self) -> str:
-        return self.log_path.read_text(encoding="utf-8", errors="replace")
 
     @property
     def base(self) -> str:
@@ -116,6 +78,54 @@ class WebDaemon:
                 ) -> tuple[list[dict[str, Any]], list[tuple[float, bytes]]]:
         """What the live WebSocket sends for `seconds`: JSON messages, and (arrival, JPEG)."""
         return asyncio.run(_collect(self.base.replace("http", "ws") + "/ws", seconds, origin))
+
+
+class WebDaemon(PageClient):
+    def __init__(self, folder: Path, token: str = TOKEN,
+                 sections: Mapping[str, Mapping[str, Any]] | None = None, **web: Any) -> None:
+        super().__init__(free_port(), token)
+        self.folder = folder
+        settings = {"enabled": True, "host": "127.0.0.1", "port": self.port, "token": token,
+                    "max_upload_kb": 64, **web}
+        self.config = demo_config(folder / "netpose.toml", settings, **(sections or {}))
+        self.log_path = folder / "daemon.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout_s: float = 60.0) -> WebDaemon:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.pop("NOTIFY_SOCKET", None)
+        with self.log_path.open("wb") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "service.cli", "run", "--config", str(self.config)],
+                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"daemon exited {self.proc.returncode}:\n{self.log()}")
+            try:
+                status, _ = self.request("GET", "/register_service")
+                # Up when the page answers and the first frame has reached it.
+                if status == 200 and self.collect(1.5)[1]:
+                    return self
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                raise AssertionError(f"page not answering within {timeout_s} s:\n{self.log()}")
+            time.sleep(0.2)
+
+    def stop(self) -> int:
+        assert self.proc is not None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(15.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def log(self) -> str:
+        return self.log_path.read_text(encoding="utf-8", errors="replace")
 
 
 async def _collect(url: str, seconds: float, origin: str | None

@@ -33,7 +33,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import cv2
 import numpy as np
 import numpy.typing as npt
-from aiohttp import BodyPartReader, WSMsgType, web
+from aiohttp import BodyPartReader, WSCloseCode, WSMsgType, web
 
 from drivers.recorder import Recorder, RecorderError
 from drivers.web.live import ClientSlots, LiveFeed, PlotHistory
@@ -117,6 +117,7 @@ class WebPage(Generic[R]):
         self._feed = LiveFeed()
         self._history = PlotHistory(settings.history_s)
         self._clients: set[ClientSlots] = set()
+        self._sockets: set[web.WebSocketResponse] = set()
         self._last_texts: dict[str, str] = {}
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -183,8 +184,9 @@ class WebPage(Generic[R]):
             loop.call_soon_threadsafe(self._drain)
 
         self._feed.attach(wake)
-        runner = web.AppRunner(self._app(), access_log=None, handle_signals=False,
-                               shutdown_timeout=1.0)
+        # (No shutdown_timeout: AppRunner takes it only since aiohttp 3.9, and Debian
+        # bookworm's 3.8 would hand it to every connection. Open pages are closed on shutdown.)
+        runner = web.AppRunner(self._app(), access_log=None, handle_signals=False)
         await runner.setup()
         site = web.TCPSite(runner, self.settings.host, self.settings.port, reuse_address=True)
         failed_logged = False
@@ -313,6 +315,7 @@ class WebPage(Generic[R]):
         for text in self._last_texts.values():
             client.set_text(json.loads(text)["kind"], text)
         self._clients.add(client)
+        self._sockets.add(ws)
         self._schedule_draw()
         sender = asyncio.create_task(self._send_to(ws, client))
         try:
@@ -321,6 +324,7 @@ class WebPage(Generic[R]):
                     break
         finally:
             self._clients.discard(client)
+            self._sockets.discard(ws)
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
@@ -341,6 +345,10 @@ class WebPage(Generic[R]):
 
     async def _close_clients(self, app: web.Application) -> None:
         self._clients.clear()
+        for ws in list(self._sockets):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY,
+                                                message=b"netpose is stopping"), 2.0)
 
     def _drain(self) -> None:
         """On the event loop: take what the frame loop handed over and pass it on."""

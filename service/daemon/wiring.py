@@ -24,11 +24,12 @@ from drivers.telemetry import TelemetrySettings, make_publisher
 from drivers.web import WebPage, WebSettings
 from service.config import Config, load_config
 from service.core.camera import CameraModel, load_camera
-from service.core.errors import ConfigError
+from service.core.errors import CalibrationError, ConfigError
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
 from service.daemon.ports import FrameObserver, Notifier
 from service.daemon.settings_editor import SettingsEditor, tuning_toml
+from service.daemon.setup_mode import run_setup, setup_renderer
 from service.pipeline import PipelineResult
 from service.signals import SignalFlags, handle_signals
 from service.tools.live_view import LiveView
@@ -142,7 +143,7 @@ def main(
 ) -> int:
     """`netpose run`: load and validate the configuration, run until stopped."""
     overrides = tuple(overrides)
-    config = load_daemon_config(config_path, overrides)
+    config, problem = _load_or_setup(config_path, overrides)
     logging.getLogger().setLevel(config.service.log_level)
     notify = notifier or notifier_from_environment(console=sys.stdout)
     try:
@@ -161,9 +162,21 @@ def main(
             controls = WebControls(editor, lambda: running[-1].config if running else config,
                                    lambda: running[-1].pipeline.snapshot())
             while True:
-                daemon = Daemon(config, build_parts(config, _RestartAware(notify, restart),
-                                                    controls),
-                                flags=flags,
+                parts = None
+                if problem is None:
+                    try:
+                        parts = build_parts(config, _RestartAware(notify, restart), controls)
+                    except (ConfigError, CalibrationError) as exc:
+                        problem = _setup_problem(config, exc)
+                if parts is None:
+                    assert problem is not None
+                    ready = _set_up(config, problem, notify, flags, editor, config_path,
+                                    overrides)
+                    if ready is None:
+                        return 0
+                    config, problem = ready, None
+                    continue
+                daemon = Daemon(config, parts, flags=flags,
                                 load_config=lambda: load_daemon_config(config_path, overrides),
                                 on_reload=editor.reloaded)
                 running[:] = [daemon]
@@ -176,10 +189,50 @@ def main(
                 flags.stop.clear()
                 flags.stop_signal = None
                 editor.restarted()
-                config = load_daemon_config(config_path, overrides)
+                config, problem = _load_or_setup(config_path, overrides)
                 log.info("restarting with the saved configuration (%s)", config.digest)
     finally:
         notify.close()
+
+
+def _setup_problem(config: Config, exc: Exception) -> str:
+    """The problem set-up mode can fix from the page (a missing or unusable calibration, with
+    the page enabled); anything else is raised again (exit status 78)."""
+    calibration = isinstance(exc, CalibrationError) or (
+        isinstance(exc, ConfigError) and exc.key == "camera.calibration")
+    if not calibration or not config.section("web", WebSettings).enabled:
+        raise exc
+    return f"configuration error: camera.calibration: {exc}" if isinstance(
+        exc, CalibrationError) else f"configuration error: {exc}"
+
+
+def _load_or_setup(config_path: str | None, overrides: tuple[str, ...]
+                   ) -> tuple[Config, str | None]:
+    try:
+        return load_daemon_config(config_path, overrides), None
+    except ConfigError as exc:
+        if exc.key != "camera.calibration":
+            raise
+        config = load_daemon_config(config_path, overrides, check_files=False)
+        return config, _setup_problem(config, exc)
+
+
+def _validated(config_path: str | None, overrides: tuple[str, ...]) -> Config:
+    """The configuration, checked as far as the daemon's start checks it."""
+    config = load_daemon_config(config_path, overrides)
+    resolve_camera(config, build_source(config))
+    return config
+
+
+def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
+            editor: SettingsEditor, config_path: str | None, overrides: tuple[str, ...]
+            ) -> Config | None:
+    web = config.section("web", WebSettings)
+    vehicle = config.section("telemetry", TelemetrySettings).vehicle
+    page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
+    return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
+                     problem=problem, validate=lambda: _validated(config_path, overrides),
+                     on_reload=editor.reloaded, vehicle=vehicle)
 
 
 class _RestartAware:
