@@ -187,7 +187,7 @@ class SettingsEditor:
             raise ConfigError("configuration", f"saved, but the reload failed: {outcome.error}")
         needs = sorted(self.restart_pending)
         message = "saved and applied" if not needs else (
-            f"saved; {', '.join(needs)} take effect after a restart")
+            f"saved; changes to {', '.join(needs)} take effect after a restart")
         return {"saved": True, "message": message, "changed": list(outcome.changed),
                 "restart_needed": needs, "digest": outcome.digest}
 
