@@ -10,6 +10,7 @@ const page = {
   spanS: 300, historyS: 300, tokenRequired: false,
   frames: 0, frameTimes: [], estimates: 0, lastStatusAt: 0, liveUrl: null,
   settings: null, calibrationId: null, recording: null,
+  groupMessages: {},     // the last message of each settings group (kept across re-renders)
 };
 window.netpose = page;   // for tests and the curious
 
@@ -263,20 +264,23 @@ function settingsGroup(group, s) {
   const button = document.createElement("button");
   button.type = "button"; button.textContent = "Save"; button.disabled = !s.editable;
   const message = document.createElement("p"); message.className = "message";
+  const last = page.groupMessages[group.title];
+  if (last) say(message, last.text, last.ok);
+  const report = (text, ok) => { page.groupMessages[group.title] = { text, ok }; say(message, text, ok); };
   button.onclick = async () => {
     const changes = {};
     for (const [field, input] of inputs) {
       const value = valueOf(field, input), before = s.values[field.key];
       if (JSON.stringify(value) !== JSON.stringify(before) && !input.disabled) changes[field.key] = value;
     }
-    if (!Object.keys(changes).length) { say(message, "nothing changed", true); return; }
-    button.disabled = true; say(message, "saving…", true);
+    if (!Object.keys(changes).length) { report("nothing changed", true); return; }
+    button.disabled = true; report("saving…", true);
     try {
       const r = await send("api/settings", { changes });
-      say(message, r.message, true);
+      report(r.message, true);
       showRestart(r.restart_needed);
       s.values = { ...s.values, ...changes };
-    } catch (e) { say(message, e.message, false); }
+    } catch (e) { report(e.message, false); }
     button.disabled = false;
   };
   box.append(button, message);
