@@ -26,10 +26,19 @@ from typing import Any
 import pytest
 
 from drivers.sources.synthetic import builtin_camera
+from drivers.web.live import (
+    EVENTS_PER_CLIENT,
+    HISTORY_STEP_S,
+    PENDING_ESTIMATES,
+    ClientSlots,
+    LiveFeed,
+    PlotHistory,
+)
 from drivers.web.security import origin_allowed
 from drivers.web.settings import WebSettings
 from service.core.camera import save_camera
 from service.core.errors import ConfigError
+from service.core.messages import EstimateMessage, FilteredView
 from tests.web_harness import REPO, WebDaemon
 
 REQUIRED_SERVICE_KEYS = ("name", "description", "icon", "company", "version", "webpage", "api")
@@ -81,6 +90,54 @@ def test_allowed_origins_and_settings_validation() -> None:
         WebSettings(token="short")
     with pytest.raises(ConfigError, match=r"^web\.allowed_origins"):
         WebSettings(allowed_origins=("http://x/path",))
+
+
+def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> EstimateMessage:
+    filtered = FilteredView(valid=valid, autopilot="good" if valid else "none",
+                            state="tracking" if valid else "lost", measurement="accepted",
+                            distance_m=1.0 if valid else None,
+                            normal=(0.0, 0.0, -1.0) if valid else None)
+    return EstimateMessage(vehicle="v", time_unix=t, time_mono=t, seq=seq, frame_time_mono=t,
+                           detected=detected, distance_m=1.1 if detected else None,
+                           tilt_deg=5.0 if detected else None, filtered=filtered)
+
+
+def test_what_waits_for_a_page_is_bounded_and_the_newest_wins() -> None:
+    feed = LiveFeed()
+    wakes = []
+    feed.attach(lambda: wakes.append(1))
+    for seq in range(10_000):  # an event loop that never runs
+        feed.put_frame(object(), None, _estimate(seq, seq / 30))
+    estimates, _, newest = feed.take()
+    assert len(wakes) == 1  # one wake-up per batch, not per frame
+    assert len(estimates) == PENDING_ESTIMATES and estimates[-1].seq == 9999
+    assert newest is not None and newest[2].seq == 9999
+    slots = ClientSlots()
+    for i in range(100):
+        slots.set_jpeg(bytes([i]))
+        slots.set_text("estimate", str(i))
+        slots.add_event(str(i))
+    texts, jpeg = slots.take()
+    assert jpeg == bytes([99]) and slots.frames_replaced == 99
+    assert texts == [str(i) for i in range(100 - EVENTS_PER_CLIENT, 100)] + ["99"]
+
+
+def test_plot_history_thins_but_keeps_the_gaps() -> None:
+    history = PlotHistory(span_s=10.0)
+    for i in range(600):  # 20 s at 30 frames/s; no net from 5 s to 6 s
+        t = i / 30
+        history.add(_estimate(i, t, detected=not 5.0 <= t < 6.0, valid=not 5.0 <= t < 6.5))
+    times = [p[0] or 0.0 for p in history.points()]
+    assert times[0] >= 20 - 10.0 - 0.05  # the last 10 s only
+    assert len(times) <= 10 / HISTORY_STEP_S + 5
+    history = PlotHistory(span_s=60.0)
+    for i in range(600):
+        t = i / 30
+        history.add(_estimate(i, t, detected=not 5.0 <= t < 6.0, valid=not 5.0 <= t < 6.5))
+    gap = [p[0] or 0.0 for p in history.points() if p[1] is None]
+    assert gap and abs(gap[0] - 5.0) < 1 / 30 + 1e-9  # the gap starts where it did
+    resumed = [p[0] or 0.0 for p in history.points() if (p[0] or 0.0) >= 6.0 and p[1] is not None]
+    assert abs(resumed[0] - 6.0) < 1 / 30 + 1e-9
 
 
 # -- what BlueOS and Cockpit read -----------------------------------------------------------------

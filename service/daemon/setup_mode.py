@@ -61,8 +61,10 @@ def run_setup(
     validate: Callable[[], Config],
     on_reload: Callable[[ReloadOutcome], None],
     vehicle: str,
+    deadline: float | None = None,
 ) -> Config | None:
-    """Serve the page until a saved configuration is valid (returned) or a stop (None)."""
+    """Serve the page until a saved configuration is valid (returned), or a stop or the
+    monotonic `deadline` (`netpose run --duration`) comes first (None)."""
     log.warning("configuration incomplete (%s): set-up mode, nothing is sent to the autopilot; "
                 "finish the set-up on the web page", problem)
     page.start()
@@ -72,6 +74,9 @@ def run_setup(
     try:
         while not flags.stop.is_set():
             now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                log.info("run duration reached in set-up mode")
+                break
             notifier.watchdog(now)
             if flags.reload.is_set():
                 flags.reload.clear()

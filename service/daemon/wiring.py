@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,6 +160,7 @@ def main(
                 lambda path: load_daemon_config(str(path), overrides),
                 flags.reload.set, request_restart)
             running: list[Daemon] = []
+            started = time.monotonic()
             controls = WebControls(editor, lambda: running[-1].config if running else config,
                                    lambda: running[-1].pipeline.snapshot())
             while True:
@@ -170,8 +172,9 @@ def main(
                         problem = _setup_problem(config, exc)
                 if parts is None:
                     assert problem is not None
+                    deadline = None if duration_s is None else started + duration_s
                     ready = _set_up(config, problem, notify, flags, editor, config_path,
-                                    overrides)
+                                    overrides, deadline)
                     if ready is None:
                         return 0
                     config, problem = ready, None
@@ -225,14 +228,14 @@ def _validated(config_path: str | None, overrides: tuple[str, ...]) -> Config:
 
 
 def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
-            editor: SettingsEditor, config_path: str | None, overrides: tuple[str, ...]
-            ) -> Config | None:
+            editor: SettingsEditor, config_path: str | None, overrides: tuple[str, ...],
+            deadline: float | None) -> Config | None:
     web = config.section("web", WebSettings)
     vehicle = config.section("telemetry", TelemetrySettings).vehicle
     page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
     return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
                      problem=problem, validate=lambda: _validated(config_path, overrides),
-                     on_reload=editor.reloaded, vehicle=vehicle)
+                     on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline)
 
 
 class _RestartAware:
