@@ -4,6 +4,8 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.netpose-installed
 CONFIG ?= config/demo.toml
+# Extra options for `make run`, e.g. ARGS="--set web.enabled=true" for the web page.
+ARGS ?=
 
 BOOKWORM_VENV ?= .venv-bookworm
 BOOKWORM_STAMP := $(BOOKWORM_VENV)/.netpose-installed
@@ -17,7 +19,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/netpose run --config $(CONFIG)
+	$(BIN)/netpose run --config $(CONFIG) $(ARGS)
 
 test: lint typecheck imports pytest
 

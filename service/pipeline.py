@@ -25,6 +25,7 @@ from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.results import NetEstimate
+from service.core.state_io import from_plain, to_plain
 from service.core.tracking import NetTracker, Outcome, TrackOutput, TrackState
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,19 @@ class Pipeline:
 
     def set_autopilot_distance(self, which: AutopilotDistance) -> None:
         self._autopilot_distance = which
+
+    def snapshot(self) -> dict[str, Any]:
+        """What the next frame's result depends on besides the frame: the filter's state, the
+        prior (the last detection) and the last accepted quality, as exact JSON values."""
+        return {"tracker": self._tracker.snapshot(), "prior": to_plain(self._prior),
+                "last_quality": to_plain(self._last_quality)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from a `snapshot`, as if the frames before it had been processed here."""
+        self._tracker.restore(state["tracker"])
+        prior = state.get("prior")
+        self._prior = None if prior is None else from_plain(NetEstimate, prior)
+        self._last_quality = from_plain(float, state["last_quality"])
 
     def process(self, image: npt.NDArray[Any], t: float, index: int) -> PipelineResult:
         """One frame captured at `t`."""

@@ -10,6 +10,7 @@ URL schemes (docs/sources.md):
     sdp:/path/stream.sdp                                        RTP stream described by SDP
     file:recording.mp4?loop=1&realtime=1                       video file (or a bare path)
     images:folder/?fps=10                                      image folder or glob pattern
+    recording:folder/?realtime=1                               a recording of the daemon
     synthetic:?trajectory=approach&...                         rendered net with ground truth
     sim:tcp:127.0.0.1:5764?distance=2&turn=20                   rendered from the vehicle's pose
 """
@@ -24,6 +25,7 @@ from drivers.sources.base import (
     SourceStats,
 )
 from drivers.sources.files import ImageFolderSource, VideoFileSource
+from drivers.sources.recording import RecordingSource
 from drivers.sources.sim import SimSource
 from drivers.sources.stream import StreamSource
 from drivers.sources.synthetic import SyntheticSource
@@ -57,6 +59,8 @@ def create_source(url: str, options: SourceOptions | None = None) -> FrameSource
         return SyntheticSource(parsed.raw, options)
     if parsed.scheme == "sim":
         return SimSource(parsed.raw, options)
+    if parsed.scheme == "recording":
+        return RecordingSource(parsed.raw, options)
     raise url_error(url, f"unknown scheme {parsed.scheme!r}")  # pragma: no cover - parser guards
 
 

@@ -111,9 +111,7 @@ class SourceUrl:
 
 
 # Schemes that netpose parses itself; everything else with "://" goes to FFmpeg.
-OWN_SCHEMES = ("v4l2", "file", "images", "synthetic", "sim")
-# Schemes whose frames are rendered, not seen: their distance reaches an autopilot only when
-# the configuration allows it explicitly (mavlink.allow_simulated).
+OWN_SCHEMES = ("v4l2", "file", "images", "synthetic", "sim", "recording")
 
 
 def parse_source_url(url: str) -> SourceUrl:
@@ -127,7 +125,7 @@ def parse_source_url(url: str) -> SourceUrl:
     if not sep or scheme not in OWN_SCHEMES:
         return _bare_path(text)
     path, _, query = rest.partition("?")
-    if scheme in ("file", "images") and path.startswith("//"):
+    if scheme in ("file", "images", "recording") and path.startswith("//"):
         path = path[2:]  # file:///abs/path -> /abs/path
     try:
         pairs = parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
@@ -149,6 +147,8 @@ def _bare_path(text: str) -> SourceUrl:
     path, _, query = text.partition("?")
     if path.startswith("/dev/video") or path.startswith("/dev/v4l/"):
         scheme = "v4l2"
+    elif Path(path).is_dir() and (Path(path) / "recording.json").is_file():
+        scheme = "recording"  # a folder written by drivers/recorder.py
     elif Path(path).is_dir():
         scheme = "images"
     else:

@@ -12,6 +12,7 @@ video, summary and plots for what was processed (exit status 130).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
@@ -27,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
+from drivers.sources.recording import is_recording
 from service import __version__
 from service.core.camera import CameraModel, load_camera
 from service.core.errors import ConfigError, NetposeError
@@ -79,12 +81,15 @@ def add_parser(subparsers: Any) -> None:
         help="video file, image folder, or frame-source URL (file:, images:, synthetic:, "
         "rtsp://, ...)",
     )
-    p.add_argument("--calibration", type=Path, required=True, metavar="CAMERA.yaml",
-                   help="camera calibration (ROS camera_info YAML or OpenCV FileStorage)")
-    p.add_argument("--mesh-size", type=float, required=True, metavar="M",
-                   help="mesh bar length knot to knot in metres (side of a square mesh)")
-    p.add_argument("--opening-angle", type=float, default=90.0, metavar="DEG",
-                   help="mesh opening angle in degrees (default 90: square mesh)")
+    p.add_argument("--calibration", type=Path, default=None, metavar="CAMERA.yaml",
+                   help="camera calibration (ROS camera_info YAML or OpenCV FileStorage); "
+                   "required unless INPUT is a netpose recording, which brings its own")
+    p.add_argument("--mesh-size", type=float, default=None, metavar="M",
+                   help="mesh bar length knot to knot in metres (side of a square mesh); "
+                   "required unless INPUT is a netpose recording")
+    p.add_argument("--opening-angle", type=float, default=None, metavar="DEG",
+                   help="mesh opening angle in degrees (default 90: square mesh, or the "
+                   "recording's)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="output folder (created; files of an earlier replay are replaced)")
     p.add_argument("--filter", action="store_true",
@@ -116,13 +121,15 @@ def source_url(text: str, fps: float | None) -> str:
     A synthetic: URL is read as fast as the replay goes (realtime=0) unless it says otherwise.
     """
     path = Path(text).expanduser()
+    if is_recording(path):
+        return f"recording:{path}"  # its own capture times; --fps does not apply
     if path.is_dir():
         rate = fps if fps is not None else DEFAULT_IMAGE_FPS
         return f"images:{path}?fps={rate:g}"
     if path.is_file():
         return f"file:{path}" + (f"?fps={fps:g}" if fps is not None else "")
     scheme = text.partition(":")[0]
-    if "://" in text or scheme in ("file", "images", "synthetic", "v4l2", "sdp"):
+    if "://" in text or scheme in ("file", "images", "synthetic", "v4l2", "sdp", "recording"):
         if scheme == "synthetic" and "realtime=" not in text:
             return text + ("&" if "?" in text else "?") + "realtime=0"
         return text
@@ -314,6 +321,7 @@ def run(args: argparse.Namespace) -> int:
         raise NetposeError(f"--fps must be 0.01..1000, got {args.fps}")
     if args.video_width < 16:
         raise NetposeError(f"--video-width must be at least 16 px, got {args.video_width}")
+    _recording_defaults(args)
     camera = load_camera(args.calibration)
     try:
         mesh = MeshGeometry(args.mesh_size, args.opening_angle)
@@ -331,6 +339,40 @@ def run(args: argparse.Namespace) -> int:
             if args.max_frames is not None:
                 total = min(total, args.max_frames)
         return _replay(args, source, url, camera, mesh, tuning, truth, total)
+
+
+def _recording_defaults(args: argparse.Namespace) -> None:
+    """A netpose recording (drivers/recorder.py) brings its calibration, mesh and tuning:
+    options not given on the command line are taken from it, so the replay runs what the
+    vehicle ran."""
+    folder = Path(args.input).expanduser()
+    recording = is_recording(folder)
+    if recording:
+        try:
+            manifest = json.loads((folder / "recording.json").read_text(encoding="utf-8"))
+            mesh = manifest["mesh"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise NetposeError(f"{folder}: recording.json is damaged ({exc})") from None
+        if args.calibration is None:
+            args.calibration = folder / str(manifest.get("camera", "camera.yaml"))
+        if args.mesh_size is None:
+            args.mesh_size = float(mesh["bar_length_m"])
+        if args.opening_angle is None:
+            args.opening_angle = float(mesh["opening_angle_deg"])
+        tuning = folder / str(manifest.get("tuning", "netpose.toml"))
+        if args.config is None and tuning.is_file():
+            args.config = tuning
+        state = folder / str(manifest.get("pipeline_state", "pipeline_state.json"))
+        if state.is_file() and args.every == 1:
+            try:
+                args.pipeline_state = json.loads(state.read_text(encoding="utf-8"))["pipeline"]
+            except (OSError, ValueError, KeyError) as exc:
+                raise NetposeError(f"{state}: damaged ({exc})") from None
+    for option, value in (("--calibration", args.calibration), ("--mesh-size", args.mesh_size)):
+        if value is None:
+            raise NetposeError(f"{option} is required (unless INPUT is a netpose recording)")
+    if args.opening_angle is None:
+        args.opening_angle = 90.0
 
 
 @dataclass(frozen=True)
@@ -370,6 +412,10 @@ def _replay(
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
                         NetTracker(tuning.filter or FilterSettings()),
                         tuning.autopilot_distance)
+    state = getattr(args, "pipeline_state", None)
+    if state is not None:
+        # A recording started mid-dive: continue from the daemon's filter and prior.
+        pipeline.restore(state)
     runner = ReplayRunner(pipeline, keep_track=args.filter, truth=truth)
     show = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
     progress = RateProgress(total, sys.stderr) if show else None

@@ -21,6 +21,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -232,6 +233,28 @@ class NetTracker:
         self._hits = 0
         self._rejects = 0
         self._t_accepted = None
+
+    # -- state, for recordings that start mid-dive ------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        """The filter's state as plain JSON values (floats exact), for `restore`."""
+        return {
+            "x": self._kf.x.tolist(), "P": self._kf.P.tolist(),
+            "has_track": self._has_track, "confirmed": self._confirmed, "hits": self._hits,
+            "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
+            "facing_sign": self._facing_sign,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from a `snapshot` (the totals are not part of the state)."""
+        self._kf.x = np.array(state["x"], dtype=float).reshape(6, 1)
+        self._kf.P = np.array(state["P"], dtype=float).reshape(6, 6)
+        self._has_track = bool(state["has_track"])
+        self._confirmed = bool(state["confirmed"])
+        self._hits = int(state["hits"])
+        self._rejects = int(state["rejects"])
+        self._t_last = None if state["t_last"] is None else float(state["t_last"])
+        self._t_accepted = None if state["t_accepted"] is None else float(state["t_accepted"])
+        self._facing_sign = float(state["facing_sign"])
 
     # -- the filter ------------------------------------------------------------------------
     def _start(self, m: Measurement, t: float) -> None:

@@ -61,6 +61,17 @@ class DaemonParts:
     observers: tuple[FrameObserver, ...] = ()
 
 
+@dataclass(frozen=True)
+class ReloadOutcome:
+    """How a reload went, for whoever asked for it (the web page's settings)."""
+
+    ok: bool
+    changed: tuple[str, ...] = ()  # sections whose values changed
+    restart_needed: tuple[str, ...] = ()  # of those, the ones the running parts keep
+    error: str = ""  # why the new configuration was rejected
+    digest: str = ""  # of the configuration in force afterwards
+
+
 def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
     estimator = NetEstimator(camera, config.mesh, config.estimator)
     # Per-size caches now, for the calibrated size, so the first frame costs what all do.
@@ -80,12 +91,14 @@ class Daemon:
         wall_clock: Clock = time.time,
         flags: SignalFlags | None = None,
         load_config: Callable[[], Config] | None = None,
+        on_reload: Callable[[ReloadOutcome], None] | None = None,
     ) -> None:
         self.config = config
         self.parts = parts
         self.clock = clock
         self.flags = flags or SignalFlags()
         self._load_config = load_config
+        self._on_reload = on_reload
         self.pipeline = Pipeline(make_estimator(config, parts.camera), NetTracker(config.filter),
                                  config.service.autopilot_distance)
         self.stats = LoopStats()
@@ -224,6 +237,7 @@ class Daemon:
         except NetposeError as exc:
             log.error("configuration reload rejected, keeping the running one: %s", exc)
             self.parts.notifier.ready(status="reload rejected: " + str(exc))
+            self._reloaded(ReloadOutcome(ok=False, error=str(exc), digest=self.config.digest))
             return False
         # The running parts keep their old settings: record what is really in force.
         kept = {name: self.config.sections[name] for name in needs_restart}
@@ -241,7 +255,14 @@ class Daemon:
             f"; restart needed for: {', '.join(needs_restart)}" if needs_restart else "",
         )
         self.parts.notifier.ready(status="configuration reloaded")
+        self._reloaded(ReloadOutcome(ok=True, changed=tuple(sorted(changed)),
+                                     restart_needed=tuple(needs_restart),
+                                     digest=self.config.digest))
         return True
+
+    def _reloaded(self, outcome: ReloadOutcome) -> None:
+        if self._on_reload is not None:
+            self._on_reload(outcome)
 
     def _apply_config_to_reporter(self) -> None:
         self.reporter.set_config(self.config.digest, self.config.effective,

@@ -8,26 +8,39 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Iterable
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 from drivers.mavlink_link import MavlinkLink
 from drivers.mavlink_settings import MavlinkSettings
+from drivers.recorder import Recorder, RecordingSetup
 from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
 from drivers.sources import SourceOptions, create_source
 from drivers.telemetry import TelemetrySettings, make_publisher
+from drivers.web import WebPage, WebSettings
 from service.config import Config, load_config
 from service.core.camera import CameraModel, load_camera
-from service.core.errors import ConfigError
+from service.core.errors import CalibrationError, ConfigError
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
-from service.daemon.ports import Notifier
+from service.daemon.ports import FrameObserver, Notifier
+from service.daemon.settings_editor import SettingsEditor, tuning_toml
+from service.daemon.setup_mode import run_setup, setup_renderer
+from service.pipeline import PipelineResult
 from service.signals import SignalFlags, handle_signals
+from service.tools.live_view import LiveView
+
+log = logging.getLogger("netpose.daemon")
 
 
 def driver_sections() -> dict[str, type]:
     """Configuration sections of the drivers this daemon wires (added to the core ones)."""
-    return {"mavlink": MavlinkSettings, "telemetry": TelemetrySettings}
+    return {"mavlink": MavlinkSettings, "telemetry": TelemetrySettings, "web": WebSettings}
 
 
 def load_daemon_config(
@@ -71,7 +84,44 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     return source.camera
 
 
-def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
+@dataclass(frozen=True)
+class WebControls:
+    """What the web page needs of `netpose run` besides the configuration."""
+
+    editor: SettingsEditor
+    current_config: Callable[[], Config]  # the configuration in force (after reloads)
+    pipeline_state: Callable[[], dict[str, Any]]  # the running pipeline's (loop thread only)
+
+
+def recordings_root(config: Config, web: WebSettings) -> Path:
+    root = Path(web.recordings_dir).expanduser()
+    if root.is_absolute():
+        return root
+    return (config.path.parent if config.path is not None else Path.cwd()) / root
+
+
+def build_observers(config: Config, camera: CameraModel,
+                    controls: WebControls | None) -> tuple[FrameObserver, ...]:
+    """The web page and its recorder, when `web.enabled`."""
+    web = config.section("web", WebSettings)
+    if not web.enabled or controls is None:
+        return ()
+    vehicle = config.section("telemetry", TelemetrySettings).vehicle
+
+    def setup() -> RecordingSetup:
+        now = controls.current_config()
+        return RecordingSetup(camera, tuning_toml(now), now.mesh.bar_length_m,
+                              now.mesh.opening_angle_deg)
+
+    recorder = Recorder(recordings_root(config, web), vehicle, setup,
+                        web.max_recording_mb * 1024 * 1024, controls.pipeline_state)
+    page = WebPage[PipelineResult](web, LiveView(camera, web.live_width), controls.editor,
+                                   recorder, vehicle)
+    return (recorder, page)
+
+
+def build_parts(config: Config, notifier: Notifier,
+                controls: WebControls | None = None) -> DaemonParts:
     """Every part of the daemon, built and checked, nothing opened: what `run` starts and what
     `run --check` validates are the same objects."""
     source = build_source(config)
@@ -89,6 +139,7 @@ def build_parts(config: Config, notifier: Notifier) -> DaemonParts:
         preview=PreviewSettings(width=telemetry.preview_width,
                                 quality=telemetry.preview_quality),
         telemetry_enabled=telemetry.enabled,
+        observers=build_observers(config, camera, controls),
     )
 
 
@@ -109,13 +160,121 @@ def main(
 ) -> int:
     """`netpose run`: load and validate the configuration, run until stopped."""
     overrides = tuple(overrides)
-    config = load_daemon_config(config_path, overrides)
+    config, problem = _load_or_setup(config_path, overrides)
     logging.getLogger().setLevel(config.service.log_level)
     notify = notifier or notifier_from_environment(console=sys.stdout)
     try:
         with handle_signals(SignalFlags(), reload=True) as flags:
-            daemon = Daemon(config, build_parts(config, notify), flags=flags,
-                            load_config=lambda: load_daemon_config(config_path, overrides))
-            return daemon.run(duration_s)
+            restart = threading.Event()
+
+            def request_restart() -> None:
+                restart.set()
+                flags.request_stop("restart")
+
+            editor = SettingsEditor(
+                config.path, overrides,
+                lambda path: load_daemon_config(str(path), overrides),
+                flags.reload.set, request_restart)
+            running: list[Daemon] = []
+            started = time.monotonic()
+            controls = WebControls(editor, lambda: running[-1].config if running else config,
+                                   lambda: running[-1].pipeline.snapshot())
+            while True:
+                parts = None
+                if problem is None:
+                    try:
+                        parts = build_parts(config, _RestartAware(notify, restart), controls)
+                    except (ConfigError, CalibrationError) as exc:
+                        problem = _setup_problem(config, exc)
+                if parts is None:
+                    assert problem is not None
+                    deadline = None if duration_s is None else started + duration_s
+                    ready = _set_up(config, problem, notify, flags, editor, config_path,
+                                    overrides, deadline)
+                    if ready is None:
+                        return 0
+                    config, problem = ready, None
+                    continue
+                daemon = Daemon(config, parts, flags=flags,
+                                load_config=lambda: load_daemon_config(config_path, overrides),
+                                on_reload=editor.reloaded)
+                running[:] = [daemon]
+                status = daemon.run(duration_s)
+                if not restart.is_set() or flags.stop_signal != "restart":
+                    return status
+                # A restart asked for by the web page: the same process, every part rebuilt
+                # from the saved configuration (what a reload cannot change live).
+                restart.clear()
+                flags.stop.clear()
+                flags.stop_signal = None
+                editor.restarted()
+                config, problem = _load_or_setup(config_path, overrides)
+                log.info("restarting with the saved configuration (%s)", config.digest)
     finally:
         notify.close()
+
+
+def _setup_problem(config: Config, exc: Exception) -> str:
+    """The problem set-up mode can fix from the page (a missing or unusable calibration, with
+    the page enabled); anything else is raised again (exit status 78)."""
+    calibration = isinstance(exc, CalibrationError) or (
+        isinstance(exc, ConfigError) and exc.key == "camera.calibration")
+    if not calibration or not config.section("web", WebSettings).enabled:
+        raise exc
+    return f"configuration error: camera.calibration: {exc}" if isinstance(
+        exc, CalibrationError) else f"configuration error: {exc}"
+
+
+def _load_or_setup(config_path: str | None, overrides: tuple[str, ...]
+                   ) -> tuple[Config, str | None]:
+    try:
+        return load_daemon_config(config_path, overrides), None
+    except ConfigError as exc:
+        if exc.key != "camera.calibration":
+            raise
+        config = load_daemon_config(config_path, overrides, check_files=False)
+        return config, _setup_problem(config, exc)
+
+
+def _validated(config_path: str | None, overrides: tuple[str, ...]) -> Config:
+    """The configuration, checked as far as the daemon's start checks it."""
+    config = load_daemon_config(config_path, overrides)
+    resolve_camera(config, build_source(config))
+    return config
+
+
+def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
+            editor: SettingsEditor, config_path: str | None, overrides: tuple[str, ...],
+            deadline: float | None) -> Config | None:
+    web = config.section("web", WebSettings)
+    vehicle = config.section("telemetry", TelemetrySettings).vehicle
+    page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
+    return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
+                     problem=problem, validate=lambda: _validated(config_path, overrides),
+                     on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline)
+
+
+class _RestartAware:
+    """The notifier, except that a restart is a reload to systemd, not a stop."""
+
+    def __init__(self, inner: Notifier, restart: threading.Event) -> None:
+        self._inner = inner
+        self._restart = restart
+
+    def ready(self, status: str | None = None) -> bool:
+        return self._inner.ready(status)
+
+    def status(self, text: str) -> bool:
+        return self._inner.status(text)
+
+    def stopping(self) -> bool:
+        return self._inner.reloading() if self._restart.is_set() else self._inner.stopping()
+
+    def reloading(self) -> bool:
+        return self._inner.reloading()
+
+    def watchdog(self, now: float | None = None) -> bool:
+        return self._inner.watchdog(now)
+
+    def close(self) -> None:
+        """The inner notifier is closed by main(), after the last restart."""

@@ -1,0 +1,366 @@
+"""Recordings of what the daemon saw: every processed frame, lossless, with the daemon's estimate.
+
+A recording is a folder that `netpose replay` reads as it is (the `recording:` frame source):
+
+    netpose-<vehicle>-<UTC time>/
+      recording.json   format, version, vehicle, netpose version, frames, dropped, times, and
+                       which files below describe the camera and the tuning
+      camera.yaml      the calibration in force (ROS camera_info layout)
+      netpose.toml     the [mesh], [estimator], [filter] and [service] settings in force
+      pipeline_state.json  the filter's state and the estimator's prior just before the
+                       first recorded frame (exact JSON values, service/pipeline.py)
+      frames.jsonl     one line per frame, in order: the PNG's name, the source's frame number,
+                       the capture time on the monotonic and the wall clock, and the daemon's
+                       estimate message (the telemetry payload, service.core.messages)
+      frames/          <number>.png: the 8-bit grey image the estimator was given
+
+A replay of the folder starts the same pipeline from the recorded state and feeds it the same
+images with the same capture times, so it reproduces the daemon's output even for a recording
+started in the middle of a dive (tests/test_web.py). The state is taken on the frame loop, in
+`observe` of the first frame after the start (that frame itself is not recorded). Frames are written
+by a thread the recorder owns; the frame loop only appends to a bounded queue. When the disk
+cannot keep up the queue overflows: the oldest waiting frames are dropped and counted in
+`recording.json`, and a replay past such a gap may differ from the vehicle (the filter's
+state depends on every frame).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from drivers.errors import DriverError
+from drivers.lifecycle import Closeable
+from service import __version__
+from service.core.camera import CameraModel, save_camera
+from service.core.messages import EstimateMessage, StatusMessage, to_json
+
+log = logging.getLogger(__name__)
+
+RECORDING_FORMAT = "netpose-recording"
+FORMAT_VERSION = 1
+MANIFEST = "recording.json"
+FRAMES_LOG = "frames.jsonl"
+FRAMES_DIR = "frames"
+CAMERA_FILE = "camera.yaml"
+TUNING_FILE = "netpose.toml"
+STATE_FILE = "pipeline_state.json"
+NAME_PATTERN = re.compile(r"^netpose-[A-Za-z0-9_.-]+-\d{8}T\d{6}Z(-\d+)?$")
+# PNG level 1: a 640x360 grey frame in about 3 ms; the higher levels cost several times more
+# for 10-20 % less disk.
+PNG_LEVEL = 1
+# Free disk below this stops a recording (the data volume also holds the configuration).
+MIN_FREE_BYTES = 200 * 1024 * 1024
+QUEUE_FRAMES = 64
+
+
+class RecorderError(DriverError):
+    """A recording cannot be started (already running, no space, folder not writable)."""
+
+
+class RecordedFrame(Protocol):
+    @property
+    def image(self) -> npt.NDArray[Any]: ...
+    @property
+    def index(self) -> int: ...
+    @property
+    def t_monotonic(self) -> float: ...
+    @property
+    def t_wall(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class RecordingSetup:
+    """What a replay needs besides the frames: the camera and the tuning, as in force."""
+
+    camera: CameraModel
+    tuning_toml: str  # [mesh], [estimator], [filter], [service] as TOML
+    mesh_bar_length_m: float
+    mesh_opening_angle_deg: float
+
+
+@dataclass(frozen=True)
+class RecorderStatus:
+    active: bool = False
+    name: str = ""
+    frames: int = 0
+    dropped: int = 0
+    bytes: int = 0
+    started_unix: float | None = None
+    error: str = ""  # why the last recording stopped by itself or could not start
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": "recording", **asdict(self)}
+
+
+@dataclass(frozen=True)
+class _Item:
+    image: npt.NDArray[Any]
+    index: int
+    t_monotonic: float
+    t_wall: float
+    estimate: EstimateMessage
+
+
+@dataclass(frozen=True)
+class _State:
+    after_index: int  # the frame the state follows (the next recorded one comes after it)
+    state: dict[str, Any]
+
+
+class _Session:
+    """One recording in progress: its folder, its writer thread and its counters."""
+
+    def __init__(self, folder: Path, max_bytes: int, on_stop: Callable[[str], None]) -> None:
+        self.folder = folder
+        self.max_bytes = max_bytes
+        self.started_unix = time.time()
+        self.frames = 0
+        self.dropped = 0
+        self.bytes = 0
+        self.error = ""
+        self._on_stop = on_stop
+        self._queue: deque[_Item | _State] = deque()
+        self.needs_state = True  # the first observed frame gives the pipeline state
+        self._cond = threading.Condition()
+        self._closing = False
+        self._log = (folder / FRAMES_LOG).open("a", encoding="utf-8")
+        self._thread = threading.Thread(target=self._run, name=f"recorder {folder.name}",
+                                        daemon=True)
+        self._thread.start()
+
+    def put(self, item: _Item | _State) -> None:
+        with self._cond:
+            if self._closing:
+                return
+            if len(self._queue) >= QUEUE_FRAMES:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(item)
+            self._cond.notify()
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        self._log.close()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    return  # closing and everything written
+                item = self._queue.popleft()
+            try:
+                self._write(item)
+            except Exception as exc:  # a full or broken disk ends the recording, not the daemon
+                self._stop_by_itself(f"writing failed: {exc}")
+                return
+            if self.bytes >= self.max_bytes:
+                self._stop_by_itself(f"reached web.max_recording_mb ({self.max_bytes >> 20} MB)")
+                return
+            if self.frames % 50 == 0 and shutil.disk_usage(self.folder).free < MIN_FREE_BYTES:
+                self._stop_by_itself("less than 200 MB free on the data volume")
+                return
+
+    def _write(self, item: _Item | _State) -> None:
+        if isinstance(item, _State):
+            state = {"after_frame": item.after_index, "pipeline": item.state}
+            (self.folder / STATE_FILE).write_text(json.dumps(state), encoding="utf-8")
+            return
+        name = f"{FRAMES_DIR}/{item.index:08d}.png"
+        path = self.folder / name
+        ok, data = cv2.imencode(".png", np.ascontiguousarray(item.image),
+                                [int(cv2.IMWRITE_PNG_COMPRESSION), PNG_LEVEL])
+        if not ok:
+            raise RecorderError(f"OpenCV cannot encode frame {item.index} as PNG")
+        path.write_bytes(data.tobytes())
+        line = json.dumps({"frame": name, "index": item.index, "t_mono": item.t_monotonic,
+                           "t_unix": item.t_wall, "estimate": to_json(item.estimate)},
+                          separators=(",", ":"), allow_nan=False)
+        self._log.write(line + "\n")
+        self._log.flush()  # a line always names a complete PNG: the log is valid at any moment
+        self.frames += 1
+        self.bytes += len(data) + len(line) + 1
+
+    def _stop_by_itself(self, why: str) -> None:
+        with self._cond:
+            self._closing = True
+            self.dropped += len(self._queue)
+            self._queue.clear()
+        self.error = why
+        log.warning("recording %s stopped: %s", self.folder.name, why)
+        self._on_stop(why)
+
+
+class Recorder(Closeable):
+    """Records processed frames on request (the web page's start/stop); a FrameObserver.
+
+    `setup()` is asked at each start for the camera and tuning in force, so a recording made
+    after a reload describes the settings that produced it.
+    """
+
+    def __init__(self, root: Path, vehicle: str, setup: Callable[[], RecordingSetup],
+                 max_bytes: int, pipeline_state: Callable[[], dict[str, Any]] | None = None
+                 ) -> None:
+        self.root = root
+        self._pipeline_state = pipeline_state
+        self._vehicle = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle) or "rov"
+        self._setup = setup
+        self._max_bytes = max_bytes
+        self._lock = threading.Lock()
+        self._session: _Session | None = None
+        self._last = RecorderStatus()
+        self._session_setup: RecordingSetup | None = None
+
+    # -- FrameObserver ------------------------------------------------------------------------
+    def start(self) -> None:
+        """Nothing runs until a recording is started."""
+
+    def observe(self, frame: RecordedFrame, result: object, message: EstimateMessage) -> None:
+        session = self._session  # one read: the loop never takes the lock
+        if session is None:
+            return
+        if session.needs_state:
+            # On the frame loop, between two frames: the state the next frame starts from.
+            session.needs_state = False
+            if self._pipeline_state is not None:
+                session.put(_State(frame.index, self._pipeline_state()))
+            return
+        session.put(_Item(frame.image, frame.index, frame.t_monotonic, frame.t_wall, message))
+
+    def observe_status(self, message: StatusMessage) -> None:
+        """Recordings do not keep the status."""
+
+    def close(self) -> None:
+        self.stop()
+
+    # -- control ---------------------------------------------------------------------------------
+    def begin(self) -> RecorderStatus:
+        with self._lock:
+            if self._session is not None:
+                raise RecorderError(f"already recording {self._session.folder.name}")
+            try:
+                self.root.mkdir(parents=True, exist_ok=True)
+                free = shutil.disk_usage(self.root).free
+            except OSError as exc:
+                raise RecorderError(
+                    f"recordings folder {self.root}: {exc.strerror or exc}") from None
+            if free < MIN_FREE_BYTES:
+                raise RecorderError(f"only {free >> 20} MB free in {self.root}; 200 MB needed")
+            setup = self._setup()
+            folder = self._new_folder()
+            try:
+                (folder / FRAMES_DIR).mkdir(parents=True)
+                save_camera(setup.camera, folder / CAMERA_FILE)
+                (folder / TUNING_FILE).write_text(setup.tuning_toml, encoding="utf-8")
+                session = _Session(folder, self._max_bytes, self._stopped_by_itself)
+            except OSError as exc:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
+            self._manifest(session, setup, finished=False)
+            self._session_setup = setup
+            self._session = session
+            log.info("recording started: %s", folder)
+            return self._status_of(session)
+
+    def stop(self) -> RecorderStatus:
+        with self._lock:
+            session, self._session = self._session, None
+            if session is None:
+                return self._last
+            session.close()
+            if self._session_setup is not None:
+                self._manifest(session, self._session_setup, finished=True)
+            self._last = RecorderStatus(name=session.folder.name, frames=session.frames,
+                                        dropped=session.dropped, bytes=session.bytes,
+                                        started_unix=session.started_unix, error=session.error)
+            log.info("recording %s stopped: %d frames (%d dropped), %.1f MB", session.folder.name,
+                     session.frames, session.dropped, session.bytes / 1e6)
+            return self._last
+
+    def status(self) -> RecorderStatus:
+        session = self._session
+        return self._status_of(session) if session is not None else self._last
+
+    def recordings(self) -> list[dict[str, Any]]:
+        """Finished and running recordings, newest first."""
+        out: list[dict[str, Any]] = []
+        if not self.root.is_dir():
+            return out
+        for folder in sorted(self.root.iterdir(), reverse=True):
+            if not (NAME_PATTERN.match(folder.name) and (folder / MANIFEST).is_file()):
+                continue
+            try:
+                manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                continue
+            out.append({"name": folder.name, "frames": manifest.get("frames"),
+                        "dropped": manifest.get("dropped"), "bytes": manifest.get("bytes"),
+                        "started_unix": manifest.get("started_unix"),
+                        "finished": manifest.get("finished", False)})
+        return out
+
+    def folder_of(self, name: str) -> Path:
+        """The folder of a finished recording; RecorderError for anything else."""
+        folder = self.root / name
+        if not NAME_PATTERN.match(name) or not (folder / MANIFEST).is_file():
+            raise RecorderError(f"no recording named {name!r}")
+        session = self._session
+        if session is not None and session.folder == folder:
+            raise RecorderError(f"{name} is still being recorded: stop it first")
+        return folder
+
+    # -- internals -------------------------------------------------------------------------
+    def _new_folder(self) -> Path:
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        base = f"netpose-{self._vehicle}-{stamp}"
+        folder, n = self.root / base, 1
+        while folder.exists():
+            n += 1
+            folder = self.root / f"{base}-{n}"
+        return folder
+
+    def _stopped_by_itself(self, why: str) -> None:
+        # Called on the writer thread: finish the recording from another one (stop() joins it).
+        threading.Thread(target=self.stop, name="recorder stop", daemon=True).start()
+
+    def _status_of(self, session: _Session) -> RecorderStatus:
+        return RecorderStatus(active=True, name=session.folder.name, frames=session.frames,
+                              dropped=session.dropped, bytes=session.bytes,
+                              started_unix=session.started_unix, error=session.error)
+
+    def _manifest(self, session: _Session, setup: RecordingSetup, *, finished: bool) -> None:
+        manifest = {
+            "format": RECORDING_FORMAT, "version": FORMAT_VERSION,
+            "netpose_version": __version__, "vehicle": self._vehicle,
+            "started_unix": session.started_unix,
+            "stopped_unix": time.time() if finished else None, "finished": finished,
+            "frames": session.frames, "dropped": session.dropped, "bytes": session.bytes,
+            "stopped_because": session.error,
+            "frames_log": FRAMES_LOG, "camera": CAMERA_FILE, "tuning": TUNING_FILE,
+            "pipeline_state": STATE_FILE,
+            "mesh": {"bar_length_m": setup.mesh_bar_length_m,
+                     "opening_angle_deg": setup.mesh_opening_angle_deg},
+            "image": "8-bit grey PNG, the estimator's input",
+        }
+        tmp = session.folder / (MANIFEST + ".tmp")
+        tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+        os.replace(tmp, session.folder / MANIFEST)

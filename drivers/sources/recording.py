@@ -1,0 +1,128 @@
+"""A recording made by the daemon (drivers/recorder.py), read with its recorded capture times.
+
+    recording:netpose-rov-20260101T120000Z/              as fast as the consumer reads
+    recording:netpose-rov-20260101T120000Z/?realtime=1   paced like the camera was
+
+Without `realtime` every frame carries the capture times written in frames.jsonl (monotonic
+and wall clock), so `netpose replay` steps the filter exactly as the daemon did. With
+`realtime` the recorded spacing is kept from the moment of open(), like any paced source.
+`camera` is the recording's own calibration, so a daemon can run on a recording with
+`camera.calibration = "builtin"`. Frame numbers are the daemon's source numbers: the gaps
+are the frames the daemon skipped.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import statistics
+from pathlib import Path
+from typing import Any
+
+import cv2
+
+from drivers.errors import SourceError
+from drivers.sources.base import SourceOptions
+from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
+from drivers.sources.url import parse_source_url, url_error
+from service.core.camera import CameraModel, load_camera
+from service.core.errors import CalibrationError
+
+RECORDING_OPTIONS = ("realtime",)
+MANIFEST = "recording.json"  # the names drivers/recorder.py writes
+FRAMES_LOG = "frames.jsonl"
+CAMERA_FILE = "camera.yaml"
+
+
+def is_recording(path: Path) -> bool:
+    return path.is_dir() and (path / MANIFEST).is_file()
+
+
+class RecordingSource(PacedSource):
+    def __init__(self, url: str, options: SourceOptions | None = None) -> None:
+        parsed = parse_source_url(url)
+        if parsed.scheme != "recording":
+            raise url_error(url, "not a recording: URL")
+        parsed.check_options(RECORDING_OPTIONS)
+        if not parsed.path:
+            raise url_error(url, "recording: needs a folder")
+        super().__init__(url, options, realtime=parsed.flag("realtime", False))
+        self.path = Path(parsed.path).expanduser()
+        self._entries: list[tuple[str, int, float, float]] = []
+        self._position = 0
+        self._camera: CameraModel | None = None
+        self._period = 0.1
+
+    @property
+    def camera(self) -> CameraModel | None:
+        return self._camera
+
+    @property
+    def frame_period_s(self) -> float:
+        return self._period
+
+    @property
+    def files(self) -> list[Path]:
+        return [self.path / name for name, *_ in self._entries]
+
+    def open(self) -> None:
+        super().open()
+        if not self.realtime and self._entries:
+            # The recorded clocks, not the clocks of this open(): media time is measured from
+            # the first frame, so frame i gets t0 + (t_i - t_first) = its recorded time.
+            self._t0_mono, self._t0_wall = self._entries[0][2], self._entries[0][3]
+
+    def _start(self) -> None:
+        if not is_recording(self.path):
+            raise SourceError(self.url, f"{self.path}: not a netpose recording (no {MANIFEST})")
+        try:
+            lines = (self.path / FRAMES_LOG).read_text(encoding="utf-8").splitlines()
+        except OSError as exc:
+            raise SourceError(self.url, f"cannot read {FRAMES_LOG}: {exc.strerror}") from None
+        entries = []
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
+                continue
+            try:
+                row: dict[str, Any] = json.loads(line)
+                entries.append((str(row["frame"]), int(row["index"]), float(row["t_mono"]),
+                                float(row["t_unix"])))
+            except (ValueError, KeyError, TypeError):
+                raise SourceError(self.url, f"{FRAMES_LOG} line {number} is damaged") from None
+        if not entries:
+            raise SourceError(self.url, "the recording holds no frame")
+        if any(b[1] <= a[1] for a, b in itertools.pairwise(entries)):
+            raise SourceError(self.url, f"{FRAMES_LOG}: frame numbers do not increase")
+        self._entries = entries
+        gaps = [b[2] - a[2] for a, b in itertools.pairwise(entries)]
+        gaps = [g for g in gaps if g > 0]
+        if gaps:
+            self._period = statistics.median(gaps)
+        if (self.path / CAMERA_FILE).is_file():
+            try:
+                self._camera = load_camera(self.path / CAMERA_FILE)
+            except CalibrationError as exc:
+                raise SourceError(self.url, str(exc)) from None
+
+    def _next_media(self) -> MediaFrame:
+        if self._position >= len(self._entries):
+            raise EndOfMediaError
+        name, index, t_mono, _ = self._entries[self._position]
+        self._position += 1
+        flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
+        image: Any = cv2.imread(str(self.path / name), flags)
+        return MediaFrame(image=image, number=index, media_time_s=t_mono - self._entries[0][2])
+
+    def _skip_to(self, number: int) -> int:
+        skipped = 0
+        while self._position < len(self._entries) and self._entries[self._position][1] < number:
+            self._position += 1
+            skipped += 1
+        return skipped
+
+    def _rewind(self) -> None:
+        self._position = 0
+
+    def _stop(self) -> None:
+        self._entries = []
+        self._position = 0

@@ -1,0 +1,654 @@
+"""The web page the daemon serves: live view, plots, health, set-up and recordings.
+
+`WebPage` is a frame observer (service.daemon.ports.FrameObserver): the loop hands it every
+processed frame and status, which it only stores (drivers/web/live.py). It owns one thread
+running an asyncio event loop with the aiohttp server, started by `start()` and joined by
+`close()`. Work that takes time runs on two small thread pools it also owns: drawing the live
+view (one worker: at most one frame is drawn at a time, at `web.live_hz` and only while a page
+is open), and file work (settings, calibration, recordings).
+
+What the page may change goes through `SettingsBackend`, which the application provides
+(service/daemon/settings_editor.py): this driver never parses or validates the configuration.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import json
+import logging
+import shutil
+import tarfile
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Awaitable, Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, Protocol, TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from aiohttp import BodyPartReader, WSCloseCode, WSMsgType, web
+
+from drivers.recorder import Recorder, RecorderError
+from drivers.web.live import ClientSlots, LiveFeed, PlotHistory
+from drivers.web.security import TOKEN_HEADER, origin_allowed, token_ok
+from drivers.web.settings import WebSettings
+from service import __version__
+from service.core.camera import CameraModel, load_camera
+from service.core.errors import CalibrationError, ConfigError, NetposeError
+from service.core.messages import EstimateMessage, StatusMessage, to_json
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).resolve().parent / "static"
+SEND_TIMEOUT_S = 10.0  # a page that takes no data for this long is disconnected
+CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml")
+PENDING_CALIBRATIONS = 4
+
+R = TypeVar("R")
+
+
+class LiveFrame(Protocol):
+    @property
+    def image(self) -> npt.NDArray[Any]: ...
+    @property
+    def index(self) -> int: ...
+    @property
+    def t_monotonic(self) -> float: ...
+    @property
+    def t_wall(self) -> float: ...
+
+
+class SettingsBackend(Protocol):
+    """What the application lets the page do with the configuration."""
+
+    def snapshot(self) -> dict[str, Any]:
+        """JSON: the file, whether it can be changed, the editable keys and their values."""
+        ...
+
+    def apply(self, changes: Mapping[str, Any]) -> dict[str, Any]:
+        """Validate `{"section.key": value}` like the file, save, reload; ConfigError names
+        the key of the first problem and nothing is changed."""
+        ...
+
+    def install_calibration(self, path: Path) -> dict[str, Any]:
+        """Copy a validated calibration file next to the configuration and use it."""
+        ...
+
+    def restart(self) -> None:
+        """Restart the daemon's parts with the saved configuration."""
+        ...
+
+
+# Draws the overlay of one frame: (frame, the pipeline's result) -> BGR image.
+Renderer = Callable[[Any, Any], npt.NDArray[np.uint8]]
+
+
+@dataclass
+class _PendingCalibration:
+    path: Path
+    camera: CameraModel
+    preview: bytes
+    created: float
+
+
+class WebPage(Generic[R]):
+    """The page's server, fed by the frame loop (`observe`, `observe_status`)."""
+
+    def __init__(
+        self,
+        settings: WebSettings,
+        render: Renderer,
+        backend: SettingsBackend,
+        recorder: Recorder | None = None,
+        vehicle: str = "rov",
+    ) -> None:
+        self.settings = settings
+        self._render = render
+        self._backend = backend
+        self._recorder = recorder
+        self._vehicle = vehicle
+        self._feed = LiveFeed()
+        self._history = PlotHistory(settings.history_s)
+        self._clients: set[ClientSlots] = set()
+        self._sockets: set[web.WebSocketResponse] = set()
+        self._last_texts: dict[str, str] = {}
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._started = threading.Event()
+        self._draw_pool = ThreadPoolExecutor(1, thread_name_prefix="web draw")
+        self._file_pool = ThreadPoolExecutor(2, thread_name_prefix="web files")
+        self._tmp = Path(tempfile.mkdtemp(prefix="netpose-web-"))
+        self._calibrations: dict[str, _PendingCalibration] = {}
+        self._last_push = 0.0
+        self._push_timer: asyncio.TimerHandle | None = None
+        self._drawing = False
+        self._last_draw = 0.0
+        self._draw_timer: asyncio.TimerHandle | None = None
+        self._frame_seq_drawn = -1
+        self.port: int | None = None  # the bound port, once listening
+        self.draw_ms: list[float] = []  # recent drawing times (status, benchmarks)
+
+    # -- FrameObserver ------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="web page", daemon=True)
+        self._thread.start()
+        self._started.wait(5.0)
+
+    def observe(self, frame: LiveFrame, result: R, message: EstimateMessage) -> None:
+        self._feed.put_frame(frame, result, message)
+
+    def observe_status(self, message: StatusMessage) -> None:
+        self._feed.put_status(message)
+
+    def close(self) -> None:
+        loop, stop = self._loop, self._stop
+        if loop is not None and stop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stop.set)
+        if self._thread is not None:
+            self._thread.join(10.0)
+            if self._thread.is_alive():
+                log.warning("web page: server thread did not stop within 10 s")
+        self._feed.attach(None)
+        self._draw_pool.shutdown(wait=True, cancel_futures=True)
+        self._file_pool.shutdown(wait=True, cancel_futures=True)
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    # -- the server thread -------------------------------------------------------------------
+    def _run(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        try:
+            loop.run_until_complete(self._serve())
+        except Exception:
+            log.exception("web page: server failed")
+        finally:
+            self._started.set()
+            with contextlib.suppress(Exception):
+                loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+
+    async def _serve(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+
+        def wake() -> None:
+            loop.call_soon_threadsafe(self._drain)
+
+        self._feed.attach(wake)
+        # (No shutdown_timeout: AppRunner takes it only since aiohttp 3.9, and Debian
+        # bookworm's 3.8 would hand it to every connection. Open pages are closed on shutdown.)
+        runner = web.AppRunner(self._app(), access_log=None, handle_signals=False)
+        await runner.setup()
+        site = web.TCPSite(runner, self.settings.host, self.settings.port, reuse_address=True)
+        failed_logged = False
+        while not self._stop.is_set():
+            try:
+                await site.start()
+                break
+            except OSError as exc:
+                if not failed_logged:
+                    log.error("web page: cannot listen on %s:%d (%s); retrying every 5 s",
+                              self.settings.host, self.settings.port, exc.strerror or exc)
+                    failed_logged = True
+                self._started.set()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._stop.wait(), 5.0)
+        if not self._stop.is_set():
+            server = getattr(site, "_server", None)
+            sockets = getattr(server, "sockets", None) or []
+            self.port = sockets[0].getsockname()[1] if sockets else self.settings.port
+            log.info("web page on http://%s:%d/%s", self.settings.host, self.port,
+                     " (changes need web.token)" if self.settings.token else "")
+            self._started.set()
+            await self._stop.wait()
+        for timer in (self._push_timer, self._draw_timer):
+            if timer is not None:
+                timer.cancel()
+        await runner.cleanup()
+
+    def _app(self) -> web.Application:
+        app = web.Application(client_max_size=self.settings.max_upload_kb * 1024,
+                              middlewares=[self._guard])
+        app.router.add_get("/", self._static_page("index.html"))
+        app.router.add_get("/widget", self._static_page("widget.html"))
+        app.router.add_get("/register_service", self._register_service)
+        app.router.add_get("/cockpit_extras.json", self._cockpit_extras)
+        app.router.add_get("/icon.svg", self._static_page("icon.svg"))
+        app.router.add_get("/ws", self._websocket)
+        app.router.add_get("/api/settings", self._get_settings)
+        app.router.add_post("/api/settings", self._post_settings)
+        app.router.add_post("/api/restart", self._post_restart)
+        app.router.add_post("/api/calibration", self._post_calibration)
+        app.router.add_get("/api/calibration/{id}/preview.jpg", self._get_calibration_preview)
+        app.router.add_post("/api/calibration/{id}/apply", self._post_calibration_apply)
+        app.router.add_get("/api/recordings", self._get_recordings)
+        app.router.add_post("/api/recordings/start", self._post_recording_start)
+        app.router.add_post("/api/recordings/stop", self._post_recording_stop)
+        app.router.add_get("/api/recordings/{name}.tar", self._get_recording_tar)
+        app.router.add_static("/static", STATIC, show_index=False)
+        app.on_shutdown.append(self._close_clients)
+        return app
+
+    # -- safety --------------------------------------------------------------------------------
+    @web.middleware
+    async def _guard(self, request: web.Request,
+                     handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                     ) -> web.StreamResponse:
+        changes = request.method not in ("GET", "HEAD", "OPTIONS")
+        upgrade = request.headers.get("Upgrade", "").lower() == "websocket"
+        if (changes or upgrade) and not origin_allowed(
+                request.headers.get("Origin"), request.host, self.settings.allowed_origins):
+            return _error(403, f"request from another origin ({request.headers.get('Origin')}) "
+                          "refused")
+        if changes:
+            if not token_ok(self.settings.token, request.headers.get(TOKEN_HEADER)):
+                return _error(401, "this change needs the token (web.token); enter it on the "
+                              "page")
+            limit = self.settings.max_upload_kb * 1024
+            if request.content_length is not None and request.content_length > limit:
+                return _error(413, f"request of {request.content_length} bytes refused: at "
+                              f"most {self.settings.max_upload_kb} KB (web.max_upload_kb)")
+        try:
+            return await handler(request)
+        except web.HTTPRequestEntityTooLarge:
+            return _error(413, f"request refused: at most {self.settings.max_upload_kb} KB "
+                          "(web.max_upload_kb)")
+
+    # -- pages and BlueOS ------------------------------------------------------------------------
+    def _static_page(self, name: str) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
+        async def handler(request: web.Request) -> web.StreamResponse:
+            return web.FileResponse(STATIC / name, headers={"Cache-Control": "no-cache"})
+        return handler
+
+    async def _register_service(self, request: web.Request) -> web.Response:
+        # BlueOS's helper validates these into its ServiceMetadata: the first seven keys are
+        # required. works_in_relative_paths: the page is served under /extensionv2/netpose/
+        # (also through BlueOS Cloud), so every URL in it is relative.
+        return web.json_response({
+            "name": "netpose",
+            "description": "Distance and orientation to the net, from the camera",
+            "icon": "mdi-fishbowl-outline",
+            "company": "netpose",
+            "version": __version__,
+            "webpage": "",
+            "api": "",
+            "new_page": False,
+            "works_in_relative_paths": True,
+            "extras": {"cockpit": "/cockpit_extras.json"},
+        })
+
+    async def _cockpit_extras(self, request: web.Request) -> web.Response:
+        # Cockpit's ExtrasJsonSchema: offered as a widget in its edit mode.
+        return web.json_response({
+            "targetSystem": "Cockpit",
+            "targetCockpitApiVersion": "1.0.0",
+            "widgets": [{
+                "name": "netpose", "iframeUrl": "/widget", "iconUrl": "/icon.svg",
+                "useExtensionPathAsBaseUrl": True, "collapsibleContainerName": "netpose",
+                "startCollapsed": False, "version": __version__, "contentZoom": 1,
+                "scaleContentWithWidget": True,
+            }],
+            "actions": [],
+        })
+
+    # -- live data -----------------------------------------------------------------------------
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=4096)
+        await ws.prepare(request)
+        client = ClientSlots()
+        client.add_event(json.dumps({"kind": "hello", "version": __version__,
+                                     "vehicle": self._vehicle,
+                                     "token_required": bool(self.settings.token),
+                                     "live_hz": self.settings.live_hz,
+                                     "push_hz": self.settings.push_hz,
+                                     "history_s": self.settings.history_s}))
+        client.add_event(json.dumps({"kind": "history", "points": self._history.points()}))
+        for text in self._last_texts.values():
+            client.set_text(json.loads(text)["kind"], text)
+        self._clients.add(client)
+        self._sockets.add(ws)
+        self._schedule_draw()
+        sender = asyncio.create_task(self._send_to(ws, client))
+        try:
+            async for msg in ws:  # the page sends nothing; this notices it going away
+                if msg.type in (WSMsgType.ERROR, WSMsgType.CLOSE):
+                    break
+        finally:
+            self._clients.discard(client)
+            self._sockets.discard(ws)
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await sender
+        return ws
+
+    async def _send_to(self, ws: web.WebSocketResponse, client: ClientSlots) -> None:
+        try:
+            while not ws.closed:
+                await client.wake.wait()
+                texts, jpeg = client.take()
+                for text in texts:
+                    await asyncio.wait_for(ws.send_str(text), SEND_TIMEOUT_S)
+                if jpeg is not None:
+                    await asyncio.wait_for(ws.send_bytes(jpeg), SEND_TIMEOUT_S)
+                    client.frames_sent += 1
+        except (TimeoutError, ConnectionError, RuntimeError):
+            await ws.close()
+
+    async def _close_clients(self, app: web.Application) -> None:
+        self._clients.clear()
+        for ws in list(self._sockets):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY,
+                                                message=b"netpose is stopping"), 2.0)
+
+    def _drain(self) -> None:
+        """On the event loop: take what the frame loop handed over and pass it on."""
+        estimates, status, _frame = self._feed.take()
+        for message in estimates:
+            self._history.add(message)
+        if status is not None:
+            self._publish("status", json.dumps(to_json(status), allow_nan=False))
+            if self._recorder is not None:
+                self._publish("recording", json.dumps(self._recorder.status().to_json()))
+        if estimates:
+            self._schedule_push()
+            self._schedule_draw()
+
+    def _publish(self, kind: str, text: str) -> None:
+        self._last_texts[kind] = text
+        for client in self._clients:
+            client.set_text(kind, text)
+
+    def _schedule_push(self) -> None:
+        if self._push_timer is not None:
+            return
+        assert self._loop is not None
+        wait = self._last_push + 1.0 / self.settings.push_hz - time.monotonic()
+        self._push_timer = self._loop.call_later(max(0.0, wait), self._push_estimate)
+
+    def _push_estimate(self) -> None:
+        self._push_timer = None
+        newest = self._feed.newest_frame()
+        if newest is None:
+            return
+        self._last_push = time.monotonic()
+        self._publish("estimate", json.dumps(to_json(newest[2]), allow_nan=False))
+
+    def _schedule_draw(self) -> None:
+        if not self._clients or self._drawing or self._draw_timer is not None:
+            return
+        assert self._loop is not None
+        wait = self._last_draw + 1.0 / self.settings.live_hz - time.monotonic()
+        self._draw_timer = self._loop.call_later(max(0.0, wait), self._start_draw)
+
+    def _start_draw(self) -> None:
+        self._draw_timer = None
+        newest = self._feed.newest_frame()
+        if newest is None or not self._clients or newest[2].seq == self._frame_seq_drawn:
+            return
+        self._drawing = True
+        self._last_draw = time.monotonic()
+        self._frame_seq_drawn = newest[2].seq
+        assert self._loop is not None
+        future = self._loop.run_in_executor(self._draw_pool, self._draw, newest[0], newest[1])
+        future.add_done_callback(self._drawn)
+
+    def _draw(self, frame: Any, result: Any) -> bytes:
+        t0 = time.perf_counter()
+        image = self._render(frame, result)
+        ok, data = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY),
+                                                self.settings.live_quality])
+        if not ok:
+            raise NetposeError("OpenCV cannot encode the live view as JPEG")
+        self.draw_ms = [*self.draw_ms[-99:], (time.perf_counter() - t0) * 1e3]
+        return bytes(data.tobytes())
+
+    def _drawn(self, future: asyncio.Future[bytes]) -> None:
+        self._drawing = False
+        if future.cancelled():
+            return
+        exc = future.exception()
+        if exc is not None:
+            log.warning("web page: cannot draw the live view: %s", exc)
+        else:
+            jpeg = future.result()
+            for client in self._clients:
+                client.set_jpeg(jpeg)
+        self._schedule_draw()
+
+    # -- settings ------------------------------------------------------------------------------
+    async def _in_files(self, fn: Callable[..., Any], *args: Any) -> Any:
+        return await asyncio.get_running_loop().run_in_executor(self._file_pool, fn, *args)
+
+    async def _get_settings(self, request: web.Request) -> web.Response:
+        snapshot = await self._in_files(self._backend.snapshot)
+        return web.json_response({**snapshot, "token_required": bool(self.settings.token)})
+
+    async def _post_settings(self, request: web.Request) -> web.Response:
+        body = await _json_body(request)
+        changes = body.get("changes")
+        if not isinstance(changes, dict) or not changes:
+            return _error(400, "expected {\"changes\": {\"section.key\": value, ...}}")
+        try:
+            outcome = await self._in_files(self._backend.apply, changes)
+        except NetposeError as exc:
+            return _error(400, _config_text(exc))
+        self._broadcast_event({"kind": "settings", **outcome})
+        return web.json_response(outcome)
+
+    async def _post_restart(self, request: web.Request) -> web.Response:
+        self._backend.restart()
+        return web.json_response({"restarting": True})
+
+    def _broadcast_event(self, payload: dict[str, Any]) -> None:
+        text = json.dumps(payload)
+        for client in self._clients:
+            client.add_event(text)
+
+    # -- calibration ---------------------------------------------------------------------------
+    async def _post_calibration(self, request: web.Request) -> web.Response:
+        if not request.content_type.startswith("multipart/"):
+            return _error(400, "upload the calibration file as multipart/form-data (field file)")
+        reader = await request.multipart()
+        part = await reader.next()
+        while part is not None and getattr(part, "name", None) != "file":
+            part = await reader.next()
+        if not isinstance(part, BodyPartReader) or not part.filename:
+            return _error(400, "no file in the upload (form field 'file')")
+        suffix = Path(part.filename).suffix.lower()
+        if suffix not in CALIBRATION_SUFFIXES:
+            return _error(400, f"{part.filename}: a calibration is a ROS camera_info YAML or an "
+                          "OpenCV FileStorage file (.yaml, .yml or .xml)")
+        data = await part.read()  # bounded by client_max_size
+        ident = uuid.uuid4().hex[:12]
+        path = self._tmp / f"{ident}{suffix}"
+        path.write_bytes(data)
+        try:
+            pending = await self._in_files(self._check_calibration, path, part.filename)
+        except NetposeError as exc:
+            path.unlink(missing_ok=True)
+            return _error(400, f"camera.calibration: {exc}")
+        self._calibrations[ident] = pending
+        while len(self._calibrations) > PENDING_CALIBRATIONS:
+            oldest = min(self._calibrations, key=lambda k: self._calibrations[k].created)
+            self._calibrations.pop(oldest).path.unlink(missing_ok=True)
+        cam = pending.camera
+        k1 = cam.distortion[0] if cam.distortion else 0.0
+        return web.json_response({
+            "id": ident, "file": part.filename, "preview": f"api/calibration/{ident}/preview.jpg",
+            "summary": f"{cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} px, "
+                       f"centre ({cam.cx:.1f}, {cam.cy:.1f}), k1 {k1:+.3f}",
+        })
+
+    def _check_calibration(self, path: Path, filename: str) -> _PendingCalibration:
+        try:
+            camera = load_camera(path)
+        except CalibrationError as exc:
+            # The message names our temporary file; the user knows theirs by its name.
+            raise CalibrationError(str(exc).replace(str(path), filename)) from None
+        newest = self._feed.newest_frame()
+        if newest is None:
+            raise CalibrationError("no camera frame yet to check it against; try again when "
+                                   "the live view shows the camera")
+        image = np.asarray(newest[0].image)
+        h, w = image.shape[:2]
+        scaled = camera.scaled_to(w, h)  # CalibrationError for another aspect ratio
+        return _PendingCalibration(path, camera, undistorted_preview(image, scaled,
+                                                                     self.settings.live_width),
+                                   time.monotonic())
+
+    async def _get_calibration_preview(self, request: web.Request) -> web.Response:
+        pending = self._calibrations.get(request.match_info["id"])
+        if pending is None:
+            return _error(404, "no such calibration upload (uploads are kept until 4 newer)")
+        return web.Response(body=pending.preview, content_type="image/jpeg")
+
+    async def _post_calibration_apply(self, request: web.Request) -> web.Response:
+        pending = self._calibrations.get(request.match_info["id"])
+        if pending is None:
+            return _error(404, "no such calibration upload: upload the file again")
+        try:
+            outcome = await self._in_files(self._backend.install_calibration, pending.path)
+        except NetposeError as exc:
+            return _error(400, _config_text(exc))
+        self._broadcast_event({"kind": "settings", **outcome})
+        return web.json_response(outcome)
+
+    # -- recordings ----------------------------------------------------------------------------
+    def _need_recorder(self) -> Recorder:
+        if self._recorder is None:
+            raise web.HTTPNotFound(text='{"error": "recording is not available"}',
+                                   content_type="application/json")
+        return self._recorder
+
+    async def _get_recordings(self, request: web.Request) -> web.Response:
+        recorder = self._need_recorder()
+        listing = await self._in_files(recorder.recordings)
+        return web.json_response({"recordings": listing, "status": recorder.status().to_json()})
+
+    async def _post_recording_start(self, request: web.Request) -> web.Response:
+        recorder = self._need_recorder()
+        try:
+            status = await self._in_files(recorder.begin)
+        except NetposeError as exc:
+            return _error(409, str(exc))
+        self._publish("recording", json.dumps(status.to_json()))
+        return web.json_response(status.to_json())
+
+    async def _post_recording_stop(self, request: web.Request) -> web.Response:
+        recorder = self._need_recorder()
+        status = await self._in_files(recorder.stop)
+        self._publish("recording", json.dumps(status.to_json()))
+        return web.json_response(status.to_json())
+
+    async def _get_recording_tar(self, request: web.Request) -> web.StreamResponse:
+        recorder = self._need_recorder()
+        name = request.match_info["name"]
+        try:
+            folder = recorder.folder_of(name)
+        except RecorderError as exc:
+            return _error(404, str(exc))
+        response = web.StreamResponse(headers={
+            "Content-Type": "application/x-tar",
+            "Content-Disposition": f'attachment; filename="{name}.tar"'})
+        await response.prepare(request)
+        loop = asyncio.get_running_loop()
+        chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=8)
+        cancelled = threading.Event()
+        producer = loop.run_in_executor(self._file_pool, _write_tar, folder, name, loop, chunks,
+                                        cancelled)
+        try:
+            while (chunk := await chunks.get()) is not None:
+                await response.write(chunk)
+            await producer
+            await response.write_eof()
+        finally:
+            cancelled.set()
+            while not chunks.empty():
+                chunks.get_nowait()
+        return response
+
+
+
+class _QueueWriter(io.RawIOBase):
+    """A file object whose writes go to an asyncio queue (the tar is streamed, never stored)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[bytes | None],
+                 cancelled: threading.Event) -> None:
+        self._loop = loop
+        self._queue = queue
+        self._cancelled = cancelled
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data: Any) -> int:
+        if self._cancelled.is_set():
+            raise OSError("download cancelled")
+        chunk = bytes(data)
+        asyncio.run_coroutine_threadsafe(self._queue.put(chunk), self._loop).result(60.0)
+        return len(chunk)
+
+
+def _write_tar(folder: Path, name: str, loop: asyncio.AbstractEventLoop,
+               queue: asyncio.Queue[bytes | None], cancelled: threading.Event) -> None:
+    writer = _QueueWriter(loop, queue, cancelled)
+    try:
+        with tarfile.open(fileobj=writer, mode="w|", format=tarfile.PAX_FORMAT) as tar:
+            tar.add(folder, arcname=name)
+    finally:
+        if not cancelled.is_set():
+            asyncio.run_coroutine_threadsafe(queue.put(None), loop).result(60.0)
+
+
+def undistorted_preview(image: npt.NDArray[Any], camera: CameraModel, width: int
+                        ) -> bytes:
+    """The frame as it is and as the calibration undistorts it, side by side, as JPEG."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    h, w = grey.shape[:2]
+    new_matrix, _ = cv2.getOptimalNewCameraMatrix(camera.matrix, camera.dist_coeffs, (w, h), 0.0)
+    straight = cv2.undistort(grey, camera.matrix, camera.dist_coeffs, None, new_matrix)
+    half = max(80, width // 2)
+    size = (half, max(1, round(h * half / w)))
+    pair = [cv2.cvtColor(cv2.resize(img, size, interpolation=cv2.INTER_AREA), cv2.COLOR_GRAY2BGR)
+            for img in (grey, straight)]
+    for img, label in zip(pair, ("as recorded", "undistorted"), strict=True):
+        cv2.putText(img, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(img, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+    ok, data = cv2.imencode(".jpg", np.hstack(pair), [int(cv2.IMWRITE_JPEG_QUALITY), 80])
+    if not ok:
+        raise CalibrationError("cannot draw the undistorted preview")
+    return bytes(data.tobytes())
+
+
+def _config_text(exc: NetposeError) -> str:
+    """The CLI's one line for a configuration error."""
+    if isinstance(exc, ConfigError):
+        return f"configuration error: {exc}"
+    return str(exc)
+
+
+def _error(status: int, text: str) -> web.Response:
+    return web.json_response({"error": text}, status=status)
+
+
+async def _json_body(request: web.Request) -> dict[str, Any]:
+    try:
+        body = await request.json()
+    except (ValueError, UnicodeDecodeError):
+        raise web.HTTPBadRequest(text='{"error": "the request body is not JSON"}',
+                                 content_type="application/json") from None
+    if not isinstance(body, dict):
+        raise web.HTTPBadRequest(text='{"error": "expected a JSON object"}',
+                                 content_type="application/json")
+    return body

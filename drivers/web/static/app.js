@@ -1,0 +1,362 @@
+// netpose page: live data over one WebSocket (the daemon pushes; nothing here polls), the
+// settings form and recordings over small JSON requests. Every URL is relative, so the page
+// works at / as well as behind BlueOS's /extensionv2/netpose/.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const view = document.body.dataset.view;
+const page = {
+  points: [],            // [t, rawDistance, rawTilt, filteredDistance, filteredTilt]
+  spanS: 300, historyS: 300, tokenRequired: false,
+  frames: 0, frameTimes: [], estimates: 0, lastStatusAt: 0, liveUrl: null,
+  settings: null, calibrationId: null, recording: null,
+  groupMessages: {},     // the last message of each settings group (kept across re-renders)
+};
+window.netpose = page;   // for tests and the curious
+
+// -- the live connection -----------------------------------------------------------------
+function wsUrl() {
+  const url = new URL("ws", document.baseURI);
+  url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+  return url.href;
+}
+
+let retryMs = 500;
+function connect() {
+  const ws = new WebSocket(wsUrl());
+  ws.binaryType = "blob";
+  ws.onopen = () => { retryMs = 500; setLink("live", "live"); };
+  ws.onclose = () => {
+    setLink("down", "disconnected – retrying");
+    setTimeout(connect, retryMs);
+    retryMs = Math.min(5000, retryMs * 2);
+  };
+  ws.onmessage = (event) => {
+    if (typeof event.data === "string") onMessage(JSON.parse(event.data));
+    else onFrame(event.data);
+  };
+}
+
+function setLink(cls, text) { const el = $("link"); el.className = "conn " + cls; el.textContent = text; }
+
+function onMessage(msg) {
+  switch (msg.kind) {
+    case "hello":
+      page.tokenRequired = msg.token_required; page.historyS = msg.history_s;
+      if ($("vehicle")) $("vehicle").textContent = "· " + msg.vehicle;
+      if ($("token-row")) $("token-row").hidden = !msg.token_required;
+      break;
+    case "history": page.points = msg.points; drawPlots(); break;
+    case "estimate": onEstimate(msg); break;
+    case "status": onStatus(msg); break;
+    case "recording": onRecording(msg); break;
+    case "settings": if (view === "full") loadSettings(); break;
+  }
+}
+
+function onFrame(blob) {
+  const url = URL.createObjectURL(blob);
+  const img = $("live");
+  img.onload = () => { if (page.liveUrl) URL.revokeObjectURL(page.liveUrl); page.liveUrl = url; };
+  img.src = url;
+  page.frames += 1;
+  const now = performance.now();
+  page.frameTimes.push(now);
+  while (page.frameTimes.length && page.frameTimes[0] < now - 5000) page.frameTimes.shift();
+  if ($("live-rate")) $("live-rate").textContent = `${(page.frameTimes.length / 5).toFixed(1)} frames/s`;
+}
+
+// -- estimates: header and plots ------------------------------------------------------------
+const fmt = (v, digits = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
+const tiltOf = (n) => (n ? (Math.acos(Math.min(1, Math.abs(n[2]))) * 180) / Math.PI : null);
+
+function plotPoint(m) {
+  const f = m.filtered; const valid = f && f.valid;
+  const t = m.frame_time_mono !== null ? m.frame_time_mono : m.time_mono;
+  return [t, m.detected ? m.distance_m : null, m.detected ? m.tilt_deg : null,
+          valid ? f.distance_m : null, valid ? tiltOf(f.normal) : null];
+}
+
+function onEstimate(m) {
+  page.estimates += 1;
+  page.lastEstimate = m;
+  const f = m.filtered || { state: "lost", valid: false };
+  const state = $("state");
+  state.textContent = f.state; state.className = "badge " + f.state;
+  $("distance").textContent = f.valid ? fmt(f.distance_m) + " m" : "–";
+  $("tilt").textContent = m.detected ? `raw ${fmt(m.distance_m)} m, tilt ${fmt(m.tilt_deg, 0)}°, conf ${fmt(m.confidence)}`
+                                     : `no net: ${m.reason || "–"}`;
+  page.points.push(plotPoint(m));
+  const oldest = m.frame_time_mono - Math.max(page.historyS, page.spanS);
+  while (page.points.length && page.points[0][0] < oldest) page.points.shift();
+  if (!page.drawPending) { page.drawPending = true; requestAnimationFrame(drawPlots); }
+}
+
+function drawPlots() {
+  page.drawPending = false;
+  if ($("points")) $("points").textContent = `(${page.points.length} points)`;
+  plot($("plot-distance"), 1, 3, "distance, m");
+  if ($("plot-tilt")) plot($("plot-tilt"), 2, 4, "tilt, deg");
+}
+
+function plot(canvas, rawIndex, filtIndex, label) {
+  if (!canvas) return;
+  const ctx = canvas.getContext("2d");
+  const W = canvas.width, H = canvas.height, L = 44, B = 18, T = 6;
+  ctx.clearRect(0, 0, W, H);
+  const pts = page.points;
+  if (!pts.length) return;
+  const tEnd = pts[pts.length - 1][0], tStart = tEnd - page.spanS;
+  let lo = Infinity, hi = -Infinity;
+  for (const p of pts) {
+    if (p[0] < tStart) continue;
+    for (const i of [rawIndex, filtIndex]) if (p[i] !== null) { lo = Math.min(lo, p[i]); hi = Math.max(hi, p[i]); }
+  }
+  if (!isFinite(lo)) { lo = 0; hi = 1; }
+  const pad = Math.max(0.05 * (hi - lo), rawIndex === 1 ? 0.05 : 1);
+  lo -= pad; hi += pad;
+  const x = (t) => L + ((t - tStart) / page.spanS) * (W - L - 4);
+  const y = (v) => T + (1 - (v - lo) / (hi - lo)) * (H - T - B);
+  ctx.strokeStyle = "#223"; ctx.fillStyle = "#8b9bab"; ctx.font = "11px sans-serif"; ctx.lineWidth = 1;
+  for (let k = 0; k <= 4; k++) {
+    const v = lo + ((hi - lo) * k) / 4;
+    ctx.beginPath(); ctx.moveTo(L, y(v)); ctx.lineTo(W, y(v)); ctx.stroke();
+    ctx.fillText(v.toFixed(rawIndex === 1 ? 2 : 0), 2, y(v) + 4);
+  }
+  const step = page.spanS > 120 ? 60 : 10;
+  for (let s = 0; s <= page.spanS; s += step) {
+    const xx = x(tEnd - s);
+    ctx.beginPath(); ctx.moveTo(xx, T); ctx.lineTo(xx, H - B); ctx.stroke();
+    ctx.fillText(s === 0 ? "now" : `-${s}s`, xx - 12, H - 4);
+  }
+  ctx.fillText(label, L + 4, T + 10);
+  ctx.fillStyle = "#8b9bab";
+  for (const p of pts) if (p[0] >= tStart && p[rawIndex] !== null) ctx.fillRect(x(p[0]) - 1, y(p[rawIndex]) - 1, 2, 2);
+  ctx.strokeStyle = "#2a9df4"; ctx.lineWidth = 2; ctx.beginPath();
+  let open = false, lastT = null;
+  for (const p of pts) {
+    if (p[0] < tStart) continue;
+    const v = p[filtIndex];
+    if (v === null || (lastT !== null && p[0] - lastT > 1.0)) open = false;
+    if (v !== null) { if (open) ctx.lineTo(x(p[0]), y(v)); else ctx.moveTo(x(p[0]), y(v)); open = true; }
+    lastT = p[0];
+  }
+  ctx.stroke();
+}
+
+// -- health -----------------------------------------------------------------------------------
+const LEVEL = {
+  streaming: "ok", starting: "warn", reconnecting: "warn", ended: "bad", stopped: "off", failed: "bad",
+  connected: "ok", waiting: "warn", lost: "bad", disabled: "off",
+  online: "ok", connecting: "warn", idle: "warn", closed: "off",
+  running: "ok", degraded: "warn", stopping: "off",
+};
+
+function onStatus(s) {
+  page.lastStatusAt = Date.now(); page.status = s;
+  const body = $("health") && $("health").tBodies[0];
+  if (!body) return;
+  const fs = s.frame_source, ap = s.autopilot, tm = s.telemetry, es = s.estimator, lat = s.latency_ms;
+  const rows = [
+    ["Service", s.state, `${s.version}, up ${fmt(s.uptime_s, 0)} s`, ""],
+    ["Source", fs.state, `${fmt(fs.fps, 1)} frames/s, ${fs.dropped} skipped, ${fs.corrupt} damaged`, fs.error],
+    ["Autopilot link", ap.state, `${ap.url} · heartbeat ${fmt(ap.heartbeat_age_s, 1)} s ago · ${ap.sending_distance ? "sending distance" : "not sending"}`, ap.last_error],
+    ["Telemetry", tm ? tm.state : "disabled", tm ? `${tm.key_root} · ${tm.links ?? 0} links` : "", tm ? tm.last_error : ""],
+    ["Frame rate", es.fps ? "ok" : "warn", `${fmt(es.fps, 1)} frames/s processed, net in ${fmt(100 * (es.detected_fraction ?? 0), 0)} %`, es.last_error],
+    ["CPU", "ok", `${fmt(s.cpu.process_percent, 0)} % of a core · load ${fmt(s.cpu.load_1m)} · ${fmt(s.cpu.rss_mb, 0)} MB`, ""],
+    ["Latency", "ok", `capture → autopilot ${fmt(lat.capture_to_link_p50, 0)} ms median, ${fmt(lat.capture_to_link_p99, 0)} ms p99 · estimator ${fmt(es.latency_ms_mean, 0)} ms`, ""],
+  ];
+  body.replaceChildren(...rows.map(([name, state, text, error]) => {
+    const tr = document.createElement("tr");
+    const level = LEVEL[state] || state;
+    tr.innerHTML = `<td><span class="dot ${level}"></span>${name}</td><td></td><td class="err"></td>`;
+    tr.children[1].textContent = `${state === "ok" || state === "warn" ? "" : state + " · "}${text}`;
+    tr.children[2].textContent = error || "";
+    tr.dataset.row = name;
+    return tr;
+  }));
+  $("digest").textContent = `configuration ${s.config_digest}`;
+}
+
+setInterval(() => {
+  if (page.lastStatusAt && Date.now() - page.lastStatusAt > 5000 && $("digest"))
+    $("digest").textContent = "no status from the daemon for 5 s";
+}, 1000);
+
+// -- requests that change something --------------------------------------------------------
+async function send(url, body) {
+  const headers = {};
+  const token = $("token") ? $("token").value || sessionStorage.getItem("netpose-token") : null;
+  if (token) { headers["X-Netpose-Token"] = token; sessionStorage.setItem("netpose-token", token); }
+  if (body !== undefined && !(body instanceof FormData)) { headers["Content-Type"] = "application/json"; body = JSON.stringify(body); }
+  const response = await fetch(url, { method: "POST", headers, body });
+  let data = {};
+  try { data = await response.json(); } catch (e) { data = { error: `HTTP ${response.status}` }; }
+  if (!response.ok) throw new Error(data.error || `HTTP ${response.status}`);
+  return data;
+}
+
+function say(el, text, ok) { el.textContent = text; el.className = "message " + (ok ? "ok" : "error"); }
+
+// -- set-up ------------------------------------------------------------------------------------
+async function loadSettings() {
+  const response = await fetch("api/settings");
+  const s = await response.json();
+  page.settings = s;
+  $("config-path").textContent = s.path ? `Configuration file: ${s.path}${s.editable ? "" : " — " + s.reason}`
+                                        : s.reason;
+  if (s.problem) $("config-path").textContent += ` — ${s.problem}`;
+  $("token-row").hidden = !s.token_required;
+  const saved = sessionStorage.getItem("netpose-token");
+  if (saved && !$("token").value) $("token").value = saved;
+  showRestart(s.restart_pending);
+  $("settings").replaceChildren(...s.groups.map((group) => settingsGroup(group, s)));
+}
+
+function showRestart(sections) {
+  $("restart-banner").hidden = !sections || !sections.length;
+  $("restart-sections").textContent = (sections || []).join(", ");
+}
+
+function inputFor(field, value) {
+  let input;
+  if (field.type === "bool" || field.type === "choice") {
+    input = document.createElement("select");
+    const options = field.type === "bool" ? ["true", "false"] : field.choices.map(String);
+    for (const o of options) input.add(new Option(o, o));
+    input.value = String(value);
+  } else {
+    input = document.createElement("input");
+    input.type = field.type === "number" || field.type === "integer" ? "number" : "text";
+    if (input.type === "number") input.step = field.type === "integer" ? "1" : "any";
+    input.value = value === null || value === undefined ? "" : Array.isArray(value) ? value.join(", ") : value;
+    if (field.optional) input.placeholder = "default";
+  }
+  input.name = field.key; input.disabled = field.overridden || !page.settings.editable;
+  return input;
+}
+
+function valueOf(field, input) {
+  const text = input.value.trim();
+  if (text === "" && field.optional) return null;
+  switch (field.type) {
+    case "bool": return text === "true";
+    case "number": case "integer": return text === "" ? text : Number(text);
+    case "list": return text === "" ? [] : text.split(",").map((x) => x.trim()).filter(Boolean);
+    case "choice": { const c = field.choices.find((x) => String(x) === text); return c === undefined ? text : c; }
+    default: return text;
+  }
+}
+
+function settingsGroup(group, s) {
+  const box = document.createElement("fieldset");
+  box.innerHTML = `<legend></legend>`;
+  box.firstChild.textContent = group.title;
+  const inputs = [];
+  for (const field of group.fields) {
+    const row = document.createElement("label");
+    row.className = "field";
+    const name = document.createElement("span");
+    name.textContent = field.key + (field.overridden ? " (set with --set)" : "");
+    const input = inputFor(field, s.values[field.key]);
+    row.append(name, input); box.append(row); inputs.push([field, input]);
+  }
+  const button = document.createElement("button");
+  button.type = "button"; button.textContent = "Save"; button.disabled = !s.editable;
+  const message = document.createElement("p"); message.className = "message";
+  const last = page.groupMessages[group.title];
+  if (last) say(message, last.text, last.ok);
+  const report = (text, ok) => { page.groupMessages[group.title] = { text, ok }; say(message, text, ok); };
+  button.onclick = async () => {
+    const changes = {};
+    for (const [field, input] of inputs) {
+      const value = valueOf(field, input), before = s.values[field.key];
+      if (JSON.stringify(value) !== JSON.stringify(before) && !input.disabled) changes[field.key] = value;
+    }
+    if (!Object.keys(changes).length) { report("nothing changed", true); return; }
+    button.disabled = true; report("saving…", true);
+    try {
+      const r = await send("api/settings", { changes });
+      report(r.message, true);
+      showRestart(r.restart_needed);
+      s.values = { ...s.values, ...changes };
+    } catch (e) { report(e.message, false); }
+    button.disabled = false;
+  };
+  box.append(button, message);
+  return box;
+}
+
+// -- calibration ----------------------------------------------------------------------------------
+async function uploadCalibration(event) {
+  event.preventDefault();
+  const file = $("calibration-file").files[0];
+  if (!file) { say($("calibration-message"), "choose a calibration file first", false); return; }
+  const form = new FormData(); form.append("file", file);
+  $("calibration-result").hidden = true;
+  try {
+    const r = await send("api/calibration", form);
+    page.calibrationId = r.id;
+    say($("calibration-message"), `${r.file}: ${r.summary} — check the preview: straight lines stay straight`, true);
+    $("calibration-preview").src = r.preview;
+    $("calibration-result").hidden = false;
+  } catch (e) { say($("calibration-message"), e.message, false); }
+}
+
+async function applyCalibration() {
+  try {
+    const r = await send(`api/calibration/${page.calibrationId}/apply`, {});
+    say($("calibration-message"), r.message, true); showRestart(r.restart_needed);
+  } catch (e) { say($("calibration-message"), e.message, false); }
+}
+
+// -- recording -------------------------------------------------------------------------------------
+function onRecording(r) {
+  page.recording = r;
+  if (!$("record")) return;
+  $("record").textContent = r.active ? "Stop recording" : "Start recording";
+  $("record-status").textContent = r.active ? `${r.name}: ${r.frames} frames, ${(r.bytes / 1e6).toFixed(1)} MB${r.dropped ? `, ${r.dropped} dropped` : ""}`
+                                            : r.name ? `last: ${r.name}, ${r.frames} frames` : "";
+  if (r.error) say($("record-message"), r.error, false);
+}
+
+async function toggleRecording() {
+  const active = page.recording && page.recording.active;
+  try {
+    onRecording(await send(active ? "api/recordings/stop" : "api/recordings/start", {}));
+    say($("record-message"), active ? "stopped" : "recording…", true);
+    if (active) loadRecordings();
+  } catch (e) { say($("record-message"), e.message, false); }
+}
+
+async function loadRecordings() {
+  const response = await fetch("api/recordings");
+  if (!response.ok) { $("record").disabled = true; return; }
+  const data = await response.json();
+  onRecording(data.status);
+  $("recordings").tBodies[0].replaceChildren(...data.recordings.filter((r) => r.finished).map((r) => {
+    const tr = document.createElement("tr");
+    tr.innerHTML = "<td><a></a></td><td></td>";
+    const a = tr.querySelector("a"); a.href = `api/recordings/${r.name}.tar`; a.textContent = r.name;
+    a.setAttribute("download", `${r.name}.tar`);
+    tr.children[1].textContent = `${r.frames} frames, ${((r.bytes || 0) / 1e6).toFixed(1)} MB`;
+    return tr;
+  }));
+}
+
+// -- start -------------------------------------------------------------------------------------------
+if (view === "full") {
+  $("span").onchange = () => { page.spanS = Number($("span").value); drawPlots(); };
+  $("calibration-form").onsubmit = uploadCalibration;
+  $("calibration-apply").onclick = applyCalibration;
+  $("record").onclick = toggleRecording;
+  $("restart").onclick = async () => {
+    try { await send("api/restart", {}); setLink("down", "restarting…"); showRestart([]); }
+    catch (e) { alert(e.message); }
+  };
+  loadSettings().catch((e) => { $("config-path").textContent = "cannot load settings: " + e.message; });
+  loadRecordings().catch(() => {});
+} else {
+  page.spanS = 60;
+}
+connect();

@@ -1,0 +1,260 @@
+"""Changing the configuration from the web page: the same validation as the file, then a reload.
+
+`SettingsEditor` is what the page's driver calls (drivers.web.SettingsBackend, structurally).
+A change `{"mesh.bar_length_m": 0.03}` is written into the TOML text with tomlkit (comments and
+layout kept), the whole new file is validated exactly as `netpose run` validates it (the same
+loader, the calibration file loaded too), and only then replaces the old file (atomic rename).
+The running daemon re-reads it through its ordinary reload (the flag SIGHUP sets), and the
+editor waits for the outcome. A change the running parts cannot take live (camera, MAVLink,
+telemetry) is saved and reported as needing a restart; `restart()` restarts the daemon's parts
+in-process (service/daemon/wiring.py). Any problem raises ConfigError naming the key, and then
+neither the file nor the daemon changed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+import shutil
+import threading
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import tomlkit
+from tomlkit.items import Table
+
+from service.config import Config
+from service.core.camera import load_camera
+from service.core.errors import CalibrationError, ConfigError
+from service.daemon.loop import ReloadOutcome
+
+log = logging.getLogger(__name__)
+
+# What the page offers, by group. A section whose name contains "hold" (net hold, once it
+# exists) is offered whole.
+GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("Net", ("mesh.bar_length_m", "mesh.opening_angle_deg")),
+    ("Camera", ("camera.url", "camera.calibration")),
+    ("Autopilot (MAVLink)", ("mavlink.url", "mavlink.orientation", "mavlink.sensor_id")),
+    ("Telemetry (Zenoh)", ("telemetry.mode", "telemetry.connect", "telemetry.listen",
+                           "telemetry.vehicle")),
+)
+# Changed only in the file: the page's own access and address.
+LOCKED_SECTIONS = frozenset({"web"})
+RELOAD_TIMEOUT_S = 15.0
+
+Loader = Callable[[Path], Config]
+
+
+def _field_kind(tp: Any) -> dict[str, Any]:
+    """How the page shows a setting of this type."""
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return {"type": "choice", "choices": list(typing.get_args(tp))}
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in typing.get_args(tp) if a is not type(None)]
+        kind = _field_kind(options[0]) if len(options) == 1 else {"type": "text"}
+        return {**kind, "optional": True}
+    if origin in (tuple, list):
+        return {"type": "list"}
+    return {"type": {bool: "bool", int: "integer", float: "number"}.get(tp, "text")}
+
+
+def tuning_toml(config: Config) -> str:
+    """[mesh], [estimator], [filter] and [service] in force, as TOML (for recordings)."""
+    doc = tomlkit.document()
+    doc.add(tomlkit.comment("The settings in force when this recording started (netpose "
+                            "replay --config)."))
+    for name in ("mesh", "estimator", "filter", "service"):
+        values = {k: v for k, v in config.effective[name].items() if v is not None}
+        doc.add(name, values)
+    return tomlkit.dumps(doc)
+
+
+class SettingsEditor:
+    """Validate-and-apply for the page; one per `netpose run` (it outlives restarts)."""
+
+    def __init__(self, path: Path | None, overrides: tuple[str, ...], load: Loader,
+                 request_reload: Callable[[], None],
+                 request_restart: Callable[[], None]) -> None:
+        self.path = path
+        self._overridden = {text.partition("=")[0].strip() for text in overrides}
+        self._load = load
+        self._request_reload = request_reload
+        self._request_restart = request_restart
+        self._lock = threading.Lock()  # one change at a time
+        self._outcomes = threading.Condition()
+        self._reloads = 0
+        self._last_outcome: ReloadOutcome | None = None
+        self.restart_pending: set[str] = set()
+
+    # -- the daemon's side -----------------------------------------------------------------
+    def reloaded(self, outcome: ReloadOutcome) -> None:
+        """Daemon(on_reload=...): called on the loop thread after every reload."""
+        with self._outcomes:
+            self._reloads += 1
+            self._last_outcome = outcome
+            if outcome.ok:
+                self.restart_pending |= set(outcome.restart_needed)
+            self._outcomes.notify_all()
+
+    def restarted(self) -> None:
+        self.restart_pending.clear()
+
+    # -- the page's side -------------------------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        editable, reason = self._editable()
+        values: dict[str, Any] = {}
+        config: Config | None = None
+        problem = ""
+        if self.path is not None:
+            try:
+                config = self._load(self.path)
+            except (ConfigError, CalibrationError) as exc:
+                problem = f"configuration error: {exc}"
+        groups = []
+        for title, keys in self._groups(config):
+            fields = []
+            for key in keys:
+                section, _, name = key.partition(".")
+                field = self._describe(config, section, name)
+                fields.append({"key": key, **field,
+                               "overridden": key in self._overridden})
+                if config is not None:
+                    values[key] = config.effective.get(section, {}).get(name)
+            groups.append({"title": title, "fields": fields})
+        return {"path": str(self.path) if self.path else None, "editable": editable,
+                "reason": reason, "problem": problem, "groups": groups, "values": values,
+                "restart_pending": sorted(self.restart_pending)}
+
+    def apply(self, changes: Mapping[str, Any]) -> dict[str, Any]:
+        editable, reason = self._editable()
+        if not editable:
+            raise ConfigError("configuration", reason)
+        assert self.path is not None
+        for key, value in changes.items():
+            section, dot, name = key.partition(".")
+            if not dot or not section or not name or "." in name:
+                raise ConfigError(key, "must look like section.key")
+            if section in LOCKED_SECTIONS:
+                raise ConfigError(key, f"[{section}] is changed in the configuration file "
+                                  f"only ({self.path})")
+            if key in self._overridden:
+                raise ConfigError(key, "is set with --set on the command line, which wins over "
+                                  "the file: change it there")
+            if isinstance(value, dict):
+                raise ConfigError(key, f"must be a single value, got {value!r}")
+        with self._lock:
+            old_text = self.path.read_text(encoding="utf-8")
+            try:
+                doc = tomlkit.parse(old_text)
+            except tomlkit.exceptions.ParseError as exc:
+                raise ConfigError(str(self.path), f"invalid TOML: {exc}") from None
+            for key, value in changes.items():
+                section, _, name = key.partition(".")
+                table = doc.get(section)
+                if table is None:
+                    table = tomlkit.table()
+                    doc.add(section, table)
+                if not isinstance(table, Table | dict):
+                    raise ConfigError(section, "must be a table")
+                if value is None:
+                    table.pop(name, None)  # back to the default
+                else:
+                    table[name] = value
+            new_text = tomlkit.dumps(doc)
+            if new_text == old_text:
+                return {"saved": False, "message": "nothing to change", "changed": [],
+                        "restart_needed": sorted(self.restart_pending)}
+            candidate = self.path.with_name(f".{self.path.name}.new")
+            candidate.write_text(new_text, encoding="utf-8")
+            try:
+                self._validate(candidate)
+                shutil.copymode(self.path, candidate)
+                os.replace(candidate, self.path)
+            finally:
+                candidate.unlink(missing_ok=True)
+            log.info("configuration changed from the web page: %s",
+                     ", ".join(sorted(changes)))
+            outcome = self._reload()
+        if not outcome.ok:
+            # Validated a moment ago: only a file changed under us gets here.
+            raise ConfigError("configuration", f"saved, but the reload failed: {outcome.error}")
+        needs = sorted(self.restart_pending)
+        message = "saved and applied" if not needs else (
+            f"saved; changes to {', '.join(needs)} take effect after a restart")
+        return {"saved": True, "message": message, "changed": list(outcome.changed),
+                "restart_needed": needs, "digest": outcome.digest}
+
+    def install_calibration(self, path: Path) -> dict[str, Any]:
+        """Copy an uploaded calibration (already checked by the page) next to the file."""
+        editable, reason = self._editable()
+        if not editable:
+            raise ConfigError("camera.calibration", reason)
+        assert self.path is not None
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()[:8]
+        target = self.path.parent / f"calibration-{digest}{path.suffix.lower()}"
+        created = not target.exists()
+        if created:
+            shutil.copyfile(path, target)
+        try:
+            return self.apply({"camera.calibration": target.name})
+        except ConfigError:
+            if created:
+                target.unlink(missing_ok=True)
+            raise
+
+    def restart(self) -> None:
+        log.info("restart requested from the web page")
+        self._request_restart()
+
+    # -- internals -------------------------------------------------------------------------
+    def _editable(self) -> tuple[bool, str]:
+        if self.path is None:
+            return False, "no configuration file: start with --config FILE to change settings"
+        if not os.access(self.path, os.W_OK) or not os.access(self.path.parent, os.W_OK):
+            return False, f"{self.path} (or its folder) is not writable by the service"
+        return True, ""
+
+    def _validate(self, candidate: Path) -> Config:
+        config = self._load(candidate)
+        calibration = config.calibration_path()
+        if calibration is not None:
+            try:
+                load_camera(calibration)
+            except CalibrationError as exc:
+                raise ConfigError("camera.calibration", str(exc)) from None
+        return config
+
+    def _reload(self) -> ReloadOutcome:
+        with self._outcomes:
+            seen = self._reloads
+            self._request_reload()
+            if not self._outcomes.wait_for(lambda: self._reloads > seen, RELOAD_TIMEOUT_S):
+                raise ConfigError("configuration", "saved, but the daemon did not reload "
+                                  f"within {RELOAD_TIMEOUT_S:.0f} s")
+            assert self._last_outcome is not None
+            return self._last_outcome
+
+    @staticmethod
+    def _groups(config: Config | None) -> list[tuple[str, tuple[str, ...]]]:
+        groups = list(GROUPS)
+        if config is not None:
+            for section, values in config.effective.items():
+                if "hold" in section:
+                    groups.append((f"Net hold ([{section}])",
+                                   tuple(f"{section}.{k}" for k in values)))
+        return groups
+
+    @staticmethod
+    def _describe(config: Config | None, section: str, name: str) -> dict[str, Any]:
+        settings = config.sections.get(section) if config is not None else None
+        if settings is None or not dataclasses.is_dataclass(settings):
+            return {"type": "text"}
+        hints = typing.get_type_hints(type(settings))
+        return _field_kind(hints.get(name, str))

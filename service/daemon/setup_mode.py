@@ -1,0 +1,120 @@
+"""Set-up mode: the web page without the estimator, until the configuration is complete.
+
+On a first start under BlueOS there is no camera calibration yet, and `netpose run` would stop
+with exit status 78, restarted in a loop by the container engine, with no page to fix it from.
+With `web.enabled`, a calibration problem starts this mode instead: the camera's frames (with
+the problem written on them), the settings form and the calibration upload. Nothing is sent to
+the autopilot and nothing is published: the link and telemetry are not even built. A change
+saved on the page asks for a reload (the editor's ordinary path); when the configuration is
+then valid, set-up mode ends and the daemon starts as usual, in the same process.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from service.config import Config
+from service.core.errors import NetposeError
+from service.core.messages import EstimateMessage
+from service.daemon.loop import ReloadOutcome
+from service.daemon.ports import Frame, FrameSource, Notifier
+from service.signals import SignalFlags
+from service.tools.preview import render_preview
+
+log = logging.getLogger("netpose.daemon")
+
+READ_TIMEOUT_S = 0.2
+REOPEN_AFTER_S = 5.0
+
+
+class SetupPage(Protocol):
+    """The web page, fed frames without a pipeline result."""
+
+    def start(self) -> None: ...
+    def observe(self, frame: Frame, result: None, message: EstimateMessage) -> None: ...
+    def close(self) -> None: ...
+
+
+def setup_renderer(problem: str, width: int) -> Callable[[Any, Any], npt.NDArray[np.uint8]]:
+    """The live view in set-up mode: the frame and what is missing."""
+    lines = ["set-up mode: nothing is sent to the autopilot", problem[:90]]
+
+    def render(frame: Any, _result: Any) -> npt.NDArray[np.uint8]:
+        return render_preview(frame.image, (), lines, width=width)
+
+    return render
+
+
+def run_setup(
+    *,
+    source: FrameSource,
+    page: SetupPage,
+    notifier: Notifier,
+    flags: SignalFlags,
+    problem: str,
+    validate: Callable[[], Config],
+    on_reload: Callable[[ReloadOutcome], None],
+    vehicle: str,
+    deadline: float | None = None,
+) -> Config | None:
+    """Serve the page until a saved configuration is valid (returned), or a stop or the
+    monotonic `deadline` (`netpose run --duration`) comes first (None)."""
+    log.warning("configuration incomplete (%s): set-up mode, nothing is sent to the autopilot; "
+                "finish the set-up on the web page", problem)
+    page.start()
+    notifier.ready(status=f"set-up mode: {problem}")
+    opened_at: float | None = None
+    seq = 0
+    try:
+        while not flags.stop.is_set():
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                log.info("run duration reached in set-up mode")
+                break
+            notifier.watchdog(now)
+            if flags.reload.is_set():
+                flags.reload.clear()
+                try:
+                    config = validate()
+                except NetposeError as exc:
+                    on_reload(ReloadOutcome(ok=False, error=str(exc)))
+                    notifier.status(f"set-up mode: {exc}")
+                    continue
+                log.info("configuration complete: leaving set-up mode")
+                on_reload(ReloadOutcome(ok=True, digest=config.digest))
+                return config
+            if opened_at is None or (opened_at < 0 and now + opened_at > REOPEN_AFTER_S):
+                try:
+                    source.open()
+                    opened_at = now
+                except NetposeError as exc:
+                    if opened_at is None:
+                        log.warning("set-up mode: the camera cannot be opened (%s); retrying",
+                                    exc)
+                    opened_at = -now  # negative: failed at -opened_at, retry later
+                    time.sleep(READ_TIMEOUT_S)
+                    continue
+            if opened_at < 0:
+                time.sleep(READ_TIMEOUT_S)
+                continue
+            frame = source.read(READ_TIMEOUT_S)
+            if frame is None:
+                continue
+            seq += 1
+            page.observe(frame, None, EstimateMessage(
+                vehicle=vehicle, time_unix=time.time(), time_mono=time.monotonic(), seq=seq,
+                frame_time_unix=frame.t_wall, frame_time_mono=frame.t_monotonic,
+                reason=f"set-up mode: {problem}"))
+        return None
+    finally:
+        for closer in (page.close, source.close):
+            try:
+                closer()
+            except Exception:
+                log.exception("closing after set-up mode failed")
