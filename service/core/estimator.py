@@ -27,6 +27,7 @@ import numpy.typing as npt
 
 from service.core.camera import CameraModel
 from service.core.errors import ConfigError, EstimatorInputError
+from service.core.grey import to_gray
 from service.core.lattice import LatticeFinder, LatticeFit
 from service.core.mesh import MeshGeometry
 from service.core.plane import fit_plane
@@ -590,15 +591,7 @@ def _level_size(size: int, level: int) -> int:
 
 
 def _as_gray(frame: Image) -> Image:
-    import cv2
-
-    arr = np.asarray(frame)
-    if arr.ndim == 3 and arr.shape[2] == 3:
-        arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
-    elif arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[..., 0]
-    if arr.ndim != 2:
-        raise EstimatorInputError(f"expected a grayscale or BGR image, got shape {arr.shape}")
+    arr = to_gray(frame)
     if arr.dtype not in (np.uint8, np.uint16, np.float32):
         arr = arr.astype(np.float32)
     return arr
