@@ -217,7 +217,9 @@ def _assert_same_answer(a: NetEstimate, b: NetEstimate, rel: float) -> None:
 # -- inputs -------------------------------------------------------------------------------------
 
 
-def test_bgr_and_bgra_input_equal_gray_input(renderer: NetRenderer, estimator: NetEstimator) -> None:
+def test_bgr_and_bgra_input_equal_gray_input(
+    renderer: NetRenderer, estimator: NetEstimator
+) -> None:
     import cv2
 
     frame, _ = _render(renderer, NetPose(0.9, tilt_deg=15.0, tilt_axis_deg=80.0), seed=31)
