@@ -50,6 +50,7 @@ def test_every_path_gives_the_same_grey() -> None:
 
     data = _jpeg(_colour_scene())
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert decoded is not None
     reference = cv2.cvtColor(decoded, cv2.COLOR_BGR2GRAY)
     gray, colour = decode_gray(data)  # files (netpose estimate)
     assert np.array_equal(gray, reference) and np.array_equal(colour, decoded)
@@ -63,6 +64,7 @@ def test_every_path_gives_the_same_grey() -> None:
     # Why it matters: libjpeg's own grey decoding is another conversion (it differs on this
     # picture), which is exactly what the one conversion replaces.
     libjpeg_grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert libjpeg_grey is not None
     assert int(np.abs(libjpeg_grey.astype(int) - reference.astype(int)).max()) >= 1
 
 
@@ -127,7 +129,7 @@ def test_estimate_cli_refuses_a_truncated_jpeg(tmp_path: Path) -> None:
     frame, _ = NetRenderer(camera, PAPER_MESH, seed=1).render(
         NetPose(0.8, tilt_deg=10.0), rng=np.random.default_rng(1)
     )
-    data = _jpeg(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), 90)
+    data = _jpeg(np.asarray(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), np.uint8), 90)
     good = tmp_path / "good.jpg"
     bad = tmp_path / "bad.jpg"
     good.write_bytes(data)
