@@ -166,13 +166,15 @@ def test_rhombic_mesh_with_the_matching_geometry() -> None:
     # Measured 0.04 % / 0.08 % / 0.06 deg.
     assert abs(range_error) < 0.01 and abs(distance_error) < 0.01
     assert normal_error < 2.0
-    # Assuming a square mesh instead over-estimates the distance by sqrt(1 / sin 60 deg) - 1 =
-    # 7.5 % (distance scales with the square root of the assumed cell area): the mesh shape
-    # really is used, and mis-configuring it costs what geometry says (measured 7.54 %).
+    assert estimate.measured_opening_deg == pytest.approx(60.0, abs=2.0)
+    # Assuming a square mesh instead would over-estimate the distance by sqrt(1 / sin 60 deg) - 1
+    # = 7.5 % (distance scales with the square root of the assumed cell area). The rectified
+    # lattice shows the real opening angle, so the estimator refuses the distance and says why,
+    # with the angle it measured (issue 17, item 3).
     as_square = NetEstimator(CAMERA, SQUARE).estimate(frame)
-    assert as_square.detected and as_square.distance_m is not None
-    expected = 1.0 / math.sqrt(math.sin(math.radians(60.0)))
-    assert as_square.distance_m / truth.distance_m == pytest.approx(expected, rel=0.01)
+    assert not as_square.detected and as_square.distance_m is None
+    assert as_square.measured_opening_deg == pytest.approx(60.0, abs=2.0)
+    assert "opening angle measured 60 deg" in as_square.reason
 
 
 # -- tracking prior -----------------------------------------------------------------------------
@@ -267,8 +269,9 @@ def test_wrong_shape_is_an_input_error(
 
 
 def test_frame_smaller_than_a_roi_is_an_input_error(estimator: NetEstimator) -> None:
-    # Same aspect ratio as the calibration (so the camera scales), but 112x63 < one 128 px ROI.
-    with pytest.raises(EstimatorInputError, match="smaller than one 128px ROI"):
+    # Same aspect ratio as the calibration (so the camera scales), but 112x63 is smaller than
+    # the smallest ROI (64 px).
+    with pytest.raises(EstimatorInputError, match="smaller than one 64px ROI"):
         estimator.estimate(np.zeros((63, 112), np.uint8))
 
 
