@@ -510,7 +510,9 @@ class NetRenderer:
         else:
             raise ValueError(f"unknown pattern {style.pattern!r}")
         base = float(rng.uniform(0.45, 0.75))
-        jitter = 0.06 * np.sin(cell[0] * 12.9898 + cell[1] * 78.233 + rng.uniform(0, 6.3))
+        # Each tile or brick its own shade: a hash of its index (fract(sin(x) * 43758.5)).
+        hashed = np.sin(cell[0] * 12.9898 + cell[1] * 78.233 + rng.uniform(0, 6.3)) * 43758.5453
+        jitter = 0.12 * (hashed - np.floor(hashed) - 0.5)
         joint_level = float(rng.choice([0.15, 0.9])) if style.pattern != "checkerboard" else 0.1
         surface = (base + jitter) * (1.0 - joints) + joint_level * joints
         depth = np.where(hits, t * np.sqrt(1 + self._rx**2 + self._ry**2), 1e9)

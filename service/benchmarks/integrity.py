@@ -355,6 +355,15 @@ def format_report(rows: list[Row], worst: int = 8) -> list[str]:
             gross = sum(r.gross for r in det)
             cells.append(f"{label} {len(det) / len(part):.0%} ({len(part)}) g{gross} c{cov}")
         lines.append(f"  {title:14}: " + "; ".join(cells))
+    refusals: dict[str, int] = {}
+    for r in rows:
+        if r.net and not r.detected:
+            key = r.reason.split(":")[0].split("(")[0].strip()
+            key = "".join("N" if ch.isdigit() else ch for ch in key)
+            refusals[key] = refusals.get(key, 0) + 1
+    lines.append("why frames with a net gave no distance (count):")
+    for key, count in sorted(refusals.items(), key=lambda kv: -kv[1])[:10]:
+        lines.append(f"  {count:6d}  {key}")
     valid = [r for r in rows if r.net and r.detected]
     if valid:
         lines.append("worst cases by |range error| (reproduce: build_case(seed, group, index)):")

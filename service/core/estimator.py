@@ -151,6 +151,7 @@ class _Roi:
     # Rectified ROIs only: found / intended mesh period, for a good lattice at the wrong scale.
     period_ratio: float = math.nan
     snr: F32 | None = None  # whitened spectrum (rectified ROIs)
+    logp: F32 | None = None  # log power (rectified ROIs)
     footprint_px: float = 0.0
     agrees: bool = False  # its lattice is the consensus lattice (rectified ROIs)
 
@@ -806,7 +807,7 @@ class NetEstimator:
         )
         spectrum = self._spectra[n]
         patch = _normalise_contrast(np.asarray(patch, dtype=np.float32), period_out)
-        peaks, snr = spectrum.analyse(patch)
+        peaks, snr, logp = spectrum.analyse(patch)
         guided = expected is not None
         if expected is not None:
             # The lattice is known roughly (the consensus of the previous pass): faint peaks
@@ -818,6 +819,7 @@ class NetEstimator:
         else:
             fit = self._lattice.fit(peaks)
         meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
+                    logp=logp,
                     footprint_px=n * step)
         meas.ray = virt
         if fit is None:
@@ -847,11 +849,13 @@ class NetEstimator:
         return meas
 
     # -- proofs --------------------------------------------------------------------------------
-    def _stack(self, p: _Pass) -> tuple[F32, int] | None:
-        maps = [m.snr for m in p.rois if m.agrees and m.snr is not None]
-        if not maps:
+    def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
+        """Mean whitened spectrum (or, with `power`, mean log power) of the agreeing ROIs."""
+        maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
+        arrays = [a for a in maps if a is not None]
+        if not arrays:
             return None
-        return np.mean(np.stack(maps), axis=0, dtype=np.float32), len(maps)
+        return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
 
     def _scale_check(self, p: _Pass) -> int | None:
         """The index (2 or 3) of a coarser mesh whose extra lattice points carry real power in
@@ -889,20 +893,17 @@ class NetEstimator:
 
     @staticmethod
     def _null(spectrum: SpectrumAnalyzer, snr: F32, k: F64) -> tuple[float, float]:
-        """Level and spread of the averaged spectrum away from any lattice point: the lattice's
-        low-order points turned by 30 and 45 degrees (no refinement of index 2 or 3 puts a
-        point there)."""
-        pts = _lattice_points(k, order=2)
-        values = []
-        for deg in (30.0, 45.0, -30.0, -45.0):
-            a = math.radians(deg)
-            rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-            values.append(spectrum.sample(snr, pts @ rot.T))
-        v = np.concatenate(values)
-        v = v[np.isfinite(v)]
-        if v.size < 4:
+        """Level and spread of the averaged whitened spectrum where there is no peak: median and
+        scaled MAD over the whole analysed band (peaks are a few bins among thousands). Taken
+        as `sample` takes a peak's value (the largest of the 2x2 bins around a point), so the
+        two compare like with like."""
+        del k
+        band = np.maximum(np.maximum(snr[:-1, :-1], snr[1:, :-1]),
+                          np.maximum(snr[:-1, 1:], snr[1:, 1:]))[spectrum.valid[:-1, :-1]]
+        if band.size < 16:
             return 0.0, 1.0
-        return float(np.median(v)), float(1.4826 * np.median(np.abs(v - np.median(v))))
+        level = float(np.median(band))
+        return level, float(1.4826 * np.median(np.abs(band - level)))
 
     def _mesh_check(self, p: _Pass) -> tuple[float, str]:
         """Measured opening angle of the rectified mesh, and why it is not the configured net
@@ -931,46 +932,51 @@ class NetEstimator:
         """Does the averaged spectrum look like twine (thin lines crossing) rather than a
         checkerboard or a brick bond? ("" when it does, or when it cannot tell.)
 
-        A net's image is 1 - (1 - p(s1)) (1 - p(s2)) for a pulse train p across each bar family
-        (coordinates s1, s2 along the bars' dual basis). Its cross terms at (1, 1) and (1, -1)
-        are equal (|c1|^2 each) and at least as strong as those at (2, 1) (|c2 c1|, with
-        |c2| <= |c1| for a pulse train, blur only lowers it). A checkerboard's own lattice has
-        nothing at (1, +-1) (the even harmonics of a 50 % square wave) and 1/3 of the
-        fundamental at (2, 1); a running brick bond has continuous mortar lines along one
-        diagonal, so one of (1, 1), (1, -1) dwarfs the other.
+        A net's image is 1 - (1 - p1(s1)) (1 - p2(s2)) for pulse trains p1, p2 of duty d1, d2
+        across the two bar families (s1, s2: coordinates dual to the bars). Its Fourier
+        amplitudes are |F(h, 0)| = |c1_h| (1 - d2), |F(0, l)| = |c2_l| (1 - d1) and
+        |F(h, l)| = |c1_h c2_l|, with |c_1| = sin(pi d) / pi < 1 - d. Hence, whatever the twine's
+        width, blur (which lowers higher frequencies more) or contrast:
+        - the cross terms are weaker than the fundamentals: F(1, +-1) < F(1, 0), F(0, 1);
+        - F(2, 1) <= F(1, 1), since |c_2 / c_1| = |cos(pi d)| <= 1.
+        A running brick bond breaks the first (its continuous mortar lines run along a diagonal
+        of the cell), a checkerboard the second (nothing at (1, +-1), the even harmonics of a
+        50 % square wave, but 1/3 of the fundamental at (2, 1)). Amplitudes are compared in the
+        averaged log power, only where the whitened spectrum shows a significant peak; a blurred
+        grid that shows nothing but its fundamentals cannot be told from a net.
         """
         assert p.consensus is not None
         stacked = self._stack(p)
-        if stacked is None:
+        power = self._stack(p, power=True)
+        if stacked is None or power is None:
             return ""
         snr, count = stacked
+        logp = power[0]
         spectrum = self._spectra[p.size]
         null_level, null_spread = self._null(spectrum, snr, p.consensus)
-        noise = null_spread / math.sqrt(max(count, 1)) + 1e-6
-        del noise
+        significant = null_level + max(2.0 * null_spread, 1.5)
         edges = np.asarray(np.linalg.inv(p.consensus).T, dtype=np.float64)
-        bars = _bar_pair(edges)
-        dual = np.linalg.inv(bars).T  # reciprocal basis dual to the bars (bins)
+        dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
+        orders = [(1, 0), (0, 1), (1, 1), (1, -1), (2, 1), (1, 2), (2, -1), (1, -2)]
+        pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
+        sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
+        amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
+        # Noise on a difference of averaged log powers; a factor 2 in power is log 2 = 0.7.
+        margin = max(1.0, 2.5 * 1.28 / math.sqrt(max(count, 1)))
 
-        def amp(h: int, k: int) -> float:
-            vals = spectrum.sample(snr, np.array([h * dual[:, 0] + k * dual[:, 1]]))
-            v = float(vals[0])
-            return v if math.isfinite(v) else math.nan
+        def real(o: tuple[int, int]) -> bool:
+            return bool(math.isfinite(sig[o]) and sig[o] > significant)
 
-        significant = null_level + max(4.0 * null_spread, 1.0)
-        d_plus, d_minus = amp(1, 1), amp(1, -1)
-        highs = [amp(2, 1), amp(1, 2), amp(2, -1), amp(1, -2)]
-        highs = [v for v in highs if math.isfinite(v)]
-        if not (math.isfinite(d_plus) and math.isfinite(d_minus)):
-            return ""
-        low = min(d_plus, d_minus)
-        high = max(d_plus, d_minus)
-        if highs and max(highs) > significant and max(highs) > low + 2.0:
-            return ("a checkerboard-like grid (50 % squares), not twine: no cross terms at "
-                    "(1, +-1) but strong ones at (2, 1)")
-        if high > significant and high - low > 2.5:
-            return ("a brick-like grid, not twine: continuous lines along one diagonal of the "
-                    "cell")
+        fundamental = min(amp[(1, 0)], amp[(0, 1)])
+        for cross in ((1, 1), (1, -1)):
+            if real(cross) and math.isfinite(fundamental) and amp[cross] > fundamental + margin:
+                return ("a brick-like grid, not twine: the cell's diagonal is stronger than its "
+                        "sides (continuous lines along a diagonal)")
+        diagonal = max(amp[(1, 1)], amp[(1, -1)])
+        for high in ((2, 1), (1, 2), (2, -1), (1, -2)):
+            if real(high) and math.isfinite(diagonal) and amp[high] > diagonal + margin:
+                return ("a checkerboard-like grid (50 % squares), not twine: stronger cross "
+                        "terms at (2, 1) than at (1, 1)")
         return ""
 
     # -- the verdict ---------------------------------------------------------------------------

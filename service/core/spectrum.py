@@ -114,9 +114,10 @@ class SpectrumAnalyzer:
     def peaks(self, patch: F32) -> Peaks:
         return self.analyse(patch)[0]
 
-    def analyse(self, patch: F32) -> tuple[Peaks, F32]:
-        """The peaks and the whitened spectrum (log power over the local background, natural
-        log; rows ky + size/2, columns kx + MARGIN) they were found in.
+    def analyse(self, patch: F32) -> tuple[Peaks, F32, F32]:
+        """The peaks, the whitened spectrum they were found in (log power over the local
+        background, natural log) and the log power itself; rows ky + size/2, columns
+        kx + MARGIN.
 
         The whitened spectrum of ROIs that show the same lattice (the rectified ROIs of one
         frame) can be averaged: the net's peaks add up while the noise (std ~1.28 per bin for
@@ -129,7 +130,7 @@ class SpectrumAnalyzer:
         local_max = logp >= cv2.dilate(logp, self._kernel)
         rows, cols = np.nonzero(local_max & self.valid & (snr > self.min_snr))
         if rows.size == 0:
-            return Peaks(np.zeros((0, 2)), np.zeros(0)), snr
+            return Peaks(np.zeros((0, 2)), np.zeros(0)), snr, logp
         strength = snr[rows, cols]
         order = np.argsort(-strength)[: self.max_peaks]
         rows, cols, strength = rows[order], cols[order], strength[order]
@@ -137,7 +138,7 @@ class SpectrumAnalyzer:
         dx = _parabolic(logp[rows, cols - 1], centre, logp[rows, cols + 1])
         dy = _parabolic(logp[rows - 1, cols], centre, logp[rows + 1, cols])
         k = np.stack([cols + dx - self._col0, rows + dy - self._row0], axis=1)
-        return Peaks(k.astype(np.float64), strength.astype(np.float64)), snr
+        return Peaks(k.astype(np.float64), strength.astype(np.float64)), snr, logp
 
     def peaks_near(self, snr: F32, k: npt.ArrayLike, min_snr: float) -> Peaks:
         """Peaks of the whitened spectrum `snr` where a lattice is expected: for each wave vector
