@@ -117,6 +117,10 @@ class SceneStyle:
     turbidity: float = 0.0  # 0..1: veiling light, extra attenuation, backscatter blobs
     spotlight: float = 0.0  # 0..1: the ROV's lamps, bright centre falling off to the edges
     motion_blur_px: float = 0.0  # length of a linear motion blur
+    # Defocus: a thin lens focused at `focus_m` with this aperture diameter blurs a net at range
+    # z by a circle of confusion of f * aperture * |1/z - 1/focus| pixels (0 = always sharp).
+    focus_m: float = 0.0
+    aperture_m: float = 0.003
     jpeg_quality: int = 0  # 0 = none; else the JPEG quality the frame is compressed at
     # What is in front of the camera: "net", or a grid that is not a net ("tiles", "bricks",
     # "checkerboard") on the same plane, `pattern_size_m` the tile / brick height / square side
@@ -169,6 +173,8 @@ class SceneStyle:
             turbidity=float(rng.choice([0.0, rng.uniform(0.0, 0.6)])),
             spotlight=float(rng.choice([0.0, rng.uniform(0.0, 0.8)])),
             motion_blur_px=float(rng.choice([0.0, rng.uniform(0.0, 4.0)])),
+            focus_m=float(rng.uniform(0.8, 3.0)),
+            aperture_m=float(rng.uniform(0.0015, 0.004)),
             jpeg_quality=int(rng.choice([0, int(rng.integers(50, 96))])),
             fish_front_cover=float(rng.choice([0.0, 0.0, 0.0, rng.uniform(0.05, 0.35)])),
         )
@@ -220,6 +226,12 @@ class NetRenderer:
         image *= 1.0 - style.vignetting * self._radial2 * 2.0
         if style.spotlight > 0:
             image *= self._lamps(style.spotlight, rng)
+        if style.focus_m > 0:
+            # Defocus at the range where the optical axis meets the net (the circle of confusion's
+            # diameter in pixels; a Gaussian of a third of it is a fair stand-in for the disc).
+            f = math.sqrt(self.camera.fx * self.camera.fy)
+            coc = f * style.aperture_m * abs(1.0 / pose.range_m - 1.0 / style.focus_m)
+            style = replace(style, blur_sigma_px=math.hypot(style.blur_sigma_px, coc / 3.0))
         frame = self._camera_effects(image, style, rng)
         normal = pose.normal_towards_camera()
         range_m, distance_m, billow_rms = pose.range_m, pose.distance_m(), 0.0

@@ -55,14 +55,15 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[Any]
 
-# Index-2 and index-3 refinements of a reciprocal lattice K: the lattices K S^-1 that contain K.
-# Their extra points are where the spectrum of a mesh coarser by sqrt(2) or sqrt(3) (in period)
-# would have peaks.
+# Refinements of index 2, 3 and 4 (the twice coarser mesh) of a reciprocal lattice K: the
+# lattices K S^-1 that contain K. Their extra points are where the spectrum of a mesh coarser by
+# sqrt(2), sqrt(3) or 2 (in period) would have peaks.
 _REFINEMENTS = tuple(
     np.linalg.inv(np.array(s, dtype=np.float64))
     for s in (
         [[2, 0], [0, 1]], [[1, 0], [0, 2]], [[1, 0], [1, 2]],
         [[3, 0], [0, 1]], [[1, 0], [0, 3]], [[1, 0], [1, 3]], [[1, 0], [2, 3]],
+        [[2, 0], [0, 2]],
     )
 )
 
@@ -203,6 +204,8 @@ class NetEstimator:
             for n in {s.roi_size, max(64, s.roi_size // 2)}
         }
         self._lattice = LatticeFinder()
+        # The whole view at 64 px, down to 1.8 cycles: the "too close" check.
+        self._whole = SpectrumAnalyzer(64, min_radius_bins=1.8, min_snr=s.min_snr)
         self._layouts: dict[tuple[int, int], _Layout] = {}
         self._mesh_opening = min(mesh.opening_angle_deg, 180.0 - mesh.opening_angle_deg)
 
@@ -270,6 +273,10 @@ class NetEstimator:
         budget = min(budget, 4 * s.grid_cols * s.grid_rows)
         cols = int((w - f) // (f / 2)) + 1
         rows = int((h - f) // (f / 2)) + 1
+        # A plane needs ROIs spread both ways: at least three rows and columns where they can be
+        # a fifth of a footprint apart (large footprints: a coarse mesh, a near net).
+        cols = max(cols, min(3, int((w - f) // (0.2 * f)) + 1))
+        rows = max(rows, min(3, int((h - f) // (0.2 * f)) + 1))
         while cols * rows > budget:
             if cols / w >= rows / h and cols > 2:
                 cols -= 1
@@ -375,12 +382,126 @@ class NetEstimator:
         ):
             tracked = self._refine(prior, level_image, layout, timings, prior.level,
                                    self._prior_rois(prior, layout), iterations=2)
-            if tracked.detected and _agrees(tracked, prior):
+            if tracked.detected and _agrees(tracked, prior) and self._blind_scale_agrees(
+                tracked, level_image, layout
+            ):
                 result = tracked
         if result is None:
             result = self._cold(level_image, layout, timings)
+        if not result.detected:
+            close = self._too_close(gray, layout, prior)
+            if close is not None:
+                period, range_m = close
+                result = replace(
+                    result, too_close=True,
+                    reason=(f"net too close to measure: a mesh of ~{period:.0f} px period fills "
+                            f"the view (about {range_m:.2f} m away or less)"),
+                )
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return replace(result, timings_ms=timings)
+
+    def _too_close(
+        self, gray: Image, layout: _Layout, prior: NetEstimate | None = None
+    ) -> tuple[float, float] | None:
+        """(mesh period in pixels, implied range in m) when a mesh too coarse for the ROIs fills
+        the view; None otherwise.
+
+        The whole frame's central square, shrunk to 64 px, must show one clear lattice (strong
+        peaks, most of the spectral weight, a harmonic or cross term besides the two
+        fundamentals) with the configured mesh's shape, of 1.8 to 9 cycles across the frame:
+        fewer than the ROIs need to measure a plane (this runs only when they could not), more
+        than a blur with nothing repeating.
+        Nothing else in an underwater view repeats like that over the whole frame.
+
+        While tracking (`prior`, the last detection, was already near that limit) a net that
+        came closer is expected: then any clear lattice at least as coarse as the prior's will
+        do (its harmonics often outshine its fundamentals when so close, so its shape is not
+        required).
+        """
+        whole = self._whole_lattice(gray)
+        if whole is None:
+            return None
+        side, fit = whole
+        cam = layout.camera
+        focal = math.sqrt(cam.fx * cam.fy)
+        lengths = np.linalg.norm(fit.basis, axis=0)
+        if prior is not None and prior.detected and prior.range_m is not None:
+            prior_period = focal * math.sqrt(self.mesh.cell_area_m2) / prior.range_m
+            # Near the limit: fewer than 12 mesh cycles across the frame's smaller side.
+            if side / prior_period < 12.0 and fit.mean_snr >= 3.5 and lengths.min() >= 1.8:
+                period = side / math.sqrt(fit.det)
+                if period >= 0.8 * prior_period or side / lengths.min() >= 0.8 * prior_period:
+                    period = max(period, prior_period)
+                    return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
+        if fit.inliers < 3 or fit.mean_snr < 4.0 or fit.inlier_weight_fraction < 0.6:
+            return None
+        if lengths.min() < 1.8 or lengths.max() > 9.0:
+            return None
+        bars = _bar_pair(np.asarray(np.linalg.inv(fit.basis).T, dtype=np.float64))
+        lu, lv = (float(np.linalg.norm(bars[:, i])) for i in range(2))
+        angle = math.degrees(math.acos(float(np.clip(
+            abs(bars[:, 0] @ bars[:, 1]) / (lu * lv), 0.0, 1.0))))
+        opening = min(angle, 180.0 - angle)
+        if max(lu, lv) / min(lu, lv) > 1.35 or abs(opening - self._mesh_opening) > 25.0:
+            return None
+        period = side / math.sqrt(fit.det)
+        return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
+
+    def _blind_scale_agrees(
+        self, result: NetEstimate, level_image: Callable[[int], Image], layout: _Layout
+    ) -> bool:
+        """Do the probe ROIs, fitted blind at the pyramid level where `result` predicts the
+        preferred mesh period, see that period (within 30 %)? A tracked plane was rectified with
+        the previous frame's scale; if the net jumped closer by 2x, the rectified view can show
+        the mesh's second harmonic exactly where the fundamental was expected."""
+        assert result.normal is not None and result.distance_m is not None
+        n_away = -np.asarray(result.normal, dtype=np.float64)
+        centre = layout.probes[layout.levels[0]][0]
+        a = self.mesh.cell_area_m2 * max(float(n_away @ centre.ray), 1e-6) ** 3 / (
+            result.distance_m**2)
+        period = math.sqrt(a / abs(float(np.linalg.det(centre.jacobian))))
+        want = math.log2(max(period / self.settings.preferred_period_px, 1.0))
+        first = min(layout.levels, key=lambda lv: abs(lv - want))
+        # That level and the coarser ones: a mesh twice or four times as coarse as predicted
+        # has too few cycles for the ROIs of the predicted level, but not for coarser ones.
+        coarser: list[float] = []
+        for level in [lv for lv in layout.levels if first <= lv <= first + 2]:
+            for g in layout.probes[level]:
+                m = self._measure(level_image(level), g, level)
+                if not m.valid or m.fit is None:
+                    continue
+                a_g = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / (
+                    result.distance_m**2)
+                predicted = math.sqrt(a_g / abs(float(np.linalg.det(g.jacobian))))
+                ratio = m.size * 2**level / math.sqrt(m.fit.det) / predicted
+                if ratio > 1.5:  # coarser than predicted: the net is nearer
+                    coarser.append(ratio)
+        # A mesh coarser than predicted explains the predicted one (its harmonics), never the
+        # other way round: two probes agreeing on a coarser mesh overrule the tracked plane.
+        if len(coarser) >= 2 and max(coarser) / min(coarser) < 1.4:
+            return False
+        # So does a mesh so coarse that it fills the whole frame with a few cycles.
+        whole = self._whole_lattice(level_image(0))
+        if whole is not None:
+            side, fit = whole
+            if fit.inliers >= 3 and fit.mean_snr >= 4.0 and fit.inlier_weight_fraction >= 0.5 and (
+                side / math.sqrt(fit.det) > 1.5 * period
+            ):
+                return False
+        return True
+
+    def _whole_lattice(self, gray: Image) -> tuple[int, LatticeFit] | None:
+        """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit)."""
+        import cv2
+
+        h, w = gray.shape
+        side = min(h, w)
+        y0, x0 = (h - side) // 2, (w - side) // 2
+        small = np.asarray(cv2.resize(
+            np.asarray(gray[y0 : y0 + side, x0 : x0 + side], dtype=np.float32), (64, 64),
+            interpolation=cv2.INTER_AREA), dtype=np.float32)
+        fit = self._lattice.fit(self._whole.peaks(small))
+        return None if fit is None else (side, fit)
 
     def _prior_rois(self, prior: NetEstimate, layout: _Layout) -> list[_Roi]:
         """The previous estimate's ROI lattices, as guides for the first rectified pass."""
@@ -585,8 +706,8 @@ class NetEstimator:
         rectified_once = False
         previous: tuple[F64, float] | None = None
         last: _Pass | None = None
-        corrected = False
-        for _ in range(iterations):
+        corrected = 0
+        for _ in range(iterations + 2):
             t0 = time.perf_counter()
             # The first pass is rectified with a rough plane (the seed): its ROIs' lattices still
             # differ by the residual perspective, so agreement is judged loosely there.
@@ -612,10 +733,10 @@ class NetEstimator:
             # Proof of scale: coarser-mesh lattice points must be empty in the averaged spectrum.
             factor = self._scale_check(p)
             if factor is not None:
-                if corrected:
+                if corrected >= 2:
                     return self._verdict(p, None, layout,
                                          "mesh scale not proved (peaks between the lattice's)")
-                corrected = True
+                corrected += 1
                 # The lattice was a harmonic: the mesh is coarser, the net nearer.
                 distance = d_new / math.sqrt(factor)
                 normal = n_new
@@ -669,7 +790,9 @@ class NetEstimator:
         small = max(64, s.roi_size // 2)
         frame_side = float(min(layout.camera.width, layout.camera.height))
         footprint = min(preferred_cycles * p_max, layout.max_footprint)
-        footprint = min(max(footprint, 5.0 * p_max), 0.9 * frame_side)
+        # A coarse mesh: larger ROIs (fewer rows) rather than too few cycles to prove the
+        # scale with.
+        footprint = min(max(footprint, 6.0 * p_max), 0.9 * frame_side)
         cycles = footprint / p_max
         size = s.roi_size if cycles * s.preferred_period_px >= 0.75 * s.roi_size else small
         period_out = size / cycles
@@ -858,7 +981,7 @@ class NetEstimator:
         return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
 
     def _scale_check(self, p: _Pass) -> int | None:
-        """The index (2 or 3) of a coarser mesh whose extra lattice points carry real power in
+        """The index (2, 3 or 4) of a coarser mesh whose extra lattice points carry real power in
         the averaged spectrum of the agreeing ROIs, or None when the scale is proved.
 
         A mesh's spectrum has peaks only on its own reciprocal lattice. If the lattice found is
@@ -880,12 +1003,16 @@ class NetEstimator:
         best: tuple[float, int] | None = None
         for inv_s in _REFINEMENTS:
             fine = k @ inv_s
-            idx = 2 if abs(round(1.0 / abs(np.linalg.det(inv_s)))) == 2 else 3
+            idx = abs(round(1.0 / float(np.linalg.det(inv_s))))
             extra = _extra_points(fine, k, self._spectra[p.size].size)
             if extra.shape[0] < 2:
                 continue
-            values = spectrum.sample(snr, extra)
-            level = float(np.nanmean(values)) if np.isfinite(values).any() else -np.inf
+            # A real peak there is a local maximum of its own: the skirt of a strong neighbour
+            # (a harmonic two bins away, smeared by what is left of the perspective) is not.
+            found = spectrum.peaks_near(snr, extra, null_level)
+            # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
+            # of them (the others are weak cross terms, or outside the band).
+            level = float(found.snr.max()) if len(found) else null_level
             if level > threshold and (best is None or level > best[0]):
                 best = (level, idx)
         del count
@@ -1002,6 +1129,9 @@ class NetEstimator:
                 failure = shape
             if not failure:
                 failure = self._profile_check(p)
+        if not failure and p.size / p.period_out < 5.5:
+            failure = ("mesh too coarse for the ROIs: fewer than 5.5 cycles each, its scale "
+                       "cannot be proved")
         if failure or converged is None or p.plane is None:
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
@@ -1062,10 +1192,12 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     cands = [m for m in rois if m.valid and m.fit is not None]
     if len(cands) < 2:
         return None
+    weights = [m.weight for m in cands]
     best: tuple[float, int] | None = None
     for i, ref in enumerate(cands):
         assert ref.fit is not None
-        total = sum(m.weight for m in cands if _same_lattice(m, ref.fit.basis, tolerance))
+        total = sum(w for m, w in zip(cands, weights, strict=True)
+                    if _same_lattice(m, ref.fit.basis, tolerance))
         if best is None or total > best[0]:
             best = (total, i)
     assert best is not None
@@ -1104,10 +1236,13 @@ def _normalise_contrast(patch: F32, period: float) -> F32:
     """
     import cv2
 
-    sigma = max(1.0, 0.8 * period)
-    mean = cv2.GaussianBlur(patch, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    # Box filters of about one and two periods (cheaper than Gaussians, and just as smooth on
+    # the scale of the ROI's spectral resolution).
+    k1 = max(3, int(round(1.6 * period)) | 1)
+    k2 = max(3, int(round(3.2 * period)) | 1)
+    mean = cv2.blur(patch, (k1, k1), borderType=cv2.BORDER_REFLECT)
     detail = patch - mean
-    var = cv2.GaussianBlur(detail * detail, (0, 0), 2.0 * sigma, borderType=cv2.BORDER_REFLECT)
+    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT)
     floor = 1e-3 + 0.1 * float(np.median(var))
     return np.asarray(detail / np.sqrt(var + floor), dtype=np.float32)
 
@@ -1146,18 +1281,35 @@ def _lattices_agree(
 ) -> bool:
     """Do two lattices (2x2 bases) agree: after a unimodular change of basis and removing the
     scale, each basis vector within `tolerance` of its length (but not less than `floor`);
-    the scales (square roots of the cell areas) within a factor `max_scale`."""
-    scale = math.sqrt(abs(float(np.linalg.det(basis))) / abs(float(np.linalg.det(ref))))
+    the scales (square roots of the cell areas) within a factor `max_scale`.
+
+    Plain floats: this runs for every pair of ROIs, where numpy's per-call overhead dominates.
+    """
+    a, b, c, d = float(basis[0, 0]), float(basis[0, 1]), float(basis[1, 0]), float(basis[1, 1])
+    ra, rb, rc, rd = float(ref[0, 0]), float(ref[0, 1]), float(ref[1, 0]), float(ref[1, 1])
+    det_b, det_r = a * d - b * c, ra * rd - rb * rc
+    if det_r == 0.0 or det_b == 0.0:
+        return False
+    scale = math.sqrt(abs(det_b / det_r))
     if not 1.0 / max_scale <= scale <= max_scale:
         return False
-    m = np.rint(np.linalg.solve(ref * scale, basis))
-    if abs(round(float(np.linalg.det(m)))) != 1:
+    # m = round(inv(scale * ref) @ basis)
+    inv = 1.0 / (scale * det_r)
+    m00 = round((rd * a - rb * c) * inv)
+    m01 = round((rd * b - rb * d) * inv)
+    m10 = round((-rc * a + ra * c) * inv)
+    m11 = round((-rc * b + ra * d) * inv)
+    if abs(m00 * m11 - m01 * m10) != 1:
         return False
-    resid = basis - scale * ref @ m
-    # Relative to the vectors' length, but never below 0.5 bin: a lattice spanning few cycles
-    # with weak peaks is located to a few tenths of a bin.
-    limit = np.maximum(tolerance * np.linalg.norm(basis, axis=0), floor)
-    return bool((np.linalg.norm(resid, axis=0) <= limit).all())
+    # Residual of each column: basis[:, j] - scale * ref @ m[:, j]. Relative to the vector's
+    # length, but never below `floor` bins: a lattice spanning few cycles with weak peaks is
+    # located to a few tenths of a bin.
+    for x, y, p, q in ((a, c, m00, m10), (b, d, m01, m11)):
+        ex = x - scale * (ra * p + rb * q)
+        ey = y - scale * (rc * p + rd * q)
+        if math.hypot(ex, ey) > max(tolerance * math.hypot(x, y), floor):
+            return False
+    return True
 
 
 def _lattice_points(k: F64, order: int) -> F64:
@@ -1183,6 +1335,9 @@ def _extra_points(fine: F64, coarse: F64, size: int) -> F64:
             v = h * fine[:, 0] + j * fine[:, 1]
             c = inv @ v
             if np.abs(c - np.rint(c)).max() < 1e-6:
+                continue
+            # Too near a point of the coarse lattice to be told from its skirt.
+            if float(np.hypot(*(v - coarse @ np.rint(c)))) < 2.0:
                 continue
             r = float(np.hypot(*v))
             if 2.6 <= r <= 0.45 * size:

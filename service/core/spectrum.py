@@ -153,28 +153,34 @@ class SpectrumAnalyzer:
         flip = (kk[:, 0] < 0) | ((kk[:, 0] == 0) & (kk[:, 1] < 0))
         kk[flip] *= -1.0
         rows_n, cols_n = snr.shape
-        found_k: list[tuple[float, float]] = []
-        found_s: list[float] = []
-        for kx, ky in kk:
-            r0, c0 = round(ky) + self._row0, round(kx) + self._col0
-            if not (2 <= r0 < rows_n - 2 and 2 <= c0 < cols_n - 2):
-                continue
-            window = snr[r0 - 1 : r0 + 2, c0 - 1 : c0 + 2]
-            dr, dc = np.unravel_index(int(np.argmax(window)), window.shape)
-            r, c = r0 + int(dr) - 1, c0 + int(dc) - 1
-            if not self.valid[r, c]:
-                continue
-            centre = float(snr[r, c])
-            if centre < min_snr or centre < float(snr[r - 1 : r + 2, c - 1 : c + 2].max()):
-                continue
-            mid = np.array([centre])
-            ddx = float(_parabolic(snr[r, c - 1 : c], mid, snr[r, c + 1 : c + 2])[0])
-            ddy = float(_parabolic(snr[r - 1 : r, c], mid, snr[r + 1 : r + 2, c])[0])
-            found_k.append((c + ddx - self._col0, r + ddy - self._row0))
-            found_s.append(centre)
-        if not found_k:
+        r0 = np.rint(kk[:, 1]).astype(np.int64) + self._row0
+        c0 = np.rint(kk[:, 0]).astype(np.int64) + self._col0
+        ok = (r0 >= 2) & (r0 < rows_n - 2) & (c0 >= 2) & (c0 < cols_n - 2)
+        r0, c0 = r0[ok], c0[ok]
+        if r0.size == 0:
             return Peaks(np.zeros((0, 2)), np.zeros(0))
-        return Peaks(np.array(found_k, dtype=np.float64), np.array(found_s, dtype=np.float64))
+        # The largest of the 3x3 bins around each point, then whether it is a local maximum.
+        offsets = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+        around = snr[r0[:, None] + offsets[None, :, 0], c0[:, None] + offsets[None, :, 1]]
+        best = np.argmax(around, axis=1)
+        r = r0 + offsets[best, 0]
+        c = c0 + offsets[best, 1]
+        centre = snr[r, c].astype(np.float64)
+        neighbours = snr[r[:, None] + offsets[None, :, 0], c[:, None] + offsets[None, :, 1]]
+        # Inside the analysed band (the mirrored columns kx < 0 hold the conjugate half, so a
+        # point near kx = 0 is found on either side).
+        radius = np.hypot(c - self._col0, r - self._row0)
+        band = (radius >= 2.0) & (radius <= 0.47 * self.size)
+        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=1))
+        if not keep.any():
+            return Peaks(np.zeros((0, 2)), np.zeros(0))
+        r, c, centre = r[keep], c[keep], centre[keep]
+        ddx = _parabolic(snr[r, c - 1], centre, snr[r, c + 1])
+        ddy = _parabolic(snr[r - 1, c], centre, snr[r + 1, c])
+        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=1)
+        # Two points may land on the same bin: keep each peak once.
+        _, first = np.unique(r * cols_n + c, return_index=True)
+        return Peaks(found[first].astype(np.float64), centre[first])
 
     def sample(self, snr: F32, k: npt.ArrayLike) -> F64:
         """The whitened spectrum at wave vectors k (m, 2) in bins: the largest value among the
