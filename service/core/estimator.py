@@ -68,6 +68,11 @@ _REFINEMENTS = tuple(
 )
 
 
+# How a refusal begins when the view was recognised as a grid that is not the configured net.
+_NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
+              "mesh opening angle measured")
+
+
 @dataclass(frozen=True)
 class EstimatorSettings:
     """Tuning of the estimator; the defaults are what the benchmarks were run with."""
@@ -388,7 +393,9 @@ class NetEstimator:
                 result = tracked
         if result is None:
             result = self._cold(level_image, layout, timings)
-        if not result.detected:
+        if not result.detected and not result.reason.startswith(_NOT_A_NET):
+            # Not when the view was positively recognised as something else (a brick wall, a
+            # checkerboard, cells of another shape): "too close" must never fire without a net.
             close = self._too_close(gray, layout, prior)
             if close is not None:
                 period, range_m = close
@@ -490,8 +497,12 @@ class NetEstimator:
                 return False
         return True
 
-    def _whole_lattice(self, gray: Image) -> tuple[int, LatticeFit] | None:
-        """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit)."""
+    def _whole_lattice(
+        self, gray: Image, twine: bool = False
+    ) -> tuple[int, LatticeFit] | None:
+        """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
+        None when there is none (or, with `twine`, when its harmonics are not those of twine:
+        a brick wall or a checkerboard filling the view is not a net too close)."""
         import cv2
 
         h, w = gray.shape
@@ -500,8 +511,11 @@ class NetEstimator:
         small = np.asarray(cv2.resize(
             np.asarray(gray[y0 : y0 + side, x0 : x0 + side], dtype=np.float32), (64, 64),
             interpolation=cv2.INTER_AREA), dtype=np.float32)
-        fit = self._lattice.fit(self._whole.peaks(small))
-        return None if fit is None else (side, fit)
+        peaks, snr, logp = self._whole.analyse(small)
+        fit = self._lattice.fit(peaks)
+        if fit is None or (twine and _twine_profile(self._whole, snr, logp, fit.basis, 1)):
+            return None
+        return side, fit
 
     def _prior_rois(self, prior: NetEstimate, layout: _Layout) -> list[_Roi]:
         """The previous estimate's ROI lattices, as guides for the first rectified pass."""
@@ -1077,34 +1091,8 @@ class NetEstimator:
         power = self._stack(p, power=True)
         if stacked is None or power is None:
             return ""
-        snr, count = stacked
-        logp = power[0]
-        spectrum = self._spectra[p.size]
-        null_level, null_spread = self._null(spectrum, snr, p.consensus)
-        significant = null_level + max(2.0 * null_spread, 1.5)
-        edges = np.asarray(np.linalg.inv(p.consensus).T, dtype=np.float64)
-        dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
-        orders = [(1, 0), (0, 1), (1, 1), (1, -1), (2, 1), (1, 2), (2, -1), (1, -2)]
-        pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
-        sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
-        amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
-        # Noise on a difference of averaged log powers; a factor 2 in power is log 2 = 0.7.
-        margin = max(1.0, 2.5 * 1.28 / math.sqrt(max(count, 1)))
-
-        def real(o: tuple[int, int]) -> bool:
-            return bool(math.isfinite(sig[o]) and sig[o] > significant)
-
-        fundamental = min(amp[(1, 0)], amp[(0, 1)])
-        for cross in ((1, 1), (1, -1)):
-            if real(cross) and math.isfinite(fundamental) and amp[cross] > fundamental + margin:
-                return ("a brick-like grid, not twine: the cell's diagonal is stronger than its "
-                        "sides (continuous lines along a diagonal)")
-        diagonal = max(amp[(1, 1)], amp[(1, -1)])
-        for high in ((2, 1), (1, 2), (2, -1), (1, -2)):
-            if real(high) and math.isfinite(diagonal) and amp[high] > diagonal + margin:
-                return ("a checkerboard-like grid (50 % squares), not twine: stronger cross "
-                        "terms at (2, 1) than at (1, 1)")
-        return ""
+        return _twine_profile(self._spectra[p.size], stacked[0], power[0], p.consensus,
+                              stacked[1])
 
     # -- the verdict ---------------------------------------------------------------------------
     def _verdict(
@@ -1178,6 +1166,38 @@ class NetEstimator:
 
 
 # -- helpers --------------------------------------------------------------------------------------
+
+
+def _twine_profile(
+    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int
+) -> str:
+    """The twine-profile test of `NetEstimator._profile_check` on a (possibly averaged over
+    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins)."""
+    null_level, null_spread = NetEstimator._null(spectrum, snr, basis)
+    significant = null_level + max(2.0 * null_spread, 1.5)
+    edges = np.asarray(np.linalg.inv(basis).T, dtype=np.float64)
+    dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
+    orders = [(1, 0), (0, 1), (1, 1), (1, -1), (2, 1), (1, 2), (2, -1), (1, -2)]
+    pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
+    sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
+    amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
+    # Noise on a difference of averaged log powers; a factor 2 in power is log 2 = 0.7.
+    margin = max(1.0, 2.5 * 1.28 / math.sqrt(max(count, 1)))
+
+    def real(o: tuple[int, int]) -> bool:
+        return bool(math.isfinite(sig[o]) and sig[o] > significant)
+
+    fundamental = min(amp[(1, 0)], amp[(0, 1)])
+    for cross in ((1, 1), (1, -1)):
+        if real(cross) and math.isfinite(fundamental) and amp[cross] > fundamental + margin:
+            return ("a brick-like grid, not twine: the cell's diagonal is stronger than its "
+                    "sides (continuous lines along a diagonal)")
+    diagonal = max(amp[(1, 1)], amp[(1, -1)])
+    for high in ((2, 1), (1, 2), (2, -1), (1, -2)):
+        if real(high) and math.isfinite(diagonal) and amp[high] > diagonal + margin:
+            return ("a checkerboard-like grid (50 % squares), not twine: stronger cross "
+                    "terms at (2, 1) than at (1, 1)")
+    return ""
 
 
 def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
