@@ -100,7 +100,7 @@ class EstimatorSettings:
     opening_tolerance_deg: float = 20.0
     aspect_tolerance: float = 0.25
     # No distance is reported less certain than this (1 sigma).
-    max_sigma_range_fraction: float = 0.04
+    max_sigma_range_fraction: float = 0.02
     max_sigma_normal_deg: float = 8.0
 
     def validate(self) -> None:
@@ -718,6 +718,7 @@ class NetEstimator:
         hints: F64 | None = None
         guide_rois = seed_rois
         rectified_once = False
+        footprint_scale = 1.0
         previous: tuple[F64, float] | None = None
         last: _Pass | None = None
         corrected = 0
@@ -727,15 +728,20 @@ class NetEstimator:
             # differ by the residual perspective, so agreement is judged loosely there.
             p = self._rectified_pass(level_image, layout, normal, distance, hints, level,
                                      guide_rois, None if rectified_once else 2.5 *
-                                     self.settings.lattice_tolerance)
+                                     self.settings.lattice_tolerance, footprint_scale)
             guide_rois = None
             rectified_once = True
             timings["rectified"] = timings.get("rectified", 0.0) + (
                 time.perf_counter() - t0) * 1e3
             last = p
-            if p.consensus is not None and p.plane is None and hints is None:
+            if p.consensus is not None and p.plane is None and (
+                hints is None or footprint_scale == 1.0
+            ):
                 # Some ROIs agree on a lattice but too few for a plane: look again with that
-                # lattice as the guide (faint peaks where it predicts them).
+                # lattice as the guide (faint peaks where it predicts them), then once more
+                # with smaller ROIs, which fit between what hides the net (boards, fish).
+                if hints is not None:
+                    footprint_scale = 0.6
                 hints = p.consensus
                 rectified_once = False
                 continue
@@ -760,10 +766,12 @@ class NetEstimator:
             hints = p.consensus
             step = (abs(d_new / distance - 1.0), math.degrees(math.acos(
                 float(np.clip(np.dot(n_new, normal), -1.0, 1.0)))))
-            # Converged when the pass moved the plane by less than its own uncertainty (and
-            # at most 1 % / 1 deg for a well-measured plane).
+            # Converged when the pass moved the plane by less than its own uncertainty, or by
+            # less than 5 % in scale and 1.5 deg in tilt: a scale error does not distort the
+            # rectified view (only the period changes), and a small tilt error only by its
+            # second order, so the pass measured the plane without the chirp already.
             rel_sigma, sigma_n = _plane_sigmas(p)
-            if step[0] < max(0.01, 1.5 * rel_sigma) and step[1] < max(1.0, 1.5 * sigma_n):
+            if step[0] < max(0.05, 1.5 * rel_sigma) and step[1] < max(1.5, 1.5 * sigma_n):
                 return self._verdict(p, (n_new, d_new, previous, step), layout, "")
             previous = (normal, distance)
             normal, distance = n_new, d_new
@@ -781,6 +789,7 @@ class NetEstimator:
         level: int,
         seed_rois: list[_Roi] | None = None,
         tolerance: float | None = None,
+        footprint_scale: float = 1.0,
     ) -> _Pass:
         """Measure the ROIs in a virtual camera facing the plane, then fit the plane to the ROIs
         whose lattice agrees with the consensus."""
@@ -803,7 +812,7 @@ class NetEstimator:
         preferred_cycles = s.roi_size / s.preferred_period_px
         small = max(64, s.roi_size // 2)
         frame_side = float(min(layout.camera.width, layout.camera.height))
-        footprint = min(preferred_cycles * p_max, layout.max_footprint)
+        footprint = min(preferred_cycles * p_max, layout.max_footprint) * footprint_scale
         # A coarse mesh: larger ROIs (fewer rows) rather than too few cycles to prove the
         # scale with.
         footprint = min(max(footprint, 6.0 * p_max), 0.9 * frame_side)
@@ -1024,9 +1033,13 @@ class NetEstimator:
             # A real peak there is a local maximum of its own: the skirt of a strong neighbour
             # (a harmonic two bins away, smeared by what is left of the perspective) is not.
             found = spectrum.peaks_near(snr, extra, null_level)
+            # Only peaks that are not the lattice's own (the search around a point may climb
+            # onto a neighbouring lattice peak).
+            own = _near_lattice(found.k, k, 1.5)
+            values = found.snr[~own]
             # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
             # of them (the others are weak cross terms, or outside the band).
-            level = float(found.snr.max()) if len(found) else null_level
+            level = float(values.max()) if values.size else null_level
             if level > threshold and (best is None or level > best[0]):
                 best = (level, idx)
         del count
@@ -1343,6 +1356,15 @@ def _lattice_points(k: F64, order: int) -> F64:
     return np.array(pts)
 
 
+def _near_lattice(points: F64, basis: F64, radius: float) -> npt.NDArray[np.bool_]:
+    """Which points (m, 2) lie within `radius` bins of a point of the lattice `basis`."""
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    coords = np.linalg.solve(basis, points.T)
+    nearest = basis @ np.rint(coords)
+    return np.asarray(np.linalg.norm(points.T - nearest, axis=0) < radius, dtype=bool)
+
+
 def _extra_points(fine: F64, coarse: F64, size: int) -> F64:
     """Low-order points of the finer lattice `fine` that are not points of `coarse`, inside
     the analysed band."""
@@ -1357,7 +1379,7 @@ def _extra_points(fine: F64, coarse: F64, size: int) -> F64:
             if np.abs(c - np.rint(c)).max() < 1e-6:
                 continue
             # Too near a point of the coarse lattice to be told from its skirt.
-            if float(np.hypot(*(v - coarse @ np.rint(c)))) < 2.0:
+            if float(np.hypot(*(v - coarse @ np.rint(c)))) < 2.5:
                 continue
             r = float(np.hypot(*v))
             if 2.6 <= r <= 0.45 * size:
