@@ -31,6 +31,8 @@ def add_parser(subparsers: Any) -> None:
 
 def describe(name: str, est: NetEstimate) -> str:
     """The human-readable line for one image."""
+    if est.too_close:
+        return f"{name}: net too close ({est.reason}); no distance"
     if not est.detected or est.range_m is None or est.normal is None:
         return f"{name}: no net ({est.reason or 'not detected'}; confidence {est.confidence:.2f})"
     nx, ny, nz = est.normal
