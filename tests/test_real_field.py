@@ -9,6 +9,7 @@ targets are measured and printed by `netpose bench real` (see docs/benchmarks.md
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator
 
@@ -71,7 +72,7 @@ def test_sequence_distances_agree_within_their_sigma(results: list[RealResult]) 
     summary = summarise(results)
     if len(found) >= 3:
         assert summary.sequence_sigma_median_m >= summary.sequence_frame_to_frame_m
-    for a, b in zip(seq, seq[1:], strict=False):
+    for a, b in itertools.pairwise(seq):
         ea, eb = a.estimate, b.estimate
         if not (ea.detected and eb.detected):
             continue

@@ -55,15 +55,15 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[Any]
 
-# Refinements of index 2, 3 and 4 (the twice coarser mesh) of a reciprocal lattice K: the
-# lattices K S^-1 that contain K. Their extra points are where the spectrum of a mesh coarser by
-# sqrt(2), sqrt(3) or 2 (in period) would have peaks.
+# Refinements of index 2, 3, 4, 9 and 16 of a reciprocal lattice K: the lattices K S^-1 that
+# contain K. Their extra points are where the spectrum of a mesh coarser by sqrt(2), sqrt(3), 2,
+# 3 or 4 (in period) would have peaks.
 _REFINEMENTS = tuple(
     np.linalg.inv(np.array(s, dtype=np.float64))
     for s in (
         [[2, 0], [0, 1]], [[1, 0], [0, 2]], [[1, 0], [1, 2]],
         [[3, 0], [0, 1]], [[1, 0], [0, 3]], [[1, 0], [1, 3]], [[1, 0], [2, 3]],
-        [[2, 0], [0, 2]],
+        [[2, 0], [0, 2]], [[3, 0], [0, 3]], [[4, 0], [0, 4]],
     )
 )
 
@@ -383,8 +383,10 @@ class NetEstimator:
             )
         result: NetEstimate | None = None
         if prior is not None and prior.detected and prior.normal is not None and (
-            prior.distance_m is not None
-        ):
+            prior.distance_m is not None and prior.range_m is not None
+        ) and min(w, h) / self._period_at_centre(layout, prior.range_m) >= 12.0:
+            # Tracking only while the mesh is well resolved: near the "too close" limit a net
+            # that came closer shows harmonics at the old scale that no check can tell from it.
             tracked = self._refine(prior, level_image, layout, timings, prior.level,
                                    self._prior_rois(prior, layout), iterations=2)
             if tracked.detected and _agrees(tracked, prior) and self._blind_scale_agrees(
@@ -516,6 +518,11 @@ class NetEstimator:
         if fit is None or (twine and _twine_profile(self._whole, snr, logp, fit.basis, 1)):
             return None
         return side, fit
+
+    def _period_at_centre(self, layout: _Layout, range_m: float) -> float:
+        """Mesh period (pixels) where the optical axis meets a net at this range, facing it."""
+        cam = layout.camera
+        return math.sqrt(cam.fx * cam.fy) * math.sqrt(self.mesh.cell_area_m2) / range_m
 
     def _prior_rois(self, prior: NetEstimate, layout: _Layout) -> list[_Roi]:
         """The previous estimate's ROI lattices, as guides for the first rectified pass."""
@@ -1004,7 +1011,7 @@ class NetEstimator:
         return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
 
     def _scale_check(self, p: _Pass) -> int | None:
-        """The index (2, 3 or 4) of a coarser mesh whose extra lattice points carry real power in
+        """The index (2, 3, 4, 9 or 16) of a coarser mesh whose extra lattice points carry power in
         the averaged spectrum of the agreeing ROIs, or None when the scale is proved.
 
         A mesh's spectrum has peaks only on its own reciprocal lattice. If the lattice found is
@@ -1147,12 +1154,14 @@ class NetEstimator:
         # scatter) inflated for few degrees of freedom and for overlapping ROIs, plus the last
         # pass-to-pass change and a floor for the model (net deformation, resampling).
         inflation = _inflation(p)
-        sigma_d = math.hypot(plane.sigma_distance_m * inflation, step[0] * d_new,
+        # The pass-to-pass change counts only between passes over this frame: the first pass
+        # of a tracked frame moved from the previous frame's plane, which is the net's motion.
+        change = step if previous is not None else (0.0, 0.0)
+        sigma_d = math.hypot(plane.sigma_distance_m * inflation, change[0] * d_new,
                              0.002 * d_new)
         sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
-                             step[0] * range_m, 0.002 * range_m)
-        sigma_n = math.hypot(plane.sigma_normal_deg * inflation, step[1], 0.2)
-        del previous
+                             change[0] * range_m, 0.002 * range_m)
+        sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
         if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
