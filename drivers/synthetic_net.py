@@ -104,6 +104,12 @@ class SceneStyle:
     noise_sigma: float = 0.012
     vignetting: float = 0.25
     # -- realism of real footage (0 / None = off) --
+    # Twine width as a fraction of the bar length (overrides twine_width_m when > 0): real nets'
+    # twine is 10-30 % of the bar, more when fouled.
+    twine_fraction: float = 0.0
+    # Clutter of a few pixels' scale over the whole view (growth, particles, texture of what is
+    # behind the net), amplitude in 0..1 intensity.
+    texture: float = 0.0
     # Biofouling, 0 clean .. 1 heavy: twine up to ~3x thicker and uneven along the bars, furry
     # (fine texture around the twine), fouled patches that fill the cells; fouled twine is light.
     fouling: float = 0.0
@@ -163,11 +169,14 @@ class SceneStyle:
         fouling = float(rng.choice([0.0, rng.uniform(0.1, 0.5), rng.uniform(0.5, 1.0)]))
         style = replace(
             base,
-            twine_level=float(rng.uniform(0.55, 0.85) if light_twine else base.twine_level),
+            twine_level=float(rng.uniform(0.65, 0.95) if light_twine else base.twine_level),
             fouling=fouling,
             seams=int(rng.random() < 0.25),
             ropes=int(rng.random() < 0.25),
             boards=int(rng.choice([0, 0, 0, 1, 2])),
+            twine_fraction=float(rng.uniform(0.1, 0.35)),
+            texture=float(rng.uniform(0.02, 0.12)),
+            noise_sigma=float(rng.uniform(0.008, 0.025)),
             billow=float(rng.choice([0.0, rng.uniform(0.0, 0.03)])),
             billow_wavelength_m=float(rng.uniform(0.6, 3.0)),
             turbidity=float(rng.choice([0.0, rng.uniform(0.0, 0.6)])),
@@ -216,6 +225,10 @@ class NetRenderer:
             self._draw_surface(image, pose, style, rng)
         elif style.net_present:
             plane = self._draw_net(image, pose, style, rng)
+        if style.texture > 0:
+            w = self.camera.width
+            image += style.texture * (0.6 * self._smooth_field(rng, max(4, w // 6))
+                                      + 0.4 * self._smooth_field(rng, max(4, int(w / 2.5))))
         occluded = 0.0
         if style.boards > 0:
             occluded += self._draw_boards(image, rng, style.boards)
@@ -418,7 +431,8 @@ class NetRenderer:
         s1 = pu / L - s2 * math.cos(alpha)
         s1 = s1 + pose.phase[0]
         s2 = s2 + pose.phase[1]
-        half: float | FloatMap = 0.5 * style.twine_width_m / (L * math.sin(alpha))
+        width = style.twine_fraction * L if style.twine_fraction > 0 else style.twine_width_m
+        half: float | FloatMap = 0.5 * width / (L * math.sin(alpha))
         fouling = style.fouling if rng is not None else 0.0
         if fouling > 0 and rng is not None:
             # Fouled twine: up to ~3x thicker, uneven along the bars (a smooth field over the
