@@ -185,6 +185,7 @@ def test_never_too_close_without_a_net(seed: int) -> None:
 # -- the integrity benchmark, short ---------------------------------------------------------------
 
 
+@pytest.mark.timeout(900)  # ~100 s on two idle cores; far longer while the machine is shared
 def test_short_integrity_run() -> None:
     """A short seeded run of `netpose bench integrity` over the whole envelope (frames 384x180
     to 1920x1080, 60-110 deg with distortion, square and rhombic meshes of 1-4 cm, 0.3-3 m,

@@ -46,18 +46,25 @@ def test_no_net_free_scene_is_a_net_or_too_close(results: list[RealResult]) -> N
         assert not r.estimate.too_close, r.frame.name
 
 
-def test_the_stills_show_a_net_at_a_plausible_distance(results: list[RealResult]) -> None:
+def test_the_stills_give_a_plausible_distance_or_say_why_not(results: list[RealResult]) -> None:
     stills = [r for r in results if r.frame.kind == "still"]
     assert stills
     for r in stills:
         e = r.estimate
-        assert e.detected, (r.frame.name, e.reason)
+        if not e.detected:
+            # Refused, and why: on these stills the ROIs that agree do not pin the plane down
+            # to the 2 % a distance needs (see docs/benchmarks.md).
+            assert e.reason and e.distance_m is None
+            continue
         assert e.range_m is not None and e.sigma_range_m is not None
         # The README: nets at ~0.4-0.5 m (close mesh) to ~1.4 m (the far recording; the
         # 27.5 mm mesh and published intrinsics put it nearer 1.7 m). Plausible, not truth.
         assert 0.3 < e.range_m < 2.5, (r.frame.name, e.range_m)
-        # A distance is only given when the data pin it down.
         assert e.sigma_range_m <= 0.02 * e.range_m
+    # The clean, fully visible net of real-net-frame/ is measured.
+    clean = [r for r in stills if r.frame.name == "real-net-frame"]
+    if clean:
+        assert clean[0].estimate.detected, clean[0].estimate.reason
 
 
 def test_sequence_distances_agree_within_their_sigma(results: list[RealResult]) -> None:

@@ -83,7 +83,11 @@ class EstimatorSettings:
     levels: int = 4  # pyramid levels searched at most (fewer when the frame is small)
     preferred_period_px: float = 9.0
     min_period_px: float = 2.9
-    min_source_period_px: float = 3.5
+    # A mesh period below this (source pixels) is not measured: its 2nd harmonic is then within
+    # a pixel or so of Nyquist, and the pixel response, JPEG's blocks and blur bias the
+    # fundamental's position by percents (the integrity benchmark: 3.5-5 px gave most gross
+    # errors).
+    min_source_period_px: float = 5.0
     min_cycles: float = 3.0
     min_snr: float = 2.8
     # Floor on a ROI's mean peak SNR. Not a detection gate any more: a ROI's lattice counts when
@@ -1152,15 +1156,24 @@ class NetEstimator:
         range_m = d_new / float(-n_new[2])
         # Uncertainty from the data: the plane fit's covariance (scaled by the ROI-to-ROI
         # scatter) inflated for few degrees of freedom and for overlapping ROIs, plus the last
-        # pass-to-pass change and a floor for the model (net deformation, resampling).
+        # pass-to-pass change, the net's deformation and a 0.1 % floor for the model (resampling,
+        # interpolation).
         inflation = _inflation(p)
         # The pass-to-pass change counts only between passes over this frame: the first pass
         # of a tracked frame moved from the previous frame's plane, which is the net's motion.
         change = step if previous is not None else (0.0, 0.0)
+        # A net that is not a plane (billowing) leaves residuals that are smooth over the view,
+        # not independent: the fitted plane's distance is uncertain by about the rms relative
+        # residual of the cell areas' cube roots beyond what the ROIs' own measurement noise
+        # explains (that is, of the local distances over 1.5), whatever the number of ROIs.
+        expected = [(m.fit.relative_area_sigma / 3.0) ** 2 + 0.002**2
+                    for m in agreeing if m.fit is not None]
+        noise_rms2 = float(np.mean(expected)) if expected else 0.0
+        deformation = math.sqrt(max(0.0, plane.relative_rms**2 - noise_rms2))
         sigma_d = math.hypot(plane.sigma_distance_m * inflation, change[0] * d_new,
-                             0.002 * d_new)
+                             deformation * d_new, 0.001 * d_new)
         sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
-                             change[0] * range_m, 0.002 * range_m)
+                             change[0] * range_m, deformation * range_m, 0.001 * range_m)
         sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
         if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
             return NetEstimate(
@@ -1408,12 +1421,14 @@ def _bar_pair(edges: F64) -> F64:
 
 
 def _inflation(p: _Pass) -> float:
-    """Factor on the plane fit's sigmas: Student t at 1 sigma for few degrees of freedom (a
-    scatter estimated from few residuals is itself uncertain), and the square root of how many
-    times over the agreeing ROIs cover their pixels (overlapping ROIs' errors are correlated)."""
+    """Factor on the plane fit's sigmas: Student t for few degrees of freedom (a scatter
+    estimated from few residuals is itself uncertain), and the fourth root of how many times
+    over the agreeing ROIs cover their pixels: overlapping ROIs share pixels, so their errors
+    are partly correlated (half-overlapping windows share about a quarter of their Hann-weighted
+    energy; the fourth root was calibrated on `netpose bench integrity`)."""
     assert p.plane is not None
     dof = max(1, int(p.plane.used.sum()) - 3)
-    return _t_factor(dof) * math.sqrt(_overlap([m for m in p.rois if m.agrees]))
+    return _t_factor(dof) * _overlap([m for m in p.rois if m.agrees]) ** 0.25
 
 
 def _plane_sigmas(p: _Pass) -> tuple[float, float]:
@@ -1424,10 +1439,17 @@ def _plane_sigmas(p: _Pass) -> tuple[float, float]:
 
 
 def _t_factor(dof: int) -> float:
-    """Student-t quantile at 84.13 % over the normal one: a sigma estimated from few residuals
-    is itself uncertain."""
-    table = {1: 1.84, 2: 1.32, 3: 1.20, 4: 1.14, 5: 1.11, 6: 1.09, 7: 1.08, 8: 1.07}
-    return table.get(dof, 1.0 + 0.5 / dof)
+    """How much a sigma estimated from `dof` residuals must grow: the geometric mean of the
+    Student-t over normal quantiles at 1 sigma (84.13 %) and at 3 sigma (99.865 %), so both the
+    spread of error/sigma and its 3-sigma tail stay honest for a scatter estimated from few
+    residuals. With a single degree of freedom the scatter is all but unknown (t has no
+    variance): infinite, no distance."""
+    if dof <= 1:
+        return math.inf
+    one = {2: 1.32, 3: 1.20, 4: 1.14, 5: 1.11, 6: 1.09, 7: 1.08, 8: 1.07}
+    tail = {2: 6.40, 3: 3.07, 4: 2.21, 5: 1.84, 6: 1.63, 7: 1.51, 8: 1.43, 9: 1.36, 10: 1.32,
+            11: 1.28, 12: 1.25, 13: 1.23, 14: 1.21, 15: 1.20}
+    return math.sqrt(one.get(dof, 1.0 + 0.5 / dof) * tail.get(dof, 1.0 + 2.6 / dof))
 
 
 def _overlap(rois: list[_Roi]) -> float:
