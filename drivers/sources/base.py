@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.lifecycle import Closeable
+from service.core.grey import to_gray
 from service.core.redact import redact_text
 
 if TYPE_CHECKING:
@@ -127,17 +128,15 @@ def split_gray_color(image: Any, keep_color: bool) -> tuple[GrayImage, ColorImag
 
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.size == 0:
         return None
-    if image.ndim == 2:
-        gray = image
-    elif image.ndim == 3 and image.shape[2] == 1:
-        gray = np.ascontiguousarray(image[:, :, 0])
-    elif image.ndim == 3 and image.shape[2] == 3:
-        return _u8(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), (image if keep_color else None)
-    elif image.ndim == 3 and image.shape[2] == 4:
-        color = _u8(cv2.cvtColor(image, cv2.COLOR_BGRA2BGR))
-        return _u8(cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)), (color if keep_color else None)
-    else:
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = _u8(cv2.cvtColor(image, cv2.COLOR_BGRA2BGR))
+    if image.ndim == 3 and image.shape[2] == 3:
+        return _u8(to_gray(image)), (image if keep_color else None)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim != 2:
         return None
+    gray = np.ascontiguousarray(image)
     return gray, (_u8(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)) if keep_color else None)
 
 

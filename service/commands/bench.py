@@ -1,4 +1,4 @@
-"""`netpose bench accuracy|speed|soak`: the numbers the project's targets are judged by."""
+"""`netpose bench accuracy|speed|integrity|real|soak`: the numbers the targets are judged by."""
 
 from __future__ import annotations
 
@@ -27,6 +27,25 @@ def add_parser(subparsers: Any) -> None:
     speed.add_argument("--seed", type=int, default=1)
     speed.set_defaults(handler=_speed)
 
+    integ = sub.add_parser(
+        "integrity", help="randomised envelope: gross errors, 3-sigma coverage, realism")
+    integ.add_argument("--frames", type=int, default=20_000,
+                       help="frames to render and estimate (default 20000)")
+    integ.add_argument("--seed", type=int, default=1)
+    integ.add_argument("--jobs", type=int, default=0,
+                       help="worker processes (default: up to 2, the machine's cores)")
+    integ.add_argument("--out", type=Path, default=Path("bench/out"),
+                       help="folder for integrity.csv (default bench/out)")
+    integ.add_argument("--no-realism", action="store_true",
+                       help="skip the real-vs-rendered frame statistics")
+    integ.set_defaults(handler=_integrity)
+
+    real = sub.add_parser("real", help="real fish-farm frames and net-free scenes (shared data)")
+    real.add_argument("--data", type=Path, default=None,
+                      help="the shared data folder holding real-field/ (default: shared/data "
+                      "beside the checkout, or NETPOSE_SHARED_DATA)")
+    real.set_defaults(handler=_real)
+
     soak = sub.add_parser("soak", help="the daemon for minutes on a 720p camera-like source, "
                           "unconstrained and held to 25 % of a core")
     soak.add_argument("--duration", type=float, default=120.0,
@@ -48,6 +67,19 @@ def _speed(args: argparse.Namespace) -> int:
     from service.benchmarks import speed
 
     return speed.run(args.frames, args.seed)
+
+
+def _integrity(args: argparse.Namespace) -> int:
+    from service.benchmarks import integrity
+
+    return integrity.run(args.frames, args.seed, args.jobs, args.out,
+                         realism=not args.no_realism)
+
+
+def _real(args: argparse.Namespace) -> int:
+    from service.benchmarks import real_frames
+
+    return real_frames.run(args.data)
 
 
 def _soak(args: argparse.Namespace) -> int:

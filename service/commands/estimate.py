@@ -15,8 +15,8 @@ def add_parser(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "estimate",
         help="detect the net and estimate distance and orientation in still images",
-        description="One line per image, in input order. Unreadable images are reported and "
-        "skipped; the exit status is then 1.",
+        description="One line per image, in input order. Unreadable, truncated or corrupt images "
+        "are reported with a warning and give no estimate; the exit status is then 1.",
     )
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGE")
     p.add_argument("--calibration", "-c", required=True, type=Path,
@@ -31,6 +31,8 @@ def add_parser(subparsers: Any) -> None:
 
 def describe(name: str, est: NetEstimate) -> str:
     """The human-readable line for one image."""
+    if est.too_close:
+        return f"{name}: net too close ({est.reason}); no distance"
     if not est.detected or est.range_m is None or est.normal is None:
         return f"{name}: no net ({est.reason or 'not detected'}; confidence {est.confidence:.2f})"
     nx, ny, nz = est.normal
@@ -44,10 +46,9 @@ def describe(name: str, est: NetEstimate) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import cv2
-
     from service.core.camera import load_camera
     from service.core.estimator import NetEstimator
+    from service.core.grey import decode_gray
     from service.core.mesh import MeshGeometry
 
     camera = load_camera(args.calibration)
@@ -59,9 +60,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             if not path.is_file():
                 raise ValueError("no such file")
-            image = cv2.imread(name, cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise ValueError("cannot read image (missing, unreadable or not an image)")
+            # The same decoding and grey conversion as every other frame path; a truncated or
+            # corrupt file is refused here, before it can produce a distance.
+            image, _ = decode_gray(path.read_bytes())
             est = estimator.estimate(image)
         except Exception as exc:  # one bad image must not lose the rest
             failures += 1
@@ -69,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
                 print(json.dumps({"image": name, "error": str(exc)}), flush=True)
             else:
                 print(f"{name}: error: {exc}", flush=True)
+            print(f"netpose: warning: {name}: {exc}; no estimate", file=sys.stderr, flush=True)
             continue
         if args.json:
             print(json.dumps({"image": name, **est.to_json_dict()}), flush=True)

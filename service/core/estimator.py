@@ -1,17 +1,34 @@
-"""The net estimator: one grayscale frame in, detection and pose of the net plane out.
+"""The net estimator: one grey frame in, detection and pose of the net plane out.
 
 Pipeline per frame (pure: arrays in, a NetEstimate out):
-1. scale search - the ROI size is fixed; an image pyramid brings the mesh period into the range
-   the ROI measures best (a few to ~20 px). A handful of probe ROIs pick the level, unless the
-   caller passes the previous estimate's level as a hint;
-2. a grid of ROIs over the frame at that level: whitened spectrum -> sub-bin peaks -> robust
-   lattice fit -> mesh cell area, mapped through the lens (undistortion Jacobian at the ROI
-   centre) into normalised image units;
-3. a robust multi-ROI plane fit gives the unit normal, the distance and the range, without the
-   mirror ambiguity of single-square PnP, and with uncertainties.
 
-Everything that depends only on frame size, camera and settings (windows, ROI rays and
-Jacobians) is computed once and cached.
+1. **Seed.** An image pyramid brings the mesh period into the range a ROI measures best (a few
+   to ~20 px). Five probe ROIs pick the pyramid level; a grid of ROIs at that level gives a
+   lattice per ROI (whitened spectrum -> sub-bin peaks -> robust lattice fit) and so a mesh cell
+   area, mapped through the lens into normalised image units. A robust fit of the cell areas
+   gives a first plane (c = r . m, linear, no mirror ambiguity; see plane.py).
+2. **Rectified passes.** Each ROI is resampled through the homography of a virtual camera that
+   faces that plane, scaled so the mesh period is the same known value in every ROI. The
+   perspective chirp inside a ROI is gone, and on the right plane every ROI must show *the same*
+   lattice. Passes repeat until one lands on the plane it was rectified with.
+3. **Evidence that adds up.** No ROI needs a strong spectrum on its own: a ROI counts when its
+   lattice (scale, orientation and shape) agrees with the consensus of the others - random
+   texture does not produce the same two-dimensional lattice in several places. The plane is
+   fitted to the agreeing ROIs only.
+4. **Proof of the scale and of the net.** The whitened spectra of the agreeing ROIs are averaged
+   (the net's peaks add up, noise averages down). Lattice points of any coarser mesh (the finer
+   reciprocal lattices of index 2 and 3) must be empty there, or the hypothesis measured a
+   harmonic of the real mesh (a distance off by sqrt 2 or sqrt 3) and is corrected or refused.
+   The rectified cell must be the configured mesh (equal bars, the configured opening angle),
+   and its harmonics must look like twine (thin lines crossing), not a checkerboard or bricks.
+5. **Uncertainty from the data.** The plane's covariance comes from the ROI-to-ROI scatter
+   (reduced chi-square), inflated for few degrees of freedom and for overlapping ROIs, plus the
+   change between the last two rectified passes. A plane the ROIs cannot pin down (bunched on
+   one side of a blocked view) gives a large sigma and then no distance.
+
+Everything that depends only on frame size, camera and settings (layouts, windows, ROI rays and
+lens Jacobians) is computed once and cached. ROIs are measured independently of each other
+(apart from the lattice hint), so they can later be batched.
 """
 
 from __future__ import annotations
@@ -27,33 +44,64 @@ import numpy.typing as npt
 
 from service.core.camera import CameraModel
 from service.core.errors import ConfigError, EstimatorInputError
-from service.core.lattice import LatticeFinder, LatticeFit
+from service.core.grey import to_gray
+from service.core.lattice import LatticeFinder, LatticeFit, reduce_basis
 from service.core.mesh import MeshGeometry
-from service.core.plane import fit_plane
+from service.core.plane import PlaneFit, fit_plane
 from service.core.results import Mat2, NetEstimate, RoiResult
-from service.core.spectrum import SpectrumAnalyzer
+from service.core.spectrum import Peaks, SpectrumAnalyzer
 
+F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[Any]
+
+# Refinements of index 2, 3, 4, 9 and 16 of a reciprocal lattice K: the lattices K S^-1 that
+# contain K. Their extra points are where the spectrum of a mesh coarser by sqrt(2), sqrt(3), 2,
+# 3 or 4 (in period) would have peaks.
+_REFINEMENTS = tuple(
+    np.linalg.inv(np.array(s, dtype=np.float64))
+    for s in (
+        [[2, 0], [0, 1]], [[1, 0], [0, 2]], [[1, 0], [1, 2]],
+        [[3, 0], [0, 1]], [[1, 0], [0, 3]], [[1, 0], [1, 3]], [[1, 0], [2, 3]],
+        [[2, 0], [0, 2]], [[3, 0], [0, 3]], [[4, 0], [0, 4]],
+    )
+)
+
+
+# How a refusal begins when the view was recognised as a grid that is not the configured net.
+_NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
+              "mesh opening angle measured")
 
 
 @dataclass(frozen=True)
 class EstimatorSettings:
-    """Tuning of the estimator; the defaults are what the benchmark was run with."""
+    """Tuning of the estimator; the defaults are what the benchmarks were run with."""
 
-    roi_size: int = 128
-    grid_cols: int = 5
+    roi_size: int = 128  # FFT size; levels whose ROI would not leave the frame room use half
+    grid_cols: int = 5  # ROI budget for a 16:9 frame: cols x rows; other shapes keep the count
     grid_rows: int = 3
-    levels: int = 3
+    levels: int = 4  # pyramid levels searched at most (fewer when the frame is small)
     preferred_period_px: float = 9.0
     min_period_px: float = 2.9
     min_source_period_px: float = 3.5
     min_cycles: float = 3.0
     min_snr: float = 2.8
-    min_roi_snr: float = 4.0
+    # Floor on a ROI's mean peak SNR. Not a detection gate any more: a ROI's lattice counts when
+    # other ROIs agree with it (the default equals min_snr, the per-peak threshold).
+    min_roi_snr: float = 2.8
     min_inlier_fraction: float = 0.45
+    # Peak threshold at the places a known lattice predicts (rectified passes after the first).
+    guided_snr: float = 1.8
     min_rois: int = 4
     min_confidence: float = 0.25
+    # Agreement of a rectified ROI's lattice with the consensus, relative to its length.
+    lattice_tolerance: float = 0.06
+    # Mesh shape: measured opening angle and bar-length ratio against the configured mesh.
+    opening_tolerance_deg: float = 20.0
+    aspect_tolerance: float = 0.25
+    # No distance is reported less certain than this (1 sigma).
+    max_sigma_range_fraction: float = 0.02
+    max_sigma_normal_deg: float = 8.0
 
     def validate(self) -> None:
         if self.roi_size not in (64, 128, 256, 512):
@@ -71,20 +119,35 @@ class EstimatorSettings:
 
 
 @dataclass(frozen=True)
-class _RoiGeometry:
+class _Geometry:
     """Where one ROI sits and how its pixels map into normalised camera coordinates."""
 
-    x0: int  # top-left corner in level pixels
+    x0: int  # top-left corner in level pixels (unrectified ROIs)
     y0: int
+    size: int  # FFT size (unrectified ROIs); 0 for rectified centres
     center_full: tuple[float, float]  # full-resolution distorted pixel
     ray: F64  # (x, y, 1) undistorted normalised
     jacobian: F64  # d(normalised) / d(full-resolution pixel), 2x2
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """Everything about one frame size: camera, pyramid levels with their ROI grids, and the
+    grids of rectified ROIs (built on first use for each footprint, then kept)."""
+
+    camera: CameraModel
+    levels: tuple[int, ...]
+    grids: dict[int, list[_Geometry]]
+    probes: dict[int, list[_Geometry]]
+    max_footprint: float  # half the frame's smaller side: rows and columns keep a baseline
+    rect: dict[int, list[_Geometry]] = field(default_factory=dict)  # by footprint (px)
+
+
 @dataclass
-class _RoiMeasurement:
-    geometry: _RoiGeometry
+class _Roi:
+    geometry: _Geometry
     level: int
+    size: int
     fit: LatticeFit | None
     peaks: int
     reciprocal_px: F64 | None = None  # cycles per full-res pixel, columns k1 k2
@@ -93,10 +156,38 @@ class _RoiMeasurement:
     ray: F64 = field(default_factory=lambda: np.zeros(3))
     # Rectified ROIs only: found / intended mesh period, for a good lattice at the wrong scale.
     period_ratio: float = math.nan
+    snr: F32 | None = None  # whitened spectrum (rectified ROIs)
+    logp: F32 | None = None  # log power (rectified ROIs)
+    footprint_px: float = 0.0
+    agrees: bool = False  # its lattice is the consensus lattice (rectified ROIs)
 
     def __post_init__(self) -> None:
         if not self.ray.any():
             self.ray = self.geometry.ray
+
+    @property
+    def weight(self) -> float:
+        """How much this ROI's lattice counts as evidence: how cleanly its peaks sit on the
+        lattice and how far above the noise they stand (a speckle spectrum's maxima reach
+        ~2.8 in log power over the background; 6 is unmistakable)."""
+        if self.fit is None:
+            return 0.0
+        return float(self.fit.inlier_weight_fraction * np.clip(
+            (self.fit.mean_snr - 2.0) / 4.0, 0.1, 1.0))
+
+
+@dataclass
+class _Pass:
+    """One rectified pass: its ROIs, the consensus lattice and the plane."""
+
+    rois: list[_Roi]
+    rotation: F64
+    size: int
+    period_out: float
+    consensus: F64 | None  # 2x2 reciprocal basis in bins of the rectified ROIs
+    plane: PlaneFit | None
+    level: int
+    note: str = ""
 
 
 class NetEstimator:
@@ -112,77 +203,138 @@ class NetEstimator:
         self.settings.validate()
         self.camera = camera
         self.mesh = mesh
-        self._spectrum = SpectrumAnalyzer(self.settings.roi_size, min_snr=self.settings.min_snr)
+        s = self.settings
+        self._spectra = {
+            n: SpectrumAnalyzer(n, min_snr=s.min_snr)
+            for n in {s.roi_size, max(64, s.roi_size // 2)}
+        }
         self._lattice = LatticeFinder()
-        self._grids: dict[tuple[int, int, int, str], list[_RoiGeometry]] = {}
-        self._cameras: dict[tuple[int, int], CameraModel] = {}
+        # The whole view at 64 px, down to 1.8 cycles: the "too close" check.
+        self._whole = SpectrumAnalyzer(64, min_radius_bins=1.8, min_snr=s.min_snr)
+        self._layouts: dict[tuple[int, int], _Layout] = {}
+        self._mesh_opening = min(mesh.opening_angle_deg, 180.0 - mesh.opening_angle_deg)
 
-    # -- geometry, cached per frame size and level ---------------------------------------------
-    def _camera_for(self, width: int, height: int) -> CameraModel:
+    # -- geometry, cached per frame size ------------------------------------------------------
+    def _layout(self, width: int, height: int) -> _Layout:
         key = (width, height)
-        if key not in self._cameras:
-            self._cameras[key] = self.camera.scaled_to(width, height)
-        return self._cameras[key]
+        if key not in self._layouts:
+            self._layouts[key] = self._build_layout(width, height)
+        return self._layouts[key]
 
-    def _layout(self, width: int, height: int, level: int, kind: str) -> list[_RoiGeometry]:
-        key = (width, height, level, kind)
-        if key in self._grids:
-            return self._grids[key]
-        n = self.settings.roi_size
-        scale = 2**level
-        lw, lh = _level_size(width, level), _level_size(height, level)
-        grid: list[_RoiGeometry] = []
-        if lw >= n and lh >= n:
-            if kind == "probe":
-                # Centre and four quadrant points: a school of fish rarely covers all five.
-                cx, cy = (lw - n) // 2, (lh - n) // 2
-                qx, qy = (lw - n) // 4, (lh - n) // 4
-                corners = [(cx, cy), (qx, qy), (3 * qx, qy), (qx, 3 * qy), (3 * qx, 3 * qy)]
-            elif kind == "grid":
-                cols, rows = self.settings.grid_cols, self.settings.grid_rows
-                xs = np.linspace(0, lw - n, cols).round().astype(int)
-                ys = np.linspace(0, lh - n, rows).round().astype(int)
-                corners = sorted({(int(x), int(y)) for y in ys for x in xs}, key=lambda c: c[::-1])
-            else:  # "grid@L": level L's grid, re-centred at this level, ROI for ROI
-                source = self._layout(width, height, int(kind.split("@")[1]), "grid")
-                corners = []
-                for g in source:
-                    x = round((g.center_full[0] + 0.5) / scale - n / 2)
-                    y = round((g.center_full[1] + 0.5) / scale - n / 2)
-                    corners.append((min(max(x, 0), lw - n), min(max(y, 0), lh - n)))
-            cam = self._camera_for(width, height)
-            centres = np.array(
-                [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
-                  + (scale - 1) / 2) for x, y in corners]
-            )
-            eps = 2.0
-            probes = np.concatenate(
-                [centres, centres + [eps, 0.0], centres + [0.0, eps]], axis=0
-            )
-            norm = cam.undistort_pixels(probes)
-            k = len(corners)
-            base, dx, dy = norm[:k], norm[k : 2 * k], norm[2 * k :]
-            for i, (x, y) in enumerate(corners):
-                jac = np.stack([(dx[i] - base[i]) / eps, (dy[i] - base[i]) / eps], axis=1)
-                grid.append(
-                    _RoiGeometry(
-                        x0=x,
-                        y0=y,
-                        center_full=(float(centres[i, 0]), float(centres[i, 1])),
-                        ray=np.array([base[i, 0], base[i, 1], 1.0]),
-                        jacobian=jac,
-                    )
-                )
-        self._grids[key] = grid
+    def _grid_shape(self, width: int, height: int, factor: int = 1) -> tuple[int, int]:
+        """Columns and rows: the configured count of ROIs (times `factor`), shaped like the
+        frame."""
+        s = self.settings
+        budget = s.grid_cols * s.grid_rows * factor
+        aspect = width / height
+        rows = max(2, round(math.sqrt(budget / aspect)))
+        cols = max(2, round(budget / rows))
+        return cols, rows
+
+    def _build_layout(self, w: int, h: int) -> _Layout:
+        s = self.settings
+        cam = self.camera.scaled_to(w, h)
+        cols, rows = self._grid_shape(w, h)
+        levels: list[int] = []
+        grids: dict[int, list[_Geometry]] = {}
+        probes: dict[int, list[_Geometry]] = {}
+        small = max(64, s.roi_size // 2)
+        for level in range(s.levels):
+            scale = 2**level
+            lw, lh = _level_size(w, level), _level_size(h, level)
+            # The full ROI size while it leaves the grid a vertical baseline; half size when only
+            # that fits; no ROI at all when not even that fits.
+            if s.roi_size * scale <= 0.6 * min(h, w) and s.roi_size <= min(lw, lh):
+                n = s.roi_size
+            elif small <= min(lw, lh) and small * scale <= min(h, w):
+                n = small
+            else:
+                continue
+            xs = np.linspace(0, lw - n, cols).round().astype(int)
+            ys = np.linspace(0, lh - n, rows).round().astype(int)
+            corners = sorted({(int(x), int(y)) for y in ys for x in xs}, key=lambda c: c[::-1])
+            grids[level] = self._geometries(cam, corners, n, level)
+            cx, cy = (lw - n) // 2, (lh - n) // 2
+            qx, qy = (lw - n) // 4, (lh - n) // 4
+            probe = [(cx, cy), (qx, qy), (3 * qx, qy), (qx, 3 * qy), (3 * qx, 3 * qy)]
+            probes[level] = self._geometries(cam, probe, n, level)
+            levels.append(level)
+        foot = max(min(w, h) / 2.0, min(64.0, min(w, h)))
+        return _Layout(cam, tuple(levels), grids, probes, foot)
+
+    def _rect_grid(self, layout: _Layout, footprint: float, size: int) -> list[_Geometry]:
+        """Centres of rectified ROIs of this footprint (source pixels): spaced half a footprint
+        apart (each ROI overlaps its neighbours by half) and covering the frame to its edges,
+        thinned out evenly when that would exceed the ROI budget (grid_cols x grid_rows ROIs
+        of roi_size; four times as many of half the size)."""
+        key = int(round(footprint / 8.0)) * 8 * 1000 + size
+        if key in layout.rect:
+            return layout.rect[key]
+        s = self.settings
+        cam = layout.camera
+        w, h = cam.width, cam.height
+        f = min(float(key // 1000), float(min(w, h)))
+        budget = s.grid_cols * s.grid_rows * (s.roi_size // size) ** 2
+        budget = min(budget, 4 * s.grid_cols * s.grid_rows)
+        cols = int((w - f) // (f / 2)) + 1
+        rows = int((h - f) // (f / 2)) + 1
+        # A plane needs ROIs spread both ways: at least three rows and columns where they can be
+        # a fifth of a footprint apart (large footprints: a coarse mesh, a near net).
+        cols = max(cols, min(3, int((w - f) // (0.2 * f)) + 1))
+        rows = max(rows, min(3, int((h - f) // (0.2 * f)) + 1))
+        while cols * rows > budget:
+            if cols / w >= rows / h and cols > 2:
+                cols -= 1
+            elif rows > 2:
+                rows -= 1
+            else:
+                break
+        xs = np.linspace(f / 2, w - f / 2, cols) if cols > 1 else np.array([w / 2])
+        ys = np.linspace(f / 2, h - f / 2, rows) if rows > 1 else np.array([h / 2])
+        centres = np.array([(x - 0.5, y - 0.5) for y in ys for x in xs])
+        grid = self._centre_geometries(cam, centres)
+        layout.rect[key] = grid
         return grid
 
-    # -- per ROI ---------------------------------------------------------------------------------
-    def _measure(self, image: Image, geom: _RoiGeometry, level: int) -> _RoiMeasurement:
-        n = self.settings.roi_size
+    @staticmethod
+    def _centre_geometries(cam: CameraModel, centres: F64) -> list[_Geometry]:
+        eps = 2.0
+        probes = np.concatenate([centres, centres + [eps, 0.0], centres + [0.0, eps]], axis=0)
+        norm = cam.undistort_pixels(probes)
+        k = len(centres)
+        base, dx, dy = norm[:k], norm[k : 2 * k], norm[2 * k :]
+        out = []
+        for i in range(k):
+            jac = np.stack([(dx[i] - base[i]) / eps, (dy[i] - base[i]) / eps], axis=1)
+            out.append(_Geometry(0, 0, 0, (float(centres[i, 0]), float(centres[i, 1])),
+                                 np.array([base[i, 0], base[i, 1], 1.0]), jac))
+        return out
+
+    def _geometries(
+        self, cam: CameraModel, corners: list[tuple[int, int]], n: int, level: int
+    ) -> list[_Geometry]:
+        scale = 2**level
+        centres = np.array(
+            [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
+              + (scale - 1) / 2) for x, y in corners]
+        )
+        base = self._centre_geometries(cam, centres)
+        return [replace(g, x0=x, y0=y, size=n) for g, (x, y) in zip(base, corners, strict=True)]
+
+    def prepare(self, width: int, height: int) -> None:
+        """Build the per-size caches (ROI layouts, rays, lens Jacobians) now, at start-up,
+        so the first frame costs what every other frame costs (grids of rectified ROIs are
+        built on first use of each footprint, a handful per frame size)."""
+        self._layout(width, height)
+
+    # -- per ROI -------------------------------------------------------------------------------
+    def _measure(self, image: Image, geom: _Geometry, level: int) -> _Roi:
+        n = geom.size
         patch = image[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
-        peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
+        peaks = self._spectra[n].peaks(np.asarray(patch, dtype=np.float32))
         fit = self._lattice.fit(peaks)
-        meas = _RoiMeasurement(geometry=geom, level=level, fit=fit, peaks=len(peaks))
+        meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks),
+                    footprint_px=float(n * 2**level))
         if fit is None:
             return meas
         s = self.settings
@@ -198,40 +350,25 @@ class NetEstimator:
         meas.valid = bool(period_ok and quality_ok)
         return meas
 
-    def _median_period(self, measurements: list[_RoiMeasurement]) -> float | None:
-        periods = [
-            self.settings.roi_size / math.sqrt(m.fit.det)
-            for m in measurements
-            if m.valid and m.fit is not None
-        ]
+    def _median_period(self, measurements: list[_Roi]) -> float | None:
+        periods = [m.size / math.sqrt(m.fit.det) for m in measurements
+                   if m.valid and m.fit is not None]
         return float(np.median(periods)) if periods else None
 
-    def prepare(self, width: int, height: int) -> None:
-        """Build every per-size cache (ROI layouts, rays, lens Jacobians) now, at start-up,
-        so the first frame costs what every other frame costs."""
-        self._camera_for(width, height)
-        for level in range(self.settings.levels):
-            grid = self._layout(width, height, level, "grid")
-            self._layout(width, height, level, "probe")
-            if grid:
-                for other in range(self.settings.levels):
-                    if other != level and self._layout(width, height, other, "grid"):
-                        self._layout(width, height, other, f"grid@{level}")
-
-    # -- per frame -------------------------------------------------------------------------------
+    # -- per frame -----------------------------------------------------------------------------
     def estimate(self, frame: Image, prior: NetEstimate | None = None) -> NetEstimate:
-        """Estimate the net plane in one frame (grayscale, or BGR which is converted).
+        """Estimate the net plane in one frame (grey, or BGR/BGRA which is converted).
 
         `prior` (the previous frame's estimate, while tracking) lets the estimator skip the
-        scale search and the unrectified pass: the ROIs are rectified with the prior plane
-        straight away. Without a detection that way it falls back to the full search.
+        scale search: the ROIs are rectified with the prior plane straight away. Without a
+        detection that way it falls back to the full search.
         """
         import cv2
 
         t0 = time.perf_counter()
         gray = _as_gray(frame)
         h, w = gray.shape
-        self._camera_for(w, h)  # fail early on a resolution the calibration cannot serve
+        layout = self._layout(w, h)  # fails early on a resolution the calibration cannot serve
         timings: dict[str, float] = {}
         pyramid: list[Image] = [gray]
 
@@ -240,70 +377,264 @@ class NetEstimator:
                 pyramid.append(cv2.pyrDown(pyramid[-1]))
             return pyramid[level]
 
-        levels = [lv for lv in range(self.settings.levels) if self._layout(w, h, lv, "grid")]
-        if not levels:
+        if not layout.levels:
             raise EstimatorInputError(
-                f"frame {w}x{h} is smaller than one {self.settings.roi_size}px ROI"
+                f"frame {w}x{h} is smaller than one {max(64, self.settings.roi_size // 2)}px ROI"
             )
+        result: NetEstimate | None = None
         if prior is not None and prior.detected and prior.normal is not None and (
-            prior.distance_m is not None and prior.level in levels
-        ):
-            tracked = self._rectified_pass(level_image, prior.level, prior, w, h, timings)
-            if _agrees(tracked, prior):
-                timings["total"] = (time.perf_counter() - t0) * 1e3
-                return replace(tracked, timings_ms=timings)
-        t1 = time.perf_counter()
-        order, probes = self._level_order(levels, level_image, w, h)
-        t2 = time.perf_counter()
-        timings["scale_search"] = (t2 - t1) * 1e3
-        if order:
-            # The probes are spread over the frame: when they agree on a plane, that plane
-            # seeds the rectified pass and the unrectified grid pass is not needed.
-            seed = self._conclude(probes, order[0], np.eye(3), timings)
-            # Only a unanimous seed: with 5 probes, 4 leave a single redundant check, and a fish
-            # in one probe can then tilt the seed enough to mislead the rectification.
-            if seed.normal is not None and seed.distance_m is not None and (
-                seed.rois_used == len(probes)
+            prior.distance_m is not None and prior.range_m is not None
+        ) and min(w, h) / self._period_at_centre(layout, prior.range_m) >= 12.0:
+            # Tracking only while the mesh is well resolved: near the "too close" limit a net
+            # that came closer shows harmonics at the old scale that no check can tell from it.
+            tracked = self._refine(prior, level_image, layout, timings, prior.level,
+                                   self._prior_rois(prior, layout), iterations=2)
+            if tracked.detected and _agrees(tracked, prior) and self._blind_scale_agrees(
+                tracked, level_image, layout
             ):
-                quick = self._rectified_pass(level_image, order[0], seed, w, h, timings)
-                if _agrees(quick, seed):
-                    timings["total"] = (time.perf_counter() - t0) * 1e3
-                    return replace(quick, timings_ms=timings)
+                result = tracked
+        if result is None:
+            result = self._cold(level_image, layout, timings)
+        if not result.detected and not result.reason.startswith(_NOT_A_NET):
+            # Not when the view was positively recognised as something else (a brick wall, a
+            # checkerboard, cells of another shape): "too close" must never fire without a net.
+            close = self._too_close(gray, layout, prior)
+            if close is not None:
+                period, range_m = close
+                result = replace(
+                    result, too_close=True,
+                    reason=(f"net too close to measure: a mesh of ~{period:.0f} px period fills "
+                            f"the view (about {range_m:.2f} m away or less)"),
+                )
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        return replace(result, timings_ms=timings)
+
+    def _too_close(
+        self, gray: Image, layout: _Layout, prior: NetEstimate | None = None
+    ) -> tuple[float, float] | None:
+        """(mesh period in pixels, implied range in m) when a mesh too coarse for the ROIs fills
+        the view; None otherwise.
+
+        The whole frame's central square, shrunk to 64 px, must show one clear lattice (strong
+        peaks, most of the spectral weight, a harmonic or cross term besides the two
+        fundamentals) with the configured mesh's shape, of 1.8 to 9 cycles across the frame:
+        fewer than the ROIs need to measure a plane (this runs only when they could not), more
+        than a blur with nothing repeating.
+        Nothing else in an underwater view repeats like that over the whole frame.
+
+        While tracking (`prior`, the last detection, was already near that limit) a net that
+        came closer is expected: then any clear lattice at least as coarse as the prior's will
+        do (its harmonics often outshine its fundamentals when so close, so its shape is not
+        required).
+        """
+        whole = self._whole_lattice(gray)
+        if whole is None:
+            return None
+        side, fit = whole
+        cam = layout.camera
+        focal = math.sqrt(cam.fx * cam.fy)
+        lengths = np.linalg.norm(fit.basis, axis=0)
+        if prior is not None and prior.detected and prior.range_m is not None:
+            prior_period = focal * math.sqrt(self.mesh.cell_area_m2) / prior.range_m
+            # Near the limit: fewer than 12 mesh cycles across the frame's smaller side.
+            if side / prior_period < 12.0 and fit.mean_snr >= 3.5 and lengths.min() >= 1.8:
+                period = side / math.sqrt(fit.det)
+                if period >= 0.8 * prior_period or side / lengths.min() >= 0.8 * prior_period:
+                    period = max(period, prior_period)
+                    return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
+        if fit.inliers < 3 or fit.mean_snr < 4.0 or fit.inlier_weight_fraction < 0.6:
+            return None
+        if lengths.min() < 1.8 or lengths.max() > 9.0:
+            return None
+        bars = _bar_pair(np.asarray(np.linalg.inv(fit.basis).T, dtype=np.float64))
+        lu, lv = (float(np.linalg.norm(bars[:, i])) for i in range(2))
+        angle = math.degrees(math.acos(float(np.clip(
+            abs(bars[:, 0] @ bars[:, 1]) / (lu * lv), 0.0, 1.0))))
+        opening = min(angle, 180.0 - angle)
+        if max(lu, lv) / min(lu, lv) > 1.35 or abs(opening - self._mesh_opening) > 25.0:
+            return None
+        period = side / math.sqrt(fit.det)
+        return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
+
+    def _blind_scale_agrees(
+        self, result: NetEstimate, level_image: Callable[[int], Image], layout: _Layout
+    ) -> bool:
+        """Do the probe ROIs, fitted blind at the pyramid level where `result` predicts the
+        preferred mesh period, see that period (within 30 %)? A tracked plane was rectified with
+        the previous frame's scale; if the net jumped closer by 2x, the rectified view can show
+        the mesh's second harmonic exactly where the fundamental was expected."""
+        assert result.normal is not None and result.distance_m is not None
+        n_away = -np.asarray(result.normal, dtype=np.float64)
+        centre = layout.probes[layout.levels[0]][0]
+        a = self.mesh.cell_area_m2 * max(float(n_away @ centre.ray), 1e-6) ** 3 / (
+            result.distance_m**2)
+        period = math.sqrt(a / abs(float(np.linalg.det(centre.jacobian))))
+        want = math.log2(max(period / self.settings.preferred_period_px, 1.0))
+        first = min(layout.levels, key=lambda lv: abs(lv - want))
+        # That level and the coarser ones: a mesh twice or four times as coarse as predicted
+        # has too few cycles for the ROIs of the predicted level, but not for coarser ones.
+        coarser: list[float] = []
+        for level in [lv for lv in layout.levels if first <= lv <= first + 2]:
+            for g in layout.probes[level]:
+                m = self._measure(level_image(level), g, level)
+                if not m.valid or m.fit is None:
+                    continue
+                a_g = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / (
+                    result.distance_m**2)
+                predicted = math.sqrt(a_g / abs(float(np.linalg.det(g.jacobian))))
+                ratio = m.size * 2**level / math.sqrt(m.fit.det) / predicted
+                if ratio > 1.5:  # coarser than predicted: the net is nearer
+                    coarser.append(ratio)
+        # A mesh coarser than predicted explains the predicted one (its harmonics), never the
+        # other way round: two probes agreeing on a coarser mesh overrule the tracked plane.
+        if len(coarser) >= 2 and max(coarser) / min(coarser) < 1.4:
+            return False
+        # So does a mesh so coarse that it fills the whole frame with a few cycles.
+        whole = self._whole_lattice(level_image(0))
+        if whole is not None:
+            side, fit = whole
+            if fit.inliers >= 3 and fit.mean_snr >= 4.0 and fit.inlier_weight_fraction >= 0.5 and (
+                side / math.sqrt(fit.det) > 1.5 * period
+            ):
+                return False
+        return True
+
+    def _whole_lattice(
+        self, gray: Image, twine: bool = False
+    ) -> tuple[int, LatticeFit] | None:
+        """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
+        None when there is none (or, with `twine`, when its harmonics are not those of twine:
+        a brick wall or a checkerboard filling the view is not a net too close)."""
+        import cv2
+
+        h, w = gray.shape
+        side = min(h, w)
+        y0, x0 = (h - side) // 2, (w - side) // 2
+        small = np.asarray(cv2.resize(
+            np.asarray(gray[y0 : y0 + side, x0 : x0 + side], dtype=np.float32), (64, 64),
+            interpolation=cv2.INTER_AREA), dtype=np.float32)
+        peaks, snr, logp = self._whole.analyse(small)
+        fit = self._lattice.fit(peaks)
+        if fit is None or (twine and _twine_profile(self._whole, snr, logp, fit.basis, 1)):
+            return None
+        return side, fit
+
+    def _period_at_centre(self, layout: _Layout, range_m: float) -> float:
+        """Mesh period (pixels) where the optical axis meets a net at this range, facing it."""
+        cam = layout.camera
+        return math.sqrt(cam.fx * cam.fy) * math.sqrt(self.mesh.cell_area_m2) / range_m
+
+    def _prior_rois(self, prior: NetEstimate, layout: _Layout) -> list[_Roi]:
+        """The previous estimate's ROI lattices, as guides for the first rectified pass."""
+        used = [r for r in prior.rois if r.used_in_fit and r.reciprocal is not None]
+        if not used:
+            return []
+        geoms = self._centre_geometries(layout.camera, np.array([r.center_px for r in used]))
+        out = []
+        for r, g in zip(used, geoms, strict=True):
+            assert r.reciprocal is not None
+            m = _Roi(geometry=g, level=r.level, size=0, fit=None, peaks=r.peaks,
+                     reciprocal_px=np.array(r.reciprocal, dtype=np.float64).T, valid=True)
+            out.append(m)
+        return out
+
+    def _cold(
+        self, level_image: Callable[[int], Image], layout: _Layout, timings: dict[str, float]
+    ) -> NetEstimate:
+        t1 = time.perf_counter()
+        order, probes = self._level_order(layout, level_image)
+        timings["scale_search"] = (time.perf_counter() - t1) * 1e3
+        best: NetEstimate | None = None
+        tried: list[NetEstimate] = []
+
+        def attempt(seed: NetEstimate, level: int, rois: list[_Roi]) -> NetEstimate | None:
+            if any(_agrees(seed, t, 0.05, 5.0) for t in tried):
+                return None
+            tried.append(seed)
+            return self._refine(seed, level_image, layout, timings, level, rois)
+
+        if order:
+            # The probes are spread over the frame: when they all agree on a plane, that plane
+            # seeds the rectified pass and the unrectified grid pass is not needed.
+            seed = self._conclude_seed(probes, order[0], timings)
+            if seed is not None and seed.rois_used == len(probes):
+                quick = attempt(seed, order[0], probes)
+                if quick is not None and quick.detected:
+                    return quick
+                best = quick
         # Normally the two best levels at most; when the probes saw nothing (no net, or fish
         # over every probe) the full grid at every level.
-        searched = order[:2] if order else levels
-        best: NetEstimate | None = None
+        searched = order[:2] if order else list(layout.levels)
         for level in searched:
-            result = self._estimate_at(level_image, level, w, h, timings)
-            if best is None or result.confidence > best.confidence:
-                best = result
-            if result.detected:
-                break
+            t0 = time.perf_counter()
+            rois = self._measure_grid(level_image, layout, level)
+            timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
+            # Seeds: the plane of the ROIs' cell areas; and, when that fails (few ROIs see the
+            # net, or they are bunched), a plane facing the camera at the distance of the
+            # largest group of ROIs that see the same lattice: the rectified passes find the
+            # tilt from there.
+            seeds = [sd for sd in (self._conclude_seed(rois, level, timings),
+                                   self._facing_seed(rois, level)) if sd is not None]
+            if not seeds:
+                result = _no_net(rois, level, self._count_reason(rois))
+                if best is None or result.confidence > best.confidence:
+                    best = result
+                continue
+            for seed in seeds:
+                refined = attempt(seed, level, rois)
+                if refined is None:
+                    continue
+                if best is None or refined.detected or refined.confidence > best.confidence:
+                    best = refined
+                if refined.detected:
+                    return refined
         if best is None:
-            best = NetEstimate(
-                detected=False, confidence=0.0, reason="no lattice at any scale in the probe ROIs"
-            )
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        return replace(best, timings_ms=timings)
+            best = NetEstimate(detected=False, confidence=0.0,
+                               reason="no lattice at any scale in the probe ROIs")
+        return best
+
+    def _facing_seed(self, rois: list[_Roi], level: int) -> NetEstimate | None:
+        """A plane facing the camera at the distance of the largest group (by evidence) of ROIs
+        whose lattices agree; None unless two ROIs at least agree."""
+        valid = [m for m in rois if m.valid and m.reciprocal_px is not None]
+        best: tuple[float, list[_Roi]] | None = None
+        for ref in valid:
+            assert ref.reciprocal_px is not None
+            group = [m for m in valid if m.reciprocal_px is not None and _lattices_agree(
+                m.reciprocal_px, ref.reciprocal_px, 0.15, 1.3, floor=0.0)]
+            weight = sum(m.weight for m in group)
+            if len(group) >= 2 and (best is None or weight > best[0]):
+                best = (weight, group)
+        if best is None:
+            return None
+        area = float(np.median([m.area_norm for m in best[1]]))
+        distance = math.sqrt(self.mesh.cell_area_m2 / area)
+        return NetEstimate(detected=True, confidence=0.0, normal=(0.0, 0.0, -1.0),
+                           distance_m=distance, range_m=distance, level=level,
+                           rois_used=len(best[1]))
+
+    def _count_reason(self, rois: list[_Roi]) -> str:
+        valid = sum(m.valid for m in rois)
+        if valid < self.settings.min_rois:
+            return f"{valid} of {len(rois)} ROIs show a lattice"
+        return "ROI lattices do not agree on a plane"
 
     def _level_order(
-        self, levels: list[int], level_image: Callable[[int], Image], w: int, h: int
-    ) -> tuple[list[int], list[_RoiMeasurement]]:
+        self, layout: _Layout, level_image: Callable[[int], Image]
+    ) -> tuple[list[int], list[_Roi]]:
         """Levels to try, best first: the finest level where the probes see a lattice whose
         period is not too coarse. Finest first because a coarser level can only lose harmonics
         and gain aliases, and a wrong lattice there can mimic a good period."""
         hi = self.settings.preferred_period_px * 1.8
         coarse: list[int] = []
-        coarse_probes: list[_RoiMeasurement] = []
+        coarse_probes: list[_Roi] = []
+        levels = list(layout.levels)
         for level in levels:
-            probes = [
-                self._measure(level_image(level), g, level)
-                for g in self._layout(w, h, level, "probe")
-            ]
+            probes = [self._measure(level_image(level), g, level) for g in layout.probes[level]]
             period = self._median_period(probes)
             if period is None:
                 continue
-            if period > hi and level != levels[-1]:
+            if period > hi * probes[0].size / 128 and level != levels[-1]:
                 coarse.append(level)
                 coarse_probes = probes
                 continue
@@ -311,217 +642,247 @@ class NetEstimator:
         return coarse[::-1], coarse_probes
 
     def _measure_grid(
-        self, level_image: Callable[[int], Image], level: int, w: int, h: int
-    ) -> list[_RoiMeasurement]:
-        """Measure the grid at `level`; ROIs whose period sits badly there (the far side of a
-        tilted net is finer, the near side coarser) are re-measured one level finer or coarser,
-        keeping the better measurement."""
+        self, level_image: Callable[[int], Image], layout: _Layout, level: int
+    ) -> list[_Roi]:
+        """The grid at `level`; ROIs whose period sits badly there (the far side of a tilted
+        net is finer, the near side coarser) are re-measured one level finer or coarser at the
+        same place, keeping the better measurement."""
         s = self.settings
-        n = s.roi_size
-        grid = self._layout(w, h, level, "grid")
+        grid = layout.grids[level]
         measurements = [self._measure(level_image(level), g, level) for g in grid]
-        top = s.levels - 1
         lo, hi = s.preferred_period_px / 1.8, s.preferred_period_px * 1.8
         for i, m in enumerate(measurements):
-            period = n / math.sqrt(m.fit.det) if m.fit is not None else None
+            period = m.size / math.sqrt(m.fit.det) if m.fit is not None else None
             if period is not None and lo <= period <= hi and m.valid:
                 continue
             alt = level - 1 if period is None or period < lo else level + 1
-            if not 0 <= alt <= top or not self._layout(w, h, alt, "grid"):
+            if alt not in layout.grids:
                 continue
-            geom = self._layout(w, h, alt, f"grid@{level}")[i]
+            geom = self._regrid(layout, grid[i], alt)
             other = self._measure(level_image(alt), geom, alt)
             if other.valid and other.fit is not None and (
-                not m.valid or abs(math.log(n / math.sqrt(other.fit.det) / s.preferred_period_px))
-                < abs(math.log(period / s.preferred_period_px))  # type: ignore[operator]
+                not m.valid or period is None
+                or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
+                < abs(math.log(period / s.preferred_period_px))
             ):
                 measurements[i] = other
         return measurements
 
-    def _estimate_at(
-        self,
-        level_image: Callable[[int], Image],
-        level: int,
-        w: int,
-        h: int,
-        timings: dict[str, float],
-    ) -> NetEstimate:
-        t0 = time.perf_counter()
-        measurements = self._measure_grid(level_image, level, w, h)
-        timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
-        first = self._conclude(measurements, level, np.eye(3), timings)
-        return self._refine_rectified(first, level_image, level, w, h, timings)
+    def _regrid(self, layout: _Layout, geom: _Geometry, level: int) -> _Geometry:
+        """The ROI of `level` centred where `geom` is (clamped into the frame)."""
+        ref = layout.grids[level][0]
+        n = ref.size
+        scale = 2**level
+        w, h = layout.camera.width, layout.camera.height
+        lw, lh = _level_size(w, level), _level_size(h, level)
+        x = round((geom.center_full[0] + 0.5) / scale - n / 2)
+        y = round((geom.center_full[1] + 0.5) / scale - n / 2)
+        x, y = min(max(x, 0), lw - n), min(max(y, 0), lh - n)
+        return self._geometries(layout.camera, [(x, y)], n, level)[0]
 
-    def _refine_rectified(
+    def _conclude_seed(
+        self, rois: list[_Roi], level: int, timings: dict[str, float]
+    ) -> NetEstimate | None:
+        """First plane from unrectified ROIs (biased by the perspective chirp; only a seed)."""
+        t1 = time.perf_counter()
+        valid = [m for m in rois if m.valid and m.fit is not None]
+        plane = None
+        if len(valid) >= self.settings.min_rois:
+            plane = fit_plane(
+                np.array([m.ray for m in valid]), np.array([m.area_norm for m in valid]),
+                np.array([m.fit.relative_area_sigma for m in valid if m.fit is not None]),
+                self.mesh.cell_area_m2, min_rois=self.settings.min_rois,
+            )
+        timings["plane"] = timings.get("plane", 0.0) + (time.perf_counter() - t1) * 1e3
+        if plane is None:
+            return None
+        n = -plane.normal_away
+        used = {id(m) for m, u in zip(valid, plane.used, strict=True) if u}
+        return NetEstimate(
+            detected=True, confidence=0.0, normal=(float(n[0]), float(n[1]), float(n[2])),
+            distance_m=plane.distance_m, range_m=plane.range_m,
+            rois=tuple(_roi_result(m, id(m) in used) for m in rois),
+            rois_used=int(plane.used.sum()), level=level,
+        )
+
+    # -- rectified passes ----------------------------------------------------------------------
+    def _refine(
         self,
         seed: NetEstimate,
         level_image: Callable[[int], Image],
-        level: int,
-        w: int,
-        h: int,
+        layout: _Layout,
         timings: dict[str, float],
-        iterations: int = 3,
+        level: int,
+        seed_rois: list[_Roi] | None = None,
+        iterations: int = 4,
     ) -> NetEstimate:
-        """Rectified passes until one lands on the plane it was rectified with.
-
-        The unrectified pass is biased by the perspective chirp and can be wrong outright on
-        extreme views; only a self-consistent rectified result is reported as a detection.
-        """
-        current = seed
-        for _ in range(iterations):
-            if not current.detected or current.normal is None or current.distance_m is None:
-                break
-            result = self._rectified_pass(level_image, level, current, w, h, timings)
-            if _agrees(result, current):
-                return result
-            current = result
-        return _undetected(
-            seed if not current.detected else current,
-            "the ROIs do not converge on one plane (rectified passes disagree)",
-        )
+        """Rectified passes until one lands on the plane it was rectified with; then the checks
+        that prove the scale and the net, and the verdict. `seed_rois` (the ROIs the seed came
+        from) guide the first pass."""
+        assert seed.normal is not None and seed.distance_m is not None
+        normal = np.asarray(seed.normal, dtype=np.float64)
+        distance = float(seed.distance_m)
+        hints: F64 | None = None
+        guide_rois = seed_rois
+        rectified_once = False
+        footprint_scale = 1.0
+        previous: tuple[F64, float] | None = None
+        last: _Pass | None = None
+        corrected = 0
+        for _ in range(iterations + 2):
+            t0 = time.perf_counter()
+            # The first pass is rectified with a rough plane (the seed): its ROIs' lattices still
+            # differ by the residual perspective, so agreement is judged loosely there.
+            p = self._rectified_pass(level_image, layout, normal, distance, hints, level,
+                                     guide_rois, None if rectified_once else 2.5 *
+                                     self.settings.lattice_tolerance, footprint_scale)
+            guide_rois = None
+            rectified_once = True
+            timings["rectified"] = timings.get("rectified", 0.0) + (
+                time.perf_counter() - t0) * 1e3
+            last = p
+            if p.consensus is not None and p.plane is None and (
+                hints is None or footprint_scale == 1.0
+            ):
+                # Some ROIs agree on a lattice but too few for a plane: look again with that
+                # lattice as the guide (faint peaks where it predicts them), then once more
+                # with smaller ROIs, which fit between what hides the net (boards, fish).
+                if hints is not None:
+                    footprint_scale = 0.6
+                hints = p.consensus
+                rectified_once = False
+                continue
+            if p.plane is None or p.consensus is None:
+                return self._verdict(p, None, layout, p.note or "ROI lattices do not agree")
+            n_new = -(p.rotation.T @ p.plane.normal_away)
+            n_new /= np.linalg.norm(n_new)
+            d_new = p.plane.distance_m
+            # Proof of scale: coarser-mesh lattice points must be empty in the averaged spectrum.
+            factor = self._scale_check(p)
+            if factor is not None:
+                if corrected >= 2:
+                    return self._verdict(p, None, layout,
+                                         "mesh scale not proved (peaks between the lattice's)")
+                corrected += 1
+                # The lattice was a harmonic: the mesh is coarser, the net nearer.
+                distance = d_new / math.sqrt(factor)
+                normal = n_new
+                hints = None
+                previous = None
+                continue
+            hints = p.consensus
+            step = (abs(d_new / distance - 1.0), math.degrees(math.acos(
+                float(np.clip(np.dot(n_new, normal), -1.0, 1.0)))))
+            # Converged when the pass moved the plane by less than its own uncertainty, or by
+            # less than 5 % in scale and 1.5 deg in tilt: a scale error does not distort the
+            # rectified view (only the period changes), and a small tilt error only by its
+            # second order, so the pass measured the plane without the chirp already.
+            rel_sigma, sigma_n = _plane_sigmas(p)
+            if step[0] < max(0.05, 1.5 * rel_sigma) and step[1] < max(1.5, 1.5 * sigma_n):
+                return self._verdict(p, (n_new, d_new, previous, step), layout, "")
+            previous = (normal, distance)
+            normal, distance = n_new, d_new
+        assert last is not None
+        return self._verdict(last, None, layout,
+                             "the ROIs do not converge on one plane (rectified passes disagree)")
 
     def _rectified_pass(
         self,
         level_image: Callable[[int], Image],
+        layout: _Layout,
+        normal: F64,
+        distance: float,
+        hint: F64 | None,
         level: int,
-        seed: NetEstimate,
-        w: int,
-        h: int,
-        timings: dict[str, float],
-    ) -> NetEstimate:
-        """Measure the grid in a virtual camera facing the seed's plane, and fit the plane."""
-        assert seed.normal is not None and seed.distance_m is not None
-        t0 = time.perf_counter()
-        rotation = _rotation_to_z(-np.asarray(seed.normal))
-        grid = self._layout(w, h, level, "grid")
-        # The seed's own lattice at each ROI (when it measured the same grid) spares the
-        # lattice search its hypotheses: the rectified lattice is that one, resampled.
-        hints: list[Mat2 | None] = [None] * len(grid)
-        if len(seed.rois) == len(grid):
-            hints = [r.reciprocal if r.detected else None for r in seed.rois]
-        # In the rectified view the lattice is the same in every ROI (the net faces the virtual
-        # camera), so the last good ROI's lattice is the expected one for the next.
-        rect: list[_RoiMeasurement] = []
-        shared: F64 | None = None
-        for g, hint in zip(grid, hints, strict=True):
-            m = self._measure_rectified(level_image, g, rotation, seed.distance_m, hint, shared)
-            if m.valid and m.fit is not None:
-                shared = m.fit.basis
-            rect.append(m)
-        # A seed at the wrong scale (a wrong lattice density in the first pass, fish) shows as
-        # good lattices that all miss the intended period by the same factor: the true distance
-        # is the seed's divided by that factor. Measure once more at the corrected scale.
-        # The majority decides: a few ROIs can agree on a wrong density while most see the
-        # true lattice at the "wrong" period.
-        valid = sum(m.valid for m in rect)
-        ratios = [m.period_ratio for m in rect if not m.valid and math.isfinite(m.period_ratio)]
-        if len(ratios) > valid and len(ratios) >= self.settings.min_rois:
-            ratio = float(np.median(ratios))
-            if abs(math.log(ratio)) > math.log(1.35):
-                distance = seed.distance_m / ratio
-                rect = [
-                    self._measure_rectified(level_image, g, rotation, distance, None)
-                    for g in grid
-                ]
-        timings["rectified"] = timings.get("rectified", 0.0) + (time.perf_counter() - t0) * 1e3
-        return self._conclude(rect, level, rotation, timings)
-
-    def _conclude(
-        self,
-        measurements: list[_RoiMeasurement],
-        level: int,
-        rotation: F64,
-        timings: dict[str, float],
-    ) -> NetEstimate:
-        """Plane fit over the valid ROIs and the verdict. `rotation` maps camera rays to the
-        frame the measurements' rays and areas are expressed in."""
-        t1 = time.perf_counter()
-        valid = [m for m in measurements if m.valid and m.fit is not None]
-        plane = None
-        if len(valid) >= self.settings.min_rois:
-            rays = np.array([m.ray for m in valid])
-            areas = np.array([m.area_norm for m in valid])
-            sigmas = np.array([m.fit.relative_area_sigma for m in valid if m.fit is not None])
-            plane = fit_plane(
-                rays, areas, sigmas, self.mesh.cell_area_m2, min_rois=self.settings.min_rois
-            )
-        timings["plane"] = timings.get("plane", 0.0) + (time.perf_counter() - t1) * 1e3
-        used_ids = set()
-        if plane is not None:
-            used_ids = {id(m) for m, u in zip(valid, plane.used, strict=True) if u}
-        rois = tuple(
-            _roi_result(m, self.settings.roi_size, id(m) in used_ids) for m in measurements
-        )
-        # Confidence: the share of the grid that shows one consistent net, weighted by how
-        # cleanly each ROI's peaks sit on its lattice and how well the ROIs agree on a plane.
-        scores = [
-            (m.fit.inlier_weight_fraction * min(1.0, m.fit.mean_snr / 8.0))
-            if id(m) in used_ids and m.fit is not None
-            else 0.0
-            for m in measurements
-        ]
-        coverage = float(np.mean(scores)) if scores else 0.0
-        if plane is None:
-            reason = (
-                f"{len(valid)} of {len(measurements)} ROIs show a lattice"
-                if len(valid) < self.settings.min_rois
-                else "ROI lattices do not agree on a plane"
-            )
-            return NetEstimate(
-                detected=False, confidence=min(coverage, 0.2), rois=rois, level=level,
-                reason=reason,
-            )
-        consistency = math.exp(-plane.relative_rms / 0.03)
-        confidence = float(np.clip(math.sqrt(coverage) * consistency, 0.0, 1.0))
-        detected = confidence >= self.settings.min_confidence
-        n_away = rotation.T @ plane.normal_away
-        n = -n_away / np.linalg.norm(n_away)
-        range_m = plane.distance_m / float(n_away[2])
-        # The range's sigma follows the same first-order propagation as in the fitted frame,
-        # rescaled by the change of the normal's z component.
-        sigma_range = plane.sigma_range_m * range_m / plane.range_m
-        return NetEstimate(
-            detected=detected,
-            confidence=confidence,
-            normal=(float(n[0]), float(n[1]), float(n[2])) if detected else None,
-            distance_m=plane.distance_m if detected else None,
-            range_m=range_m if detected else None,
-            sigma_distance_m=plane.sigma_distance_m if detected else None,
-            sigma_range_m=sigma_range if detected else None,
-            sigma_normal_deg=plane.sigma_normal_deg if detected else None,
-            rois=rois,
-            rois_used=int(plane.used.sum()),
-            level=level,
-            reason="" if detected else f"confidence {confidence:.2f} below threshold",
-        )
-
-    def _measure_rectified(
-        self,
-        level_image: Callable[[int], Image],
-        geom: _RoiGeometry,
-        rotation: F64,
-        distance_m: float,
-        hint: Mat2 | None = None,
-        expected_out: F64 | None = None,
-    ) -> _RoiMeasurement:
-        """Measure one ROI in a virtual camera that faces the net squarely.
-
-        The patch is resampled through the homography of a camera rotated by `rotation` (so the
-        net plane becomes fronto-parallel and its lattice uniform), scaled so the mesh period is
-        the preferred one. Lens distortion enters through its local affine approximation at the
-        ROI centre. The lattice found is then the local lattice at the ROI centre, without the
-        perspective chirp across the ROI.
-        """
-        import cv2
-
+        seed_rois: list[_Roi] | None = None,
+        tolerance: float | None = None,
+        footprint_scale: float = 1.0,
+    ) -> _Pass:
+        """Measure the ROIs in a virtual camera facing the plane, then fit the plane to the ROIs
+        whose lattice agrees with the consensus."""
         s = self.settings
-        n = s.roi_size
+        rotation = _rotation_to_z(-normal)
+        n_away = -normal
+        # Mesh period at each ROI centre (source pixels) predicted by the plane: the cell area
+        # in normalised units, A (n . r)^3 / d^2, through the lens Jacobian.
+        # The footprint: the preferred number of mesh cycles where the mesh looks coarsest,
+        # but at most half the frame's smaller side (so the grid keeps a baseline both ways);
+        # at least 5 cycles (a very coarse mesh: fewer, larger ROIs).
+        corners = self._centre_geometries(layout.camera, np.array(
+            [(x, y) for x in (0.0, layout.camera.width / 2, layout.camera.width - 1.0)
+             for y in (0.0, layout.camera.height / 2, layout.camera.height - 1.0)]))
+        periods = []
+        for g in corners:
+            a = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / distance**2
+            periods.append(math.sqrt(a / abs(float(np.linalg.det(g.jacobian)))))
+        p_max = max(periods)
+        preferred_cycles = s.roi_size / s.preferred_period_px
+        small = max(64, s.roi_size // 2)
+        frame_side = float(min(layout.camera.width, layout.camera.height))
+        footprint = min(preferred_cycles * p_max, layout.max_footprint) * footprint_scale
+        # A coarse mesh: larger ROIs (fewer rows) rather than too few cycles to prove the
+        # scale with.
+        footprint = min(max(footprint, 6.0 * p_max), 0.9 * frame_side)
+        cycles = footprint / p_max
+        size = s.roi_size if cycles * s.preferred_period_px >= 0.75 * s.roi_size else small
+        period_out = size / cycles
+        grid = self._rect_grid(layout, footprint, size)
+        expected = hint
+        if expected is None and seed_rois:
+            expected = self._guide(seed_rois, rotation, distance, size, period_out)
+        rois = [
+            self._measure_rectified(level_image, g, rotation, distance, size, period_out,
+                                    expected)
+            for g in grid
+        ]
+        tol = tolerance or s.lattice_tolerance
+        consensus = _consensus(rois, tol)
+        note = ""
+        if consensus is None:
+            # A seed at the wrong scale shows as good lattices that all miss the intended
+            # period by the same factor: the true distance is the seed's divided by it. The
+            # majority decides; measure once more at the corrected scale.
+            ratios = [m.period_ratio for m in rois if math.isfinite(m.period_ratio)]
+            if len(ratios) >= s.min_rois:
+                ratio = float(np.median(ratios))
+                if abs(math.log(ratio)) > math.log(1.35):
+                    distance = distance / ratio
+                    rois = [self._measure_rectified(level_image, g, rotation, distance, size,
+                                                    period_out, None) for g in grid]
+                    consensus = _consensus(rois, tol)
+            if consensus is None:
+                note = f"{sum(m.valid for m in rois)} of {len(rois)} ROIs show a lattice, " \
+                       "no lattice shared by enough of them"
+        plane = None
+        if consensus is not None:
+            agreeing = [m for m in rois if m.agrees]
+            if len(agreeing) >= s.min_rois:
+                plane = fit_plane(
+                    np.array([m.ray for m in agreeing]),
+                    np.array([m.area_norm for m in agreeing]),
+                    np.array([m.fit.relative_area_sigma for m in agreeing if m.fit is not None]),
+                    self.mesh.cell_area_m2, min_rois=s.min_rois,
+                )
+                if plane is not None:
+                    for m, used in zip(agreeing, plane.used, strict=True):
+                        m.agrees = bool(used)
+                else:
+                    note = "ROI lattices agree but not on one plane"
+            else:
+                note = f"only {len(agreeing)} ROIs share one lattice"
+        return _Pass(rois, rotation, size, period_out, consensus, plane, level, note)
+
+    def _rect_map(
+        self, geom: _Geometry, rotation: F64, distance_m: float, size: int, period_out: float
+    ) -> tuple[F64, F64, float, F64, float]:
+        """The resampling of one rectified ROI: the homography output pixel -> full-resolution
+        pixel, its local Jacobian at the centre, source pixels per output pixel, the centre's
+        virtual ray and the virtual normalised units per output pixel."""
         virt = rotation @ geom.ray
         virt = virt / virt[2]
-        # Normalised virtual units per output pixel so the mesh period is preferred_period_px.
-        period_norm = math.sqrt(self.mesh.cell_area_m2) / distance_m
-        t = period_norm / s.preferred_period_px
-        half = (n - 1) / 2.0
+        # Normalised virtual units per output pixel so the mesh period is period_out.
+        t = math.sqrt(self.mesh.cell_area_m2) / distance_m / period_out
+        half = (size - 1) / 2.0
         to_virtual = np.array(
             [[t, 0.0, virt[0] - t * half], [0.0, t, virt[1] - t * half], [0.0, 0.0, 1.0]]
         )
@@ -531,12 +892,62 @@ class NetEstimator:
         to_pixel[:2, :2] = jinv
         to_pixel[:2, 2] = centre - jinv @ geom.ray[:2]
         full = to_pixel @ rotation.T @ to_virtual  # output pixel -> full-res pixel (homogeneous)
-        # Source pixels per output pixel at the centre decide the pyramid level to sample from.
         c0 = full @ np.array([half, half, 1.0])
         c1 = full @ np.array([half + 1.0, half, 1.0])
         c2 = full @ np.array([half, half + 1.0, 1.0])
         jm = np.stack([c1[:2] / c1[2] - c0[:2] / c0[2], c2[:2] / c2[2] - c0[:2] / c0[2]], axis=1)
         step = math.sqrt(abs(float(np.linalg.det(jm))))
+        return full, jm, step, virt, t
+
+    def _guide(
+        self, seed_rois: list[_Roi], rotation: F64, distance_m: float, size: int,
+        period_out: float,
+    ) -> F64 | None:
+        """The lattice the first rectified pass should find, from the seed's ROIs: each ROI's
+        lattice (cycles per pixel) carried into the rectified view at its place (k . x is
+        invariant: k_out = J^T k_pixel), and the one most of them agree on."""
+        mapped: list[tuple[F64, float]] = []
+        for m in seed_rois:
+            if not m.valid or m.reciprocal_px is None:
+                continue
+            _, jm, _, _, _ = self._rect_map(m.geometry, rotation, distance_m, size, period_out)
+            basis = reduce_basis(jm.T @ m.reciprocal_px * size)
+            lengths = np.linalg.norm(basis, axis=0)
+            if lengths.min() < 2.0 or lengths.max() > 0.45 * size:
+                continue
+            mapped.append((basis, max(m.weight, 0.2)))
+        best: tuple[float, F64] | None = None
+        for ref, _ in mapped:
+            total = sum(w for b, w in mapped if _lattices_agree(b, ref, 0.1, 1.3))
+            if best is None or total > best[0]:
+                best = (total, ref)
+        if best is None or sum(1 for b, _ in mapped if _lattices_agree(b, best[1], 0.1)) < 2:
+            return None
+        return best[1]
+
+    def _measure_rectified(
+        self,
+        level_image: Callable[[int], Image],
+        geom: _Geometry,
+        rotation: F64,
+        distance_m: float,
+        size: int,
+        period_out: float,
+        expected: F64 | None,
+    ) -> _Roi:
+        """Measure one ROI in a virtual camera that faces the net squarely.
+
+        The patch is resampled through the homography of a camera rotated by `rotation` (so the
+        net plane becomes fronto-parallel and its lattice uniform), scaled so the mesh period is
+        `period_out`. Lens distortion enters through its local affine approximation at the ROI
+        centre. The lattice found is then the local lattice at the ROI centre, without the
+        perspective chirp across the ROI.
+        """
+        import cv2
+
+        s = self.settings
+        n = size
+        full, jm, step, virt, t = self._rect_map(geom, rotation, distance_m, size, period_out)
         level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
         scale = 2**level
         to_level = np.array(
@@ -547,40 +958,498 @@ class NetEstimator:
             level_image(level), to_level @ full, (n, n),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
         )
-        peaks = self._spectrum.peaks(np.asarray(patch, dtype=np.float32))
-        expected = expected_out
-        if hint is not None:
-            # k . x is invariant: with x_full = jm x_out, k_out = jm^T k_full (per pixel), x n.
-            expected = (jm.T @ np.asarray(hint, dtype=np.float64).T) * n
-        fit = self._lattice.fit(peaks, expected)
-        rect_geom = _RoiGeometry(
-            x0=geom.x0, y0=geom.y0, center_full=geom.center_full, ray=geom.ray,
-            jacobian=geom.jacobian,
-        )
-        meas = _RoiMeasurement(geometry=rect_geom, level=level, fit=fit, peaks=len(peaks))
+        spectrum = self._spectra[n]
+        patch = _normalise_contrast(np.asarray(patch, dtype=np.float32), period_out)
+        peaks, snr, logp = spectrum.analyse(patch)
+        guided = expected is not None
+        if expected is not None:
+            # The lattice is known roughly (the consensus of the previous pass): faint peaks
+            # where it predicts them count too, and it may explain a smaller share of the
+            # peaks (a board or a rope in the ROI adds its own).
+            weak = spectrum.peaks_near(snr, _lattice_points(expected, order=2), s.guided_snr)
+            peaks = _merge_peaks(peaks, weak)
+            fit = self._lattice.fit(peaks, expected, expected_share=0.3)
+        else:
+            fit = self._lattice.fit(peaks)
+        meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
+                    logp=logp,
+                    footprint_px=n * step)
         meas.ray = virt
         if fit is None:
             return meas
         lengths = np.linalg.norm(fit.basis, axis=0)
         period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
-        quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
-            s.min_inlier_fraction
-        )
-        # The rectification was designed to show the mesh at the preferred period; a lattice far
-        # from it means the seed plane was wrong or the ROI shows something else.
-        period_out = n / math.sqrt(fit.det)
-        on_target = abs(math.log(period_out / s.preferred_period_px)) < math.log(1.35)
+        if guided:
+            quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
+        else:
+            quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
+                s.min_inlier_fraction
+            )
+        # The rectification was designed to show the mesh at period_out; a lattice far from it
+        # means the seed plane was wrong or the ROI shows something else.
+        found = n / math.sqrt(fit.det)
+        on_target = abs(math.log(found / period_out)) < math.log(1.35)
         # Resampling cannot restore what the camera never resolved: a mesh finer than ~3.5 px in
         # the source has aliased harmonics and a peak position biased by the pixel response.
-        resolved = period_out * step >= s.min_source_period_px
+        resolved = found * step >= s.min_source_period_px
         k_out = fit.basis / n  # cycles per output pixel
         meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
         # For reporting: the lattice in full-resolution image pixels through the local map.
         meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
         meas.valid = bool(period_ok and quality_ok and on_target and resolved)
-        if period_ok and quality_ok:
-            meas.period_ratio = period_out / s.preferred_period_px
+        if period_ok and quality_ok and resolved:
+            meas.period_ratio = found / period_out
         return meas
+
+    # -- proofs --------------------------------------------------------------------------------
+    def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
+        """Mean whitened spectrum (or, with `power`, mean log power) of the agreeing ROIs."""
+        maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
+        arrays = [a for a in maps if a is not None]
+        if not arrays:
+            return None
+        return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
+
+    def _scale_check(self, p: _Pass) -> int | None:
+        """The index (2, 3, 4, 9 or 16) of a coarser mesh whose extra lattice points carry power in
+        the averaged spectrum of the agreeing ROIs, or None when the scale is proved.
+
+        A mesh's spectrum has peaks only on its own reciprocal lattice. If the lattice found is
+        a sub-lattice (a harmonic pattern: every second or third point of the true one), the
+        true mesh's other points - between the ones found - show in the averaged spectrum even
+        when no single ROI resolved them.
+        """
+        assert p.consensus is not None
+        stacked = self._stack(p)
+        if stacked is None:
+            return None
+        snr, count = stacked
+        spectrum = self._spectra[p.size]
+        k = p.consensus
+        null_level, null_spread = self._null(spectrum, snr, k)
+        fundamentals = _lattice_points(k, order=1)
+        fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
+        threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
+        best: tuple[float, int] | None = None
+        for inv_s in _REFINEMENTS:
+            fine = k @ inv_s
+            idx = abs(round(1.0 / float(np.linalg.det(inv_s))))
+            extra = _extra_points(fine, k, self._spectra[p.size].size)
+            if extra.shape[0] < 2:
+                continue
+            # A real peak there is a local maximum of its own: the skirt of a strong neighbour
+            # (a harmonic two bins away, smeared by what is left of the perspective) is not.
+            found = spectrum.peaks_near(snr, extra, null_level)
+            # Only peaks that are not the lattice's own (the search around a point may climb
+            # onto a neighbouring lattice peak).
+            own = _near_lattice(found.k, k, 1.5)
+            values = found.snr[~own]
+            # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
+            # of them (the others are weak cross terms, or outside the band).
+            level = float(values.max()) if values.size else null_level
+            if level > threshold and (best is None or level > best[0]):
+                best = (level, idx)
+        del count
+        return None if best is None else best[1]
+
+    @staticmethod
+    def _null(spectrum: SpectrumAnalyzer, snr: F32, k: F64) -> tuple[float, float]:
+        """Level and spread of the averaged whitened spectrum where there is no peak: median and
+        scaled MAD over the whole analysed band (peaks are a few bins among thousands). Taken
+        as `sample` takes a peak's value (the largest of the 2x2 bins around a point), so the
+        two compare like with like."""
+        del k
+        band = np.maximum(np.maximum(snr[:-1, :-1], snr[1:, :-1]),
+                          np.maximum(snr[:-1, 1:], snr[1:, 1:]))[spectrum.valid[:-1, :-1]]
+        if band.size < 16:
+            return 0.0, 1.0
+        level = float(np.median(band))
+        return level, float(1.4826 * np.median(np.abs(band - level)))
+
+    def _mesh_check(self, p: _Pass) -> tuple[float, str]:
+        """Measured opening angle of the rectified mesh, and why it is not the configured net
+        ("" when it is). Bars of a net are equal; its opening angle is configured."""
+        assert p.consensus is not None
+        # Real-space basis (columns), rectified pixels.
+        edges = np.asarray(np.linalg.inv(p.consensus).T, dtype=np.float64)
+        bars = _bar_pair(edges)
+        u, v = bars[:, 0], bars[:, 1]
+        lu, lv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+        angle = math.degrees(math.acos(float(np.clip(abs(u @ v) / (lu * lv), 0.0, 1.0))))
+        opening = min(angle, 180.0 - angle)
+        aspect = max(lu, lv) / min(lu, lv)
+        s = self.settings
+        if aspect - 1.0 > s.aspect_tolerance:
+            return opening, (f"the grid's cells are not a net's (sides {aspect:.2f}:1, angle "
+                             f"{opening:.0f} deg)")
+        bias = math.sqrt(math.sin(math.radians(opening)) / math.sin(math.radians(
+            self._mesh_opening))) - 1.0
+        if abs(opening - self._mesh_opening) > s.opening_tolerance_deg or abs(bias) > 0.025:
+            return opening, (f"mesh opening angle measured {opening:.0f} deg, configured "
+                             f"{self._mesh_opening:.0f} deg: check mesh.opening_angle_deg")
+        return opening, ""
+
+    def _profile_check(self, p: _Pass) -> str:
+        """Does the averaged spectrum look like twine (thin lines crossing) rather than a
+        checkerboard or a brick bond? ("" when it does, or when it cannot tell.)
+
+        A net's image is 1 - (1 - p1(s1)) (1 - p2(s2)) for pulse trains p1, p2 of duty d1, d2
+        across the two bar families (s1, s2: coordinates dual to the bars). Its Fourier
+        amplitudes are |F(h, 0)| = |c1_h| (1 - d2), |F(0, l)| = |c2_l| (1 - d1) and
+        |F(h, l)| = |c1_h c2_l|, with |c_1| = sin(pi d) / pi < 1 - d. Hence, whatever the twine's
+        width, blur (which lowers higher frequencies more) or contrast:
+        - the cross terms are weaker than the fundamentals: F(1, +-1) < F(1, 0), F(0, 1);
+        - F(2, 1) <= F(1, 1), since |c_2 / c_1| = |cos(pi d)| <= 1.
+        A running brick bond breaks the first (its continuous mortar lines run along a diagonal
+        of the cell), a checkerboard the second (nothing at (1, +-1), the even harmonics of a
+        50 % square wave, but 1/3 of the fundamental at (2, 1)). Amplitudes are compared in the
+        averaged log power, only where the whitened spectrum shows a significant peak; a blurred
+        grid that shows nothing but its fundamentals cannot be told from a net.
+        """
+        assert p.consensus is not None
+        stacked = self._stack(p)
+        power = self._stack(p, power=True)
+        if stacked is None or power is None:
+            return ""
+        return _twine_profile(self._spectra[p.size], stacked[0], power[0], p.consensus,
+                              stacked[1])
+
+    # -- the verdict ---------------------------------------------------------------------------
+    def _verdict(
+        self,
+        p: _Pass,
+        converged: tuple[F64, float, tuple[F64, float] | None, tuple[float, float]] | None,
+        layout: _Layout,
+        failure: str,
+    ) -> NetEstimate:
+        s = self.settings
+        rois = tuple(_roi_result(m, m.agrees) for m in p.rois)
+        agreeing = [m for m in p.rois if m.agrees]
+        # Confidence grows with the evidence that adds up over the agreeing ROIs (each ROI's
+        # weight: the share of its peaks on the lattice and how clear they are), not with the
+        # share of the frame: a net half hidden by boards is as sure a net.
+        evidence = float(sum(m.weight for m in agreeing))
+        confidence = 1.0 - math.exp(-evidence / 2.0)
+        opening: float | None = None
+        if p.consensus is not None:
+            opening, shape = self._mesh_check(p)
+            if not failure and shape:
+                failure = shape
+            if not failure:
+                failure = self._profile_check(p)
+        if not failure and p.size / p.period_out < 5.5:
+            failure = ("mesh too coarse for the ROIs: fewer than 5.5 cycles each, its scale "
+                       "cannot be proved")
+        if failure or converged is None or p.plane is None:
+            return NetEstimate(
+                detected=False, confidence=min(confidence, 0.2), rois=rois,
+                rois_used=len(agreeing), level=p.level,
+                reason=failure or "no self-consistent plane",
+                measured_opening_deg=opening,
+            )
+        n_new, d_new, previous, step = converged
+        plane = p.plane
+        range_m = d_new / float(-n_new[2])
+        # Uncertainty from the data: the plane fit's covariance (scaled by the ROI-to-ROI
+        # scatter) inflated for few degrees of freedom and for overlapping ROIs, plus the last
+        # pass-to-pass change and a floor for the model (net deformation, resampling).
+        inflation = _inflation(p)
+        # The pass-to-pass change counts only between passes over this frame: the first pass
+        # of a tracked frame moved from the previous frame's plane, which is the net's motion.
+        change = step if previous is not None else (0.0, 0.0)
+        sigma_d = math.hypot(plane.sigma_distance_m * inflation, change[0] * d_new,
+                             0.002 * d_new)
+        sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
+                             change[0] * range_m, 0.002 * range_m)
+        sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
+        if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
+            return NetEstimate(
+                detected=False, confidence=min(confidence, 0.2), rois=rois,
+                rois_used=len(agreeing), level=p.level, measured_opening_deg=opening,
+                reason=(f"plane too uncertain (range +- {sigma_r / range_m:.0%}, normal +- "
+                        f"{sigma_n:.0f} deg): the ROIs that see the net do not span the view"),
+            )
+        detected = confidence >= s.min_confidence
+        return NetEstimate(
+            detected=detected,
+            confidence=confidence,
+            normal=(float(n_new[0]), float(n_new[1]), float(n_new[2])) if detected else None,
+            distance_m=d_new if detected else None,
+            range_m=range_m if detected else None,
+            sigma_distance_m=sigma_d if detected else None,
+            sigma_range_m=sigma_r if detected else None,
+            sigma_normal_deg=sigma_n if detected else None,
+            rois=rois,
+            rois_used=len(agreeing),
+            level=p.level,
+            reason="" if detected else f"confidence {confidence:.2f} below threshold",
+            measured_opening_deg=opening,
+        )
+
+
+# -- helpers --------------------------------------------------------------------------------------
+
+
+def _twine_profile(
+    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int
+) -> str:
+    """The twine-profile test of `NetEstimator._profile_check` on a (possibly averaged over
+    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins)."""
+    null_level, null_spread = NetEstimator._null(spectrum, snr, basis)
+    significant = null_level + max(2.0 * null_spread, 1.5)
+    edges = np.asarray(np.linalg.inv(basis).T, dtype=np.float64)
+    dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
+    orders = [(1, 0), (0, 1), (1, 1), (1, -1), (2, 1), (1, 2), (2, -1), (1, -2)]
+    pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
+    sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
+    amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
+    # Noise on a difference of averaged log powers; a factor 2 in power is log 2 = 0.7.
+    margin = max(1.0, 2.5 * 1.28 / math.sqrt(max(count, 1)))
+
+    def real(o: tuple[int, int]) -> bool:
+        return bool(math.isfinite(sig[o]) and sig[o] > significant)
+
+    fundamental = min(amp[(1, 0)], amp[(0, 1)])
+    for cross in ((1, 1), (1, -1)):
+        if real(cross) and math.isfinite(fundamental) and amp[cross] > fundamental + margin:
+            return ("a brick-like grid, not twine: the cell's diagonal is stronger than its "
+                    "sides (continuous lines along a diagonal)")
+    diagonal = max(amp[(1, 1)], amp[(1, -1)])
+    for high in ((2, 1), (1, 2), (2, -1), (1, -2)):
+        if real(high) and math.isfinite(diagonal) and amp[high] > diagonal + margin:
+            return ("a checkerboard-like grid (50 % squares), not twine: stronger cross "
+                    "terms at (2, 1) than at (1, 1)")
+    return ""
+
+
+def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
+    """The lattice most of the ROIs' evidence agrees on (reduced basis, bins), refined as the
+    weighted mean of the agreeing ROIs' bases; marks those ROIs. None when fewer than two agree.
+
+    Agreement is judged on the lattice's orientation and shape (the basis over the square root
+    of its cell area) within `tolerance`, and on its scale only loosely (30 %): in a pass
+    rectified with a slightly wrong plane the scale still varies across the view, and that
+    variation is what the plane fit measures.
+    """
+    cands = [m for m in rois if m.valid and m.fit is not None]
+    if len(cands) < 2:
+        return None
+    weights = [m.weight for m in cands]
+    best: tuple[float, int] | None = None
+    for i, ref in enumerate(cands):
+        assert ref.fit is not None
+        total = sum(w for m, w in zip(cands, weights, strict=True)
+                    if _same_lattice(m, ref.fit.basis, tolerance))
+        if best is None or total > best[0]:
+            best = (total, i)
+    assert best is not None
+    ref_fit = cands[best[1]].fit
+    assert ref_fit is not None
+    ref_basis = ref_fit.basis
+    members = [m for m in cands if _same_lattice(m, ref_basis, tolerance)]
+    if len(members) < 2:
+        return None
+    acc = np.zeros((2, 2))
+    wsum = 0.0
+    log_scale = 0.0
+    for m in members:
+        assert m.fit is not None
+        mapped = _aligned(m.fit.basis, ref_basis)
+        scale = math.sqrt(abs(float(np.linalg.det(mapped))))
+        acc += m.weight * mapped / scale
+        log_scale += m.weight * math.log(scale)
+        wsum += m.weight
+    shape = acc / wsum
+    consensus = reduce_basis(shape / math.sqrt(abs(float(np.linalg.det(shape))))
+                             * math.exp(log_scale / wsum))
+    for m in rois:
+        m.agrees = m in members and _same_lattice(m, consensus, tolerance)
+    return consensus
+
+
+def _normalise_contrast(patch: F32, period: float) -> F32:
+    """Local contrast normalisation: the patch minus its local mean, over its local standard
+    deviation (Gaussian windows of about one and two mesh periods).
+
+    Real views put high-contrast things beside a faint net: marker boards with white fiducials,
+    ropes, fish. Their edges would dominate the spectrum by sheer amplitude; normalised, every
+    region counts by how periodic it is, not how bright. The mesh's lattice is unchanged (a
+    smooth gain does not move spectral peaks).
+    """
+    import cv2
+
+    # Box filters of about one and two periods (cheaper than Gaussians, and just as smooth on
+    # the scale of the ROI's spectral resolution).
+    k1 = max(3, int(round(1.6 * period)) | 1)
+    k2 = max(3, int(round(3.2 * period)) | 1)
+    mean = cv2.blur(patch, (k1, k1), borderType=cv2.BORDER_REFLECT)
+    detail = patch - mean
+    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT)
+    floor = 1e-3 + 0.1 * float(np.median(var))
+    return np.asarray(detail / np.sqrt(var + floor), dtype=np.float32)
+
+
+def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
+    """Strong peaks plus the weak ones not already among them (within half a bin, either
+    sign)."""
+    if len(weak) == 0:
+        return strong
+    if len(strong) == 0:
+        return weak
+    d_plus = np.linalg.norm(weak.k[:, None, :] - strong.k[None, :, :], axis=2)
+    d_minus = np.linalg.norm(weak.k[:, None, :] + strong.k[None, :, :], axis=2)
+    new = (np.minimum(d_plus, d_minus).min(axis=1) > 0.5)
+    if not new.any():
+        return strong
+    return Peaks(np.concatenate([strong.k, weak.k[new]]),
+                 np.concatenate([strong.snr, weak.snr[new]]))
+
+
+def _aligned(basis: F64, ref: F64) -> F64:
+    """`basis` expressed as the same lattice vectors as `ref` (unimodular change of basis)."""
+    m = np.rint(np.linalg.solve(ref, basis))
+    return np.asarray(basis @ np.linalg.inv(m), dtype=np.float64)
+
+
+def _same_lattice(roi: _Roi, ref: F64, tolerance: float, max_scale: float = 1.3) -> bool:
+    """Does the ROI's lattice agree with `ref` (2x2, bins)? See `_lattices_agree`."""
+    if roi.fit is None:
+        return False
+    return _lattices_agree(roi.fit.basis, ref, tolerance, max_scale)
+
+
+def _lattices_agree(
+    basis: F64, ref: F64, tolerance: float, max_scale: float = 1.3, floor: float = 0.5
+) -> bool:
+    """Do two lattices (2x2 bases) agree: after a unimodular change of basis and removing the
+    scale, each basis vector within `tolerance` of its length (but not less than `floor`);
+    the scales (square roots of the cell areas) within a factor `max_scale`.
+
+    Plain floats: this runs for every pair of ROIs, where numpy's per-call overhead dominates.
+    """
+    a, b, c, d = float(basis[0, 0]), float(basis[0, 1]), float(basis[1, 0]), float(basis[1, 1])
+    ra, rb, rc, rd = float(ref[0, 0]), float(ref[0, 1]), float(ref[1, 0]), float(ref[1, 1])
+    det_b, det_r = a * d - b * c, ra * rd - rb * rc
+    if det_r == 0.0 or det_b == 0.0:
+        return False
+    scale = math.sqrt(abs(det_b / det_r))
+    if not 1.0 / max_scale <= scale <= max_scale:
+        return False
+    # m = round(inv(scale * ref) @ basis)
+    inv = 1.0 / (scale * det_r)
+    m00 = round((rd * a - rb * c) * inv)
+    m01 = round((rd * b - rb * d) * inv)
+    m10 = round((-rc * a + ra * c) * inv)
+    m11 = round((-rc * b + ra * d) * inv)
+    if abs(m00 * m11 - m01 * m10) != 1:
+        return False
+    # Residual of each column: basis[:, j] - scale * ref @ m[:, j]. Relative to the vector's
+    # length, but never below `floor` bins: a lattice spanning few cycles with weak peaks is
+    # located to a few tenths of a bin.
+    for x, y, p, q in ((a, c, m00, m10), (b, d, m01, m11)):
+        ex = x - scale * (ra * p + rb * q)
+        ey = y - scale * (rc * p + rd * q)
+        if math.hypot(ex, ey) > max(tolerance * math.hypot(x, y), floor):
+            return False
+    return True
+
+
+def _lattice_points(k: F64, order: int) -> F64:
+    """Lattice points h k1 + l k2 with |h|, |l| <= order (one of each +-pair)."""
+    pts = []
+    for h in range(0, order + 1):
+        for j in range(-order, order + 1):
+            if (h, j) == (0, 0) or (h == 0 and j < 0):
+                continue
+            pts.append(h * k[:, 0] + j * k[:, 1])
+    return np.array(pts)
+
+
+def _near_lattice(points: F64, basis: F64, radius: float) -> npt.NDArray[np.bool_]:
+    """Which points (m, 2) lie within `radius` bins of a point of the lattice `basis`."""
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    coords = np.linalg.solve(basis, points.T)
+    nearest = basis @ np.rint(coords)
+    return np.asarray(np.linalg.norm(points.T - nearest, axis=0) < radius, dtype=bool)
+
+
+def _extra_points(fine: F64, coarse: F64, size: int) -> F64:
+    """Low-order points of the finer lattice `fine` that are not points of `coarse`, inside
+    the analysed band."""
+    pts = []
+    inv = np.linalg.inv(coarse)
+    for h in range(0, 3):
+        for j in range(-2, 3):
+            if (h, j) == (0, 0) or (h == 0 and j < 0):
+                continue
+            v = h * fine[:, 0] + j * fine[:, 1]
+            c = inv @ v
+            if np.abs(c - np.rint(c)).max() < 1e-6:
+                continue
+            # Too near a point of the coarse lattice to be told from its skirt.
+            if float(np.hypot(*(v - coarse @ np.rint(c)))) < 2.5:
+                continue
+            r = float(np.hypot(*v))
+            if 2.6 <= r <= 0.45 * size:
+                pts.append(v)
+    return np.array(pts).reshape(-1, 2)
+
+
+def _bar_pair(edges: F64) -> F64:
+    """The two lattice vectors that are the net's bars: the most nearly equal-length pair among
+    the reduced basis (a, b) and (b, b +- a) (a rhombus with an opening under 60 deg has its
+    short diagonal in the reduced basis)."""
+    a, b = edges[:, 0], edges[:, 1]
+    candidates = [(a, b), (b, b - a), (b, b + a), (a, a - b), (a, a + b)]
+    best = min(candidates, key=lambda uv: abs(math.log(
+        float(np.linalg.norm(uv[0])) / float(np.linalg.norm(uv[1])))))
+    return np.stack(best, axis=1)
+
+
+def _inflation(p: _Pass) -> float:
+    """Factor on the plane fit's sigmas: Student t at 1 sigma for few degrees of freedom (a
+    scatter estimated from few residuals is itself uncertain), and the square root of how many
+    times over the agreeing ROIs cover their pixels (overlapping ROIs' errors are correlated)."""
+    assert p.plane is not None
+    dof = max(1, int(p.plane.used.sum()) - 3)
+    return _t_factor(dof) * math.sqrt(_overlap([m for m in p.rois if m.agrees]))
+
+
+def _plane_sigmas(p: _Pass) -> tuple[float, float]:
+    """Relative distance sigma and normal sigma (deg) of a pass's plane, inflated."""
+    assert p.plane is not None
+    f = _inflation(p)
+    return (p.plane.sigma_distance_m / p.plane.distance_m * f, p.plane.sigma_normal_deg * f)
+
+
+def _t_factor(dof: int) -> float:
+    """Student-t quantile at 84.13 % over the normal one: a sigma estimated from few residuals
+    is itself uncertain."""
+    table = {1: 1.84, 2: 1.32, 3: 1.20, 4: 1.14, 5: 1.11, 6: 1.09, 7: 1.08, 8: 1.07}
+    return table.get(dof, 1.0 + 0.5 / dof)
+
+
+def _overlap(rois: list[_Roi]) -> float:
+    """Total footprint over the area the footprints cover (>= 1): overlapping ROIs share pixels,
+    so their errors are not independent."""
+    if not rois:
+        return 1.0
+    sq = [(m.geometry.center_full, max(m.footprint_px, 1.0)) for m in rois]
+    total = sum(f * f for _, f in sq)
+    xs = np.array([c[0] for c, _ in sq])
+    ys = np.array([c[1] for c, _ in sq])
+    fs = np.array([f for _, f in sq])
+    x0, x1 = float((xs - fs / 2).min()), float((xs + fs / 2).max())
+    y0, y1 = float((ys - fs / 2).min()), float((ys + fs / 2).max())
+    step = max((x1 - x0), (y1 - y0)) / 64.0
+    gx = np.arange(x0, x1, step) + step / 2
+    gy = np.arange(y0, y1, step) + step / 2
+    cov = np.zeros((gy.size, gx.size), bool)
+    for (cx, cy), f in sq:
+        cov |= (np.abs(gx[None, :] - cx) <= f / 2) & (np.abs(gy[:, None] - cy) <= f / 2)
+    union = float(cov.sum()) * step * step
+    return max(1.0, total / max(union, 1e-9))
 
 
 def _level_size(size: int, level: int) -> int:
@@ -590,15 +1459,7 @@ def _level_size(size: int, level: int) -> int:
 
 
 def _as_gray(frame: Image) -> Image:
-    import cv2
-
-    arr = np.asarray(frame)
-    if arr.ndim == 3 and arr.shape[2] == 3:
-        arr = cv2.cvtColor(arr, cv2.COLOR_BGR2GRAY)
-    elif arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[..., 0]
-    if arr.ndim != 2:
-        raise EstimatorInputError(f"expected a grayscale or BGR image, got shape {arr.shape}")
+    arr = to_gray(frame)
     if arr.dtype not in (np.uint8, np.uint16, np.float32):
         arr = arr.astype(np.float32)
     return arr
@@ -608,18 +1469,16 @@ def _mat2(m: F64) -> Mat2:
     return ((float(m[0, 0]), float(m[0, 1])), (float(m[1, 0]), float(m[1, 1])))
 
 
-def _roi_result(m: _RoiMeasurement, size: int, used: bool) -> RoiResult:
-    scale = 2**m.level
+def _roi_result(m: _Roi, used: bool) -> RoiResult:
+    size = round(m.footprint_px) if m.footprint_px > 0 else m.size * 2**m.level
     if m.fit is None or m.reciprocal_px is None:
-        return RoiResult(
-            center_px=m.geometry.center_full, size_px=size * scale, level=m.level,
-            detected=False, peaks=m.peaks,
-        )
+        return RoiResult(center_px=m.geometry.center_full, size_px=size, level=m.level,
+                         detected=False, peaks=m.peaks)
     # Columns e1, e2 of the dual basis: e_i . k_j = delta_ij.
     edges = np.asarray(np.linalg.inv(m.reciprocal_px), dtype=np.float64).T
     return RoiResult(
         center_px=m.geometry.center_full,
-        size_px=size * scale,
+        size_px=size,
         level=m.level,
         detected=m.valid,
         reciprocal=_mat2(m.reciprocal_px.T),
@@ -630,6 +1489,11 @@ def _roi_result(m: _RoiMeasurement, size: int, used: bool) -> RoiResult:
         peaks=m.peaks,
         used_in_fit=used,
     )
+
+
+def _no_net(rois: list[_Roi], level: int, reason: str) -> NetEstimate:
+    return NetEstimate(detected=False, confidence=0.0, level=level, reason=reason,
+                       rois=tuple(_roi_result(m, False) for m in rois))
 
 
 def _rotation_to_z(direction: F64) -> F64:
@@ -646,32 +1510,14 @@ def _rotation_to_z(direction: F64) -> F64:
     return np.asarray(np.eye(3) + sin * kx + (1 - cos) * (kx @ kx), dtype=np.float64)
 
 
-def _undetected(result: NetEstimate, reason: str) -> NetEstimate:
-    return replace(
-        result,
-        detected=False,
-        confidence=min(result.confidence, 0.2),
-        normal=None,
-        distance_m=None,
-        range_m=None,
-        sigma_distance_m=None,
-        sigma_range_m=None,
-        sigma_normal_deg=None,
-        reason=result.reason or reason,
-    )
-
-
-def _agrees(result: NetEstimate, seed: NetEstimate) -> bool:
-    """A rectified pass is trusted only when it lands near the plane it was rectified with.
-
-    Rectifying with a badly wrong plane stretches the ROIs anisotropically (aliasing in one
-    direction) and can produce a self-consistent but wrong plane; the seed check catches that.
-    """
+def _agrees(result: NetEstimate, seed: NetEstimate, rel: float = 0.08,
+            degrees: float = 8.0) -> bool:
+    """Does `result` land near `seed`'s plane?"""
     if not result.detected or result.normal is None or seed.normal is None:
         return False
     if result.distance_m is None or seed.distance_m is None:
         return False
     cos = float(np.dot(result.normal, seed.normal))
-    return cos > math.cos(math.radians(8.0)) and abs(
+    return cos > math.cos(math.radians(degrees)) and abs(
         result.distance_m / seed.distance_m - 1.0
-    ) < 0.08
+    ) < rel

@@ -173,10 +173,13 @@ class LatticeFinder:
         self.tolerance_relative = tolerance_relative
         self.min_sin = math.sin(math.radians(min_angle_deg))
 
-    def fit(self, peaks: Peaks, expected: F64 | None = None) -> LatticeFit | None:
+    def fit(
+        self, peaks: Peaks, expected: F64 | None = None, expected_share: float = 0.6
+    ) -> LatticeFit | None:
         """The lattice of the peaks, or None. `expected` (2x2, columns k1 k2 in bins), when the
         caller knows roughly what to look for (tracking), is tried first and used if it explains
-        most of the peak weight; otherwise the full hypothesis search runs."""
+        `expected_share` of the peak weight and its basis vectors are seen; otherwise the full
+        hypothesis search runs."""
         if len(peaks) < 2:
             return None
         k, w = peaks.k, peaks.snr
@@ -186,7 +189,7 @@ class LatticeFinder:
             basis = reduce_basis(np.asarray(expected, dtype=np.float64))
             inl, idx = _assign(basis, k, tol)
             if (
-                float(w[inl].sum()) >= 0.6 * total
+                float(w[inl].sum()) >= expected_share * total
                 and _spans_unimodular(idx[inl])
                 and _basis_observed(basis, k, tol)
             ):
@@ -312,8 +315,11 @@ class LatticeFinder:
         resid = k[inl] - n @ basis.T
         dof = max(1, 2 * n.shape[0] - 4)
         rms = float(np.sqrt((resid**2).sum() / dof)) if n.shape[0] > 2 else 0.0
-        # Interpolated peaks are good to ~0.05 bin even when the fit is exact (2 peaks).
-        sigma_bins = max(rms, 0.05)
+        # An interpolated peak is located to about 0.6 bin over its amplitude SNR (Hann window,
+        # log-parabolic fit): ~0.05 bin for a clear peak, a few tenths for a faint one. That
+        # floor holds even when the fit is exact (2 peaks).
+        mean_snr = float(w[inl].mean())
+        sigma_bins = max(rms, 0.6 * math.exp(-0.5 * mean_snr), 0.05)
         cov = _inv2(gram) * sigma_bins**2  # covariance of each row of B
         # d log|det B| = trace(B^-1 dB): row r of B enters through column r of B^-1.
         binv = _inv2(basis)
@@ -322,7 +328,7 @@ class LatticeFinder:
             basis=basis,
             inliers=int(inl.sum()),
             inlier_weight_fraction=float(w[inl].sum()) / total if total > 0 else 0.0,
-            mean_snr=float(w[inl].mean()),
+            mean_snr=mean_snr,
             rms_residual_bins=rms,
             relative_area_sigma=math.sqrt(var),
         )

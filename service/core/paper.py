@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.camera import CameraModel
-from service.core.errors import EstimatorInputError
+from service.core.grey import to_gray
 from service.core.lattice import LatticeFinder
 from service.core.mesh import MeshGeometry
 from service.core.results import NetEstimate, RoiResult
@@ -61,11 +61,7 @@ class PaperEstimator:
         import cv2
 
         t0 = time.perf_counter()
-        gray = np.asarray(frame)
-        if gray.ndim == 3:
-            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-        if gray.ndim != 2:
-            raise EstimatorInputError(f"expected a grayscale or BGR image, got {gray.shape}")
+        gray = to_gray(frame)  # the one grey conversion (raises EstimatorInputError)
         h, w = gray.shape
         camera = self.camera.scaled_to(w, h)
         n = self.settings.roi_size

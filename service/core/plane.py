@@ -49,7 +49,9 @@ def fit_plane(
     # sigma of c: one third of the relative area sigma (c ~ a^(1/3)), with a model floor for
     # net deformation and the perspective chirp inside a ROI.
     rel_sigma_c = np.sqrt((relative_area_sigma / 3.0) ** 2 + 0.002**2)
-    used = _consensus(rays, c, consensus_tolerance)
+    # A ROI joins the consensus within 3 sigma of its own measurement, but never tighter than
+    # `consensus_tolerance`: weak lattices (few cycles, faint peaks) are known less well.
+    used = _consensus(rays, c, np.maximum(consensus_tolerance, 3.0 * rel_sigma_c))
     if used is None:
         return None
     m = np.zeros(3)
@@ -116,7 +118,7 @@ def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64] | None:
     return np.asarray(m, dtype=np.float64), np.asarray(np.linalg.inv(ata) * scale, dtype=np.float64)
 
 
-def _consensus(rays: F64, c: F64, tolerance: float, max_triples: int = 600) -> Bools | None:
+def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Bools | None:
     """Exhaustive RANSAC over ROI triples: the plane most ROIs agree with seeds the fit.
 
     A wrong lattice in one ROI (a sub- or super-lattice, a fish) is off by a factor of at least
@@ -135,7 +137,7 @@ def _consensus(rays: F64, c: F64, tolerance: float, max_triples: int = 600) -> B
         return None
     m = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]  # (t, 3)
     rel = np.abs(m @ rays.T - c[None, :]) / c[None, :]  # (t, k)
-    inliers = rel < tolerance
+    inliers = rel < tolerance[None, :]
     counts = inliers.sum(axis=1)
     # Among the largest consensus sets, the one with the smallest total residual.
     best = int(np.argmin(np.where(counts == counts.max(), (rel * inliers).sum(axis=1), np.inf)))

@@ -60,6 +60,13 @@ class NetEstimate:
     level: int = 0
     reason: str = ""
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # The net is in view but too close to measure (a blur of mesh filling the view, or a mesh
+    # period beyond the largest ROI): `detected` stays False and there is no distance; a consumer
+    # treats it as an out-of-range-low reading, not as "no net".
+    too_close: bool = False
+    # Opening angle (degrees) of the mesh as measured on the rectified lattice, whenever a lattice
+    # was measured; a mismatch with the configured mesh refuses the distance (see `reason`).
+    measured_opening_deg: float | None = None
 
     @property
     def tilt_deg(self) -> float | None:

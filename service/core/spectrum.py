@@ -112,6 +112,17 @@ class SpectrumAnalyzer:
         return np.asarray((outer - inner) * (1.0 / (121.0 - 25.0)), dtype=np.float32)
 
     def peaks(self, patch: F32) -> Peaks:
+        return self.analyse(patch)[0]
+
+    def analyse(self, patch: F32) -> tuple[Peaks, F32, F32]:
+        """The peaks, the whitened spectrum they were found in (log power over the local
+        background, natural log) and the log power itself; rows ky + size/2, columns
+        kx + MARGIN.
+
+        The whitened spectrum of ROIs that show the same lattice (the rectified ROIs of one
+        frame) can be averaged: the net's peaks add up while the noise (std ~1.28 per bin for
+        a speckle spectrum) averages down, which is how weak evidence from many ROIs is judged.
+        """
         import cv2
 
         logp = self.log_power(patch)
@@ -119,7 +130,7 @@ class SpectrumAnalyzer:
         local_max = logp >= cv2.dilate(logp, self._kernel)
         rows, cols = np.nonzero(local_max & self.valid & (snr > self.min_snr))
         if rows.size == 0:
-            return Peaks(np.zeros((0, 2)), np.zeros(0))
+            return Peaks(np.zeros((0, 2)), np.zeros(0)), snr, logp
         strength = snr[rows, cols]
         order = np.argsort(-strength)[: self.max_peaks]
         rows, cols, strength = rows[order], cols[order], strength[order]
@@ -127,7 +138,69 @@ class SpectrumAnalyzer:
         dx = _parabolic(logp[rows, cols - 1], centre, logp[rows, cols + 1])
         dy = _parabolic(logp[rows - 1, cols], centre, logp[rows + 1, cols])
         k = np.stack([cols + dx - self._col0, rows + dy - self._row0], axis=1)
-        return Peaks(k.astype(np.float64), strength.astype(np.float64))
+        return Peaks(k.astype(np.float64), strength.astype(np.float64)), snr, logp
+
+    def peaks_near(self, snr: F32, k: npt.ArrayLike, min_snr: float) -> Peaks:
+        """Peaks of the whitened spectrum `snr` where a lattice is expected: for each wave vector
+        k (bins), the largest bin within one bin of it, kept when it is a local maximum of at
+        least `min_snr`, refined to sub-bin by log-parabolic interpolation.
+
+        A threshold this low would let noise through in a blind search over every bin; at a
+        handful of predicted places it does not (a speckle bin exceeds 1.8 with probability
+        ~3 %), so a faint mesh that the prediction points at is still seen.
+        """
+        kk = np.asarray(k, dtype=np.float64).reshape(-1, 2).copy()
+        flip = (kk[:, 0] < 0) | ((kk[:, 0] == 0) & (kk[:, 1] < 0))
+        kk[flip] *= -1.0
+        rows_n, cols_n = snr.shape
+        r0 = np.rint(kk[:, 1]).astype(np.int64) + self._row0
+        c0 = np.rint(kk[:, 0]).astype(np.int64) + self._col0
+        ok = (r0 >= 2) & (r0 < rows_n - 2) & (c0 >= 2) & (c0 < cols_n - 2)
+        r0, c0 = r0[ok], c0[ok]
+        if r0.size == 0:
+            return Peaks(np.zeros((0, 2)), np.zeros(0))
+        # The largest of the 3x3 bins around each point, then whether it is a local maximum.
+        offsets = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+        around = snr[r0[:, None] + offsets[None, :, 0], c0[:, None] + offsets[None, :, 1]]
+        best = np.argmax(around, axis=1)
+        r = r0 + offsets[best, 0]
+        c = c0 + offsets[best, 1]
+        centre = snr[r, c].astype(np.float64)
+        neighbours = snr[r[:, None] + offsets[None, :, 0], c[:, None] + offsets[None, :, 1]]
+        # Inside the analysed band (the mirrored columns kx < 0 hold the conjugate half, so a
+        # point near kx = 0 is found on either side).
+        radius = np.hypot(c - self._col0, r - self._row0)
+        band = (radius >= 2.0) & (radius <= 0.47 * self.size)
+        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=1))
+        if not keep.any():
+            return Peaks(np.zeros((0, 2)), np.zeros(0))
+        r, c, centre = r[keep], c[keep], centre[keep]
+        ddx = _parabolic(snr[r, c - 1], centre, snr[r, c + 1])
+        ddy = _parabolic(snr[r - 1, c], centre, snr[r + 1, c])
+        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=1)
+        # Two points may land on the same bin: keep each peak once.
+        _, first = np.unique(r * cols_n + c, return_index=True)
+        return Peaks(found[first].astype(np.float64), centre[first])
+
+    def sample(self, snr: F32, k: npt.ArrayLike) -> F64:
+        """The whitened spectrum at wave vectors k (m, 2) in bins: the largest value among the
+        bins touching each k (a peak between bins shows in one of them), NaN where k lies
+        outside the analysed band."""
+        kk = np.asarray(k, dtype=np.float64).reshape(-1, 2).copy()
+        flip = (kk[:, 0] < 0) | ((kk[:, 0] == 0) & (kk[:, 1] < 0))
+        kk[flip] *= -1.0  # the stored half plane holds k or its conjugate -k
+        radius = np.hypot(kk[:, 0], kk[:, 1])
+        inside = (radius >= 2.0) & (radius <= 0.47 * self.size)
+        out = np.full(kk.shape[0], np.nan)
+        c0 = np.floor(kk[:, 0]).astype(np.int64) + self._col0
+        r0 = np.floor(kk[:, 1]).astype(np.int64) + self._row0
+        rows_n, cols_n = snr.shape
+        ok = inside & (r0 >= 0) & (r0 + 1 < rows_n) & (c0 >= 0) & (c0 + 1 < cols_n)
+        if ok.any():
+            r, c = r0[ok], c0[ok]
+            out[ok] = np.maximum(np.maximum(snr[r, c], snr[r, c + 1]),
+                                 np.maximum(snr[r + 1, c], snr[r + 1, c + 1]))
+        return out
 
 
 def _parabolic(left: npt.ArrayLike, centre: F64, right: npt.ArrayLike) -> F64:

@@ -1,0 +1,201 @@
+"""Never a confident wrong distance (issues 11 and 17): scale proofs, grids that are not nets, a
+wrong opening angle, a net too close to measure, and a short seeded run of the integrity
+benchmark.
+
+Frames come from drivers.synthetic_net; non-net grids (bricks, checkerboards, tiles) are rendered
+on the same plane geometry as a net, so only what the pattern looks like differs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from drivers.synthetic_net import GroundTruth, NetPose, NetRenderer, SceneStyle
+from service.benchmarks import integrity
+from service.benchmarks.scenes import PAPER_MESH, bench_camera
+from service.core.camera import CameraModel
+from service.core.estimator import NetEstimator
+from service.core.mesh import MeshGeometry
+from service.core.results import NetEstimate
+
+GROSS = integrity.GROSS_RANGE
+
+
+def _range_error(est: NetEstimate, truth: GroundTruth) -> float:
+    assert est.range_m is not None
+    return est.range_m / truth.range_m - 1.0
+
+
+# -- a scale hypothesis must be proved ------------------------------------------------------------
+
+
+def test_a_seed_at_a_harmonic_scale_does_not_give_its_distance() -> None:
+    """The failure of issue 11: 1080p, 80 deg, a 1.5 cm mesh at 0.40 m tilted 20 deg under
+    caustics was reported at 0.69 m (x sqrt 3, a lattice of the mesh's harmonics) with a sigma
+    of 1.3 mm. Here the estimator is handed exactly such wrong hypotheses as the previous
+    frame's estimate (x sqrt 2, sqrt 3, 2, 3 and their inverses): the answer must be the true
+    distance or none, never the hypothesis."""
+    w, h = 1920, 1080
+    f = 0.5 * w / math.tan(math.radians(40.0))
+    camera = CameraModel(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2 + 3, cy=(h - 1) / 2 - 2,
+                         distortion=(-0.08, 0.05, 0.0005, -0.0003, 0.0))
+    renderer = NetRenderer(camera, PAPER_MESH)
+    estimator = NetEstimator(camera, PAPER_MESH)
+    frame, truth = renderer.render(NetPose(0.40, 20.0, 30.0, 25.0, (0.3, 0.6)),
+                                   np.random.default_rng(5), SceneStyle(caustics=0.3))
+    for factor in (math.sqrt(2), math.sqrt(3), 2.0, 3.0, 1 / math.sqrt(2), 1 / math.sqrt(3)):
+        wrong = NetEstimate(detected=True, confidence=0.9, normal=truth.normal,
+                            distance_m=truth.distance_m * factor,
+                            range_m=truth.range_m * factor)
+        est = estimator.estimate(frame, prior=wrong)
+        if est.detected:
+            # Measured 0.03 %; the Table-1 target is 1 %.
+            assert abs(_range_error(est, truth)) < 0.01, factor
+
+
+@pytest.mark.parametrize("size", [(640, 360), (1280, 720), (384, 216)])
+def test_a_net_that_jumped_much_closer_is_not_tracked_at_the_old_scale(
+    size: tuple[int, int]
+) -> None:
+    """The previous frame saw the net at 0.4 m; this one (frames were lost) at 0.1-0.2 m. The
+    tracked plane's rectification shows the mesh's 2nd or 4th harmonic where the old mesh
+    was: that must not come out as the old distance."""
+    camera = bench_camera(*size)
+    mesh = MeshGeometry(0.025)
+    renderer = NetRenderer(camera, mesh)
+    estimator = NetEstimator(camera, mesh)
+    style = SceneStyle(focus_m=1.5, aperture_m=0.003)
+    first, _ = renderer.render(NetPose(0.4, 15.0, 30.0, 10.0), np.random.default_rng(1), style)
+    prior = estimator.estimate(first)
+    assert prior.detected
+    for z in (0.2, 0.16, 0.12, 0.1, 0.08):
+        frame, truth = renderer.render(NetPose(z, 15.0, 30.0, 10.0), np.random.default_rng(1),
+                                       style)
+        est = estimator.estimate(frame, prior=prior)
+        if est.detected:
+            assert abs(_range_error(est, truth)) < GROSS, z
+
+
+# -- grids that are not nets ----------------------------------------------------------------------
+
+
+CAMERA_720P = bench_camera(1280, 720)
+SQUARE_25 = MeshGeometry(0.025)
+
+
+def _grid(pattern: str, period_px: float, tilt: float, grout: float = 0.08,
+          mesh: MeshGeometry = SQUARE_25) -> NetEstimate:
+    renderer = NetRenderer(CAMERA_720P, mesh)
+    size = period_px * 1.0 / CAMERA_720P.fx  # the pattern's period at 1 m, frontal
+    frame, truth = renderer.render(
+        NetPose(1.0, tilt, 30.0, 10.0), np.random.default_rng(3),
+        SceneStyle(pattern=pattern, pattern_size_m=size, grout_fraction=grout),
+    )
+    assert not truth.net_present
+    return NetEstimator(CAMERA_720P, mesh).estimate(frame)
+
+
+@pytest.mark.parametrize("period_px", [8, 16, 30])
+@pytest.mark.parametrize("tilt", [0.0, 25.0])
+def test_checkerboards_are_not_nets(period_px: int, tilt: float) -> None:
+    est = _grid("checkerboard", period_px, tilt)
+    assert not est.detected and est.distance_m is None and not est.too_close
+    # Refused for what it is: a 50 % grid has no (1, 1) cross terms but strong (2, 1) ones.
+    assert "checkerboard" in est.reason
+
+
+@pytest.mark.parametrize(("period_px", "tilt"), [(30, 0.0), (30, 25.0), (60, 0.0), (60, 25.0)])
+def test_brick_walls_are_not_nets(period_px: int, tilt: float) -> None:
+    est = _grid("bricks", period_px, tilt)
+    assert not est.detected and est.distance_m is None and not est.too_close
+
+
+@pytest.mark.parametrize("period_px", [30, 60, 120])
+def test_square_tiles_are_not_a_rhombic_net(period_px: int) -> None:
+    """Square tiles with thin grout look exactly like a square net (documented in
+    docs/estimator.md); against a rhombic mesh their shape gives them away."""
+    rhombic = MeshGeometry(0.025, opening_angle_deg=60.0)
+    est = _grid("tiles", period_px, 10.0, mesh=rhombic)
+    assert not est.detected and est.distance_m is None and not est.too_close
+
+
+# -- wrong opening angle --------------------------------------------------------------------------
+
+
+def test_a_45_degree_net_measured_as_square_gives_no_distance_and_says_why() -> None:
+    """Issue 17, item 3: a 45 deg rhombic net with the default 90 deg gave +19 % with a tiny
+    sigma. Now: no distance, the measured opening angle in the estimate and in `reason`."""
+    rhombic = MeshGeometry(0.015, opening_angle_deg=45.0)
+    renderer = NetRenderer(CAMERA_720P, rhombic)
+    frame, _ = renderer.render(NetPose(1.2, 20.0, 60.0, 15.0), np.random.default_rng(4))
+    right = NetEstimator(CAMERA_720P, rhombic).estimate(frame)
+    assert right.detected, right.reason
+    wrong = NetEstimator(CAMERA_720P, MeshGeometry(0.015)).estimate(frame)
+    assert not wrong.detected and wrong.distance_m is None
+    assert wrong.measured_opening_deg == pytest.approx(45.0, abs=3.0)
+    assert "opening angle measured 4" in wrong.reason
+
+
+# -- too close to measure -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size", [(640, 360), (1280, 720), (384, 216)])
+def test_approaching_the_net_ends_in_too_close_not_in_no_net(size: tuple[int, int]) -> None:
+    """Issue 17, item 4: an ROV closing in on a 2.5 cm mesh (82 deg camera, defocused up close)
+    is measured down to about 0.25 m; closer, the estimate says "too close" (no distance),
+    never "no net"."""
+    camera = bench_camera(*size)
+    mesh = MeshGeometry(0.025)
+    renderer = NetRenderer(camera, mesh)
+    estimator = NetEstimator(camera, mesh)
+    style = SceneStyle(focus_m=1.5, aperture_m=0.003)
+    prior: NetEstimate | None = None
+    states = []
+    for z in (0.4, 0.3, 0.25, 0.2, 0.16, 0.12, 0.1, 0.08):
+        frame, truth = renderer.render(NetPose(z, 15.0, 30.0, 10.0), np.random.default_rng(1),
+                                       style)
+        est = estimator.estimate(frame, prior=prior)
+        if est.detected:
+            assert abs(_range_error(est, truth)) < 0.01
+            assert not est.too_close
+            prior = est
+        else:
+            assert est.distance_m is None
+        states.append("D" if est.detected else "C" if est.too_close else "-")
+    assert states[:2] == ["D", "D"], states  # 0.4 m and 0.3 m are measured
+    # Below the measurable range every frame is "too close" (measured: from 0.2 m on).
+    assert set(states[4:]) == {"C"}, states
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_never_too_close_without_a_net(seed: int) -> None:
+    renderer = NetRenderer(bench_camera(640, 360), MeshGeometry(0.025))
+    estimator = NetEstimator(bench_camera(640, 360), MeshGeometry(0.025))
+    rng = np.random.default_rng(seed)
+    style = SceneStyle.realistic(rng, net_present=False, fish_front_cover=0.2 * (seed % 2))
+    frame, truth = renderer.render(NetPose(0.3), rng, style)
+    assert not truth.net_present
+    est = estimator.estimate(frame)
+    assert not est.detected and not est.too_close
+
+
+# -- the integrity benchmark, short ---------------------------------------------------------------
+
+
+def test_short_integrity_run() -> None:
+    """A short seeded run of `netpose bench integrity` over the whole envelope (frames 384x180
+    to 1920x1080, 60-110 deg with distortion, square and rhombic meshes of 1-4 cm, 0.3-3 m,
+    tilts to 60 deg, fouling, boards, billowing, JPEG, ...). The targets of issue 11: no gross
+    error among the valid outputs, 3-sigma coverage of at least 99 %, error/sigma with a
+    standard deviation within 0.7-1.5, no net-free frame taken for a net or "too close"."""
+    rows = integrity.run_rows(frames=400, seed=11, jobs=2)
+    summary = integrity.summarise(rows)
+    gross = [integrity.describe_row(r) for r in rows if r.gross]
+    assert not gross, "\n".join(gross)
+    assert summary.valid >= 150  # detection is measured by the benchmark; enough to judge sigma
+    assert summary.coverage_3sigma >= integrity.TARGET_COVERAGE
+    assert integrity.TARGET_Z_STD[0] <= summary.z_std <= integrity.TARGET_Z_STD[1]
+    assert summary.false_nets == 0 and summary.false_too_close == 0
