@@ -47,7 +47,7 @@ from drivers.errors import DriverError
 from drivers.lifecycle import Closeable
 from service import __version__
 from service.core.camera import CameraModel, save_camera
-from service.core.messages import EstimateMessage, StatusMessage, to_json
+from service.core.messages import DamageMessage, EstimateMessage, StatusMessage, to_json
 
 log = logging.getLogger(__name__)
 
@@ -248,6 +248,9 @@ class Recorder(Closeable):
 
     def observe_status(self, message: StatusMessage) -> None:
         """Recordings do not keep the status."""
+
+    def observe_damage(self, message: DamageMessage) -> None:
+        """Nor the holes found: a replay of the recording inspects the frames again."""
 
     def close(self) -> None:
         self.stop()

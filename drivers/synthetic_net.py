@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -32,6 +33,15 @@ from service.core.mesh import MeshGeometry
 
 FloatMap = npt.NDArray[np.float64]
 Gray = npt.NDArray[np.uint8]
+
+
+class TwineCut(Protocol):
+    """Damage to the net (cut bars, missing knots, torn holes; drivers/synthetic_damage.py):
+    given the lattice coordinates of every pixel (s1, s2: knots at integers, the bars of the
+    first family along s1 = const, the second along s2 = const), the fraction of each family's
+    twine that is still there (1 = intact, 0 = cut away)."""
+
+    def __call__(self, s1: FloatMap, s2: FloatMap) -> tuple[FloatMap, FloatMap]: ...
 
 
 @dataclass(frozen=True)
@@ -213,6 +223,7 @@ class NetRenderer:
         pose: NetPose,
         rng: np.random.Generator | None = None,
         style: SceneStyle | None = None,
+        damage: TwineCut | None = None,
     ) -> tuple[Gray, GroundTruth]:
         rng = self._rng if rng is None else rng
         style = SceneStyle() if style is None else style
@@ -224,7 +235,7 @@ class NetRenderer:
         if style.pattern != "net":
             self._draw_surface(image, pose, style, rng)
         elif style.net_present:
-            plane = self._draw_net(image, pose, style, rng)
+            plane = self._draw_net(image, pose, style, rng, damage)
         if style.texture > 0:
             w = self.camera.width
             image += style.texture * (0.6 * self._smooth_field(rng, max(4, w // 6))
@@ -420,6 +431,7 @@ class NetRenderer:
     def _draw_net(
         self, image: FloatMap, pose: NetPose, style: SceneStyle,
         rng: np.random.Generator | None = None,
+        damage: TwineCut | None = None,
     ) -> tuple[FloatMap, float, float] | None:
         import cv2
 
@@ -440,7 +452,11 @@ class NetRenderer:
             uneven = 0.5 + 0.5 * np.tanh(self._smooth_field(rng, 10)) + 0.35 * np.abs(
                 self._smooth_field(rng, 45))
             half = np.minimum(np.asarray(half) * (1.0 + 3.0 * fouling * uneven), 0.42)
-        gaps = (1.0 - _box_filtered_pulses(s1, half)) * (1.0 - _box_filtered_pulses(s2, half))
+        pulses1, pulses2 = _box_filtered_pulses(s1, half), _box_filtered_pulses(s2, half)
+        if damage is not None:
+            kept1, kept2 = damage(s1, s2)
+            pulses1, pulses2 = pulses1 * kept1, pulses2 * kept2
+        gaps = (1.0 - pulses1) * (1.0 - pulses2)
         cover = 1.0 - gaps
         colour_field: FloatMap | float = 1.0
         if fouling > 0 and rng is not None:

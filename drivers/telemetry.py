@@ -34,10 +34,12 @@ from drivers.lifecycle import Closeable
 from service.core.backoff import Backoff
 from service.core.errors import ConfigError
 from service.core.messages import (
+    DAMAGE_SUFFIX,
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
     STATE_SUFFIX,
     STATUS_SUFFIX,
+    DamageMessage,
     EstimateMessage,
     PreviewMeta,
     StateMessage,
@@ -230,6 +232,10 @@ class TelemetryPublisher(Closeable):
         """Queue a preview JPEG; `meta` travels as its attachment."""
 
     @abstractmethod
+    def publish_damage(self, message: DamageMessage) -> None:
+        """Queue a confirmed hole in the net (`damage` key, once per hole)."""
+
+    @abstractmethod
     def set_state(self, message: StateMessage) -> None:
         """What the `state` queryable answers from now on."""
 
@@ -279,6 +285,9 @@ class NullPublisher(TelemetryPublisher):
     def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
         pass
 
+    def publish_damage(self, message: DamageMessage) -> None:
+        pass
+
     def set_state(self, message: StateMessage) -> None:
         pass
 
@@ -298,6 +307,7 @@ class RecordingPublisher(TelemetryPublisher):
     estimates: list[EstimateMessage] = field(default_factory=list)
     statuses: list[StatusMessage] = field(default_factory=list)
     previews: list[tuple[bytes, PreviewMeta]] = field(default_factory=list)
+    damages: list[DamageMessage] = field(default_factory=list)
     state: StateMessage | None = None
     started: bool = False
     closed: bool = False
@@ -321,6 +331,9 @@ class RecordingPublisher(TelemetryPublisher):
     def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
         self.previews.append((jpeg, meta))
 
+    def publish_damage(self, message: DamageMessage) -> None:
+        self.damages.append(message)
+
     def set_state(self, message: StateMessage) -> None:
         self.state = message
 
@@ -332,19 +345,19 @@ class RecordingPublisher(TelemetryPublisher):
             state="online" if self.online else "offline",
             key_root=self.settings.key_root,
             sent={"estimate": len(self.estimates), "status": len(self.statuses),
-                  "preview": len(self.previews)},
+                  "preview": len(self.previews), "damage": len(self.damages)},
         )
 
 
 @dataclass(frozen=True)
 class _Outgoing:
     suffix: str
-    message: EstimateMessage | StatusMessage | None = None
+    message: EstimateMessage | StatusMessage | DamageMessage | None = None
     jpeg: bytes = b""
     meta: PreviewMeta | None = None
 
 
-_STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX)
+_STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX, DAMAGE_SUFFIX)
 
 
 def zenoh_error_text(exc: BaseException) -> str:
@@ -427,6 +440,9 @@ class ZenohPublisher(TelemetryPublisher):
 
     def publish_preview(self, jpeg: bytes, meta: PreviewMeta) -> None:
         self._enqueue(_Outgoing(PREVIEW_SUFFIX, jpeg=bytes(jpeg), meta=meta))
+
+    def publish_damage(self, message: DamageMessage) -> None:
+        self._enqueue(_Outgoing(DAMAGE_SUFFIX, message))
 
     def set_state(self, message: StateMessage) -> None:
         with self._lock:
@@ -569,6 +585,12 @@ class ZenohPublisher(TelemetryPublisher):
                 encoding=zenoh.Encoding.IMAGE_JPEG,
                 congestion_control=drop,
                 priority=zenoh.Priority.DATA_LOW,
+            ),
+            # A hole is rare news that must not be dropped for a busy link: the worker thread
+            # may wait for it (the frame loop never does).
+            DAMAGE_SUFFIX: session.declare_publisher(
+                self.settings.key(DAMAGE_SUFFIX), encoding=json_enc,
+                congestion_control=zenoh.CongestionControl.BLOCK,
             ),
         }
         queryable = session.declare_queryable(self.settings.key(STATE_SUFFIX), self._answer_query)

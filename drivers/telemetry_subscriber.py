@@ -1,4 +1,5 @@
-"""A Zenoh peer listening on loopback that keeps the estimates and statuses published to it.
+"""A Zenoh peer listening on loopback that keeps the estimates, statuses and confirmed holes
+(damage) published to it.
 
 What the topside sees of netpose, for the soak benchmark and the end-to-end tests: the daemon
 connects to it (`daemon_overrides()`) and publishes here.
@@ -27,6 +28,7 @@ class TelemetrySubscriber:
         self._lock = threading.Lock()
         self.estimates: list[dict[str, Any]] = []
         self.statuses: list[dict[str, Any]] = []
+        self.damages: list[dict[str, Any]] = []
 
         def on_sample(sample: Any) -> None:
             try:
@@ -41,6 +43,8 @@ class TelemetrySubscriber:
                     self.estimates.append(payload)
                 elif payload.get("kind") == "status":
                     self.statuses.append(payload)
+                elif payload.get("kind") == "damage":
+                    self.damages.append(payload)
 
         self._subscriber = self._session.declare_subscriber(f"{key_prefix}/{vehicle}/**",
                                                             on_sample)

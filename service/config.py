@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+from service.core.damage import DamageSettings
 from service.core.errors import ConfigError
 from service.core.estimator import EstimatorSettings
 from service.core.mesh import MeshGeometry
@@ -104,6 +105,7 @@ def core_sections() -> dict[str, type]:
         "filter": FilterSettings,
         "estimator": EstimatorSettings,
         "service": ServiceSettings,
+        "damage": DamageSettings,
     }
 
 
@@ -142,6 +144,10 @@ class Config:
     @property
     def service(self) -> ServiceSettings:
         return self.section("service", ServiceSettings)
+
+    @property
+    def damage(self) -> DamageSettings:
+        return self.section("damage", DamageSettings)
 
     def calibration_path(self) -> Path | None:
         """The calibration file to load, or None for a source that describes its own camera."""

@@ -21,6 +21,7 @@ from typing import Any, Literal
 
 import numpy.typing as npt
 
+from service.core.damage_track import DamageReport, NetInspector
 from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import NetPlane, RangeReading, RangeStatus
@@ -47,6 +48,8 @@ class PipelineResult:
     # The net plane for the autopilot's net hold: only from a frame whose measurement the filter
     # accepted (never from a coasting prediction), stamped with that frame's capture time.
     plane: NetPlane | None = None
+    # Net inspection of this frame (None when the pipeline has no inspector).
+    damage: DamageReport | None = None
 
     @property
     def error(self) -> str:
@@ -79,9 +82,11 @@ class Pipeline:
         estimator: NetEstimator,
         tracker: NetTracker,
         autopilot_distance: AutopilotDistance = "optical_axis",
+        inspector: NetInspector | None = None,
     ) -> None:
         self._estimator = estimator
         self._tracker = tracker
+        self._inspector = inspector
         self._autopilot_distance: AutopilotDistance = autopilot_distance
         self._prior: NetEstimate | None = None
         # Confidence of the last accepted measurement: what a coasting reading is worth.
@@ -94,6 +99,14 @@ class Pipeline:
     @property
     def tracker(self) -> NetTracker:
         return self._tracker
+
+    @property
+    def inspector(self) -> NetInspector | None:
+        return self._inspector
+
+    def replace_inspector(self, inspector: NetInspector | None) -> None:
+        """Net inspection on, off or retuned (its tracks do not carry over)."""
+        self._inspector = inspector
 
     def replace_estimator(self, estimator: NetEstimator) -> None:
         """A new estimator (mesh or tuning changed); the old prior does not carry over."""
@@ -131,10 +144,19 @@ class Pipeline:
         estimate_ms = (time.perf_counter() - t0) * 1e3
         self._prior = estimate if estimate is not None and estimate.detected else None
         track = self._tracker.step(t, estimate)
+        damage = None
+        if self._inspector is not None:
+            # Only while the track is valid: holes are measured on a plane the filter believes.
+            try:
+                damage = self._inspector.step(image, estimate, t, index, track.valid,
+                                              estimate_ms)
+            except Exception as exc:  # inspection must never cost the distance
+                log.debug("net inspection crashed on frame %d", index, exc_info=True)
+                damage = DamageReport(False, f"inspection failed: {type(exc).__name__}: {exc}")
         return PipelineResult(
             t=t, index=index, estimate=estimate, track=track,
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
-            plane=net_plane_of(track, t),
+            plane=net_plane_of(track, t), damage=damage,
         )
 
     def tick(self, t: float) -> PipelineResult:

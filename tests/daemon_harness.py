@@ -135,6 +135,7 @@ class RecordingObserver:
         self.started = self.closed = False
         self.frames: list[tuple[int, Any]] = []
         self.statuses: list[Any] = []
+        self.damages: list[Any] = []
 
     def start(self) -> None:
         self.started = True
@@ -144,6 +145,9 @@ class RecordingObserver:
 
     def observe_status(self, message: Any) -> None:
         self.statuses.append(message)
+
+    def observe_damage(self, message: Any) -> None:
+        self.damages.append(message)
 
     def close(self) -> None:
         self.closed = True

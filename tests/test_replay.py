@@ -205,7 +205,10 @@ def test_summary_reports_detection_errors_gaps_and_speed(replayed: Path) -> None
     assert speed["estimator_ms"]["count"] == FRAMES and speed["frames_per_s"] > 0
     assert summary["filter"]["valid_frames"] < FRAMES
     assert set(summary["outputs"]) == {"estimates.csv", "annotated.mp4", "summary.json",
-                                       *PLOT_FILES}
+                                       "damage.csv", *PLOT_FILES}
+    # An intact net: no hole found (damage.csv has its header only).
+    assert summary["damage_holes"] == 0
+    assert (replayed / "damage.csv").read_text().count("\n") == 1
     for name in summary["outputs"]:
         assert (replayed / name).is_file(), name
 

@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from service.core.messages import EstimateMessage, StatusMessage
+from service.core.messages import DamageMessage, EstimateMessage, StatusMessage
 
 # Estimates waiting for the event loop; more arrive only if it stalls (then the oldest go).
 PENDING_ESTIMATES = 256
@@ -33,6 +33,7 @@ class LiveFeed:
         self._lock = threading.Lock()
         self._estimates: deque[EstimateMessage] = deque(maxlen=PENDING_ESTIMATES)
         self._status: StatusMessage | None = None
+        self._damage: list[DamageMessage] = []
         self._frame: tuple[Any, Any, EstimateMessage] | None = None
         self._wake: Callable[[], None] | None = None
         self._wake_pending = False
@@ -58,6 +59,19 @@ class LiveFeed:
             wake = self._take_wake()
         if wake is not None:
             wake()
+
+    def put_damage(self, message: DamageMessage) -> None:
+        with self._lock:
+            self._damage.append(message)
+            wake = self._take_wake()
+        if wake is not None:
+            wake()
+
+    def take_damage(self) -> list[DamageMessage]:
+        """Holes confirmed since the last call (the event loop takes them with the rest)."""
+        with self._lock:
+            holes, self._damage = self._damage, []
+            return holes
 
     def take(self) -> tuple[list[EstimateMessage], StatusMessage | None,
                             tuple[Any, Any, EstimateMessage] | None]:

@@ -42,7 +42,7 @@ from drivers.web.settings import WebSettings
 from service import __version__
 from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError, ConfigError, NetposeError
-from service.core.messages import EstimateMessage, StatusMessage, to_json
+from service.core.messages import DamageMessage, EstimateMessage, StatusMessage, to_json
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,7 @@ STATIC = Path(__file__).resolve().parent / "static"
 SEND_TIMEOUT_S = 10.0  # a page that takes no data for this long is disconnected
 CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml")
 PENDING_CALIBRATIONS = 4
+MAX_HOLES = 20  # confirmed holes listed on the page (newest first)
 
 R = TypeVar("R")
 
@@ -119,6 +120,7 @@ class WebPage(Generic[R]):
         self._clients: set[ClientSlots] = set()
         self._sockets: set[web.WebSocketResponse] = set()
         self._last_texts: dict[str, str] = {}
+        self._holes: list[dict[str, Any]] = []
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
@@ -147,6 +149,9 @@ class WebPage(Generic[R]):
 
     def observe_status(self, message: StatusMessage) -> None:
         self._feed.put_status(message)
+
+    def observe_damage(self, message: DamageMessage) -> None:
+        self._feed.put_damage(message)
 
     def close(self) -> None:
         loop, stop = self._loop, self._stop
@@ -353,6 +358,12 @@ class WebPage(Generic[R]):
     def _drain(self) -> None:
         """On the event loop: take what the frame loop handed over and pass it on."""
         estimates, status, _frame = self._feed.take()
+        holes = self._feed.take_damage()
+        if holes:
+            # The page lists the holes confirmed in this run, newest first (a bounded list).
+            self._holes = ([to_json(h) for h in reversed(holes)] + self._holes)[:MAX_HOLES]
+            self._publish("damage", json.dumps({"kind": "damage", "holes": self._holes},
+                                               allow_nan=False))
         for message in estimates:
             self._history.add(message)
         if status is not None:

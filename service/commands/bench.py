@@ -1,4 +1,5 @@
-"""`netpose bench accuracy|speed|integrity|real|soak`: the numbers the targets are judged by."""
+"""`netpose bench accuracy|speed|integrity|real|soak|damage`: the numbers the targets are judged
+by."""
 
 from __future__ import annotations
 
@@ -46,6 +47,19 @@ def add_parser(subparsers: Any) -> None:
                       "beside the checkout, or NETPOSE_SHARED_DATA)")
     real.set_defaults(handler=_real)
 
+    dmg = sub.add_parser("damage", help="net inspection: holes found and measured, false "
+                         "alarms, cost (rendered passes and the real frames)")
+    dmg.add_argument("--passes", type=int, default=400,
+                     help="rendered passes along a net, half with a hole (default 400)")
+    dmg.add_argument("--seed", type=int, default=1)
+    dmg.add_argument("--jobs", type=int, default=0,
+                     help="worker processes (default: up to 2, the machine's cores)")
+    dmg.add_argument("--size", default="1280x720", help="frame size (default 1280x720)")
+    dmg.add_argument("--out", type=Path, default=Path("bench/out"),
+                     help="folder for damage-misses.png (default bench/out)")
+    dmg.add_argument("--no-real", action="store_true", help="skip the real frames")
+    dmg.set_defaults(handler=_damage)
+
     soak = sub.add_parser("soak", help="the daemon for minutes on a 720p camera-like source, "
                           "unconstrained and held to 25 % of a core")
     soak.add_argument("--duration", type=float, default=120.0,
@@ -80,6 +94,14 @@ def _real(args: argparse.Namespace) -> int:
     from service.benchmarks import real_frames
 
     return real_frames.run(args.data)
+
+
+def _damage(args: argparse.Namespace) -> int:
+    from service.benchmarks import damage
+
+    width, _, height = args.size.partition("x")
+    return damage.run(args.passes, args.seed, args.jobs, args.out, width=int(width),
+                      height=int(height), real=not args.no_real)
 
 
 def _soak(args: argparse.Namespace) -> int:

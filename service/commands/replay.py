@@ -12,6 +12,7 @@ video, summary and plots for what was processed (exit status 130).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -31,6 +32,8 @@ from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
 from drivers.sources.recording import is_recording
 from service import __version__
 from service.core.camera import CameraModel, load_camera
+from service.core.damage import DamageSettings
+from service.core.damage_track import NetInspector
 from service.core.errors import ConfigError, NetposeError
 from service.core.estimator import EstimatorSettings, NetEstimator
 from service.core.mesh import MeshGeometry
@@ -40,6 +43,13 @@ from service.daemon.wiring import load_daemon_config
 from service.pipeline import AutopilotDistance, Pipeline
 from service.signals import SignalFlags, handle_signals
 from service.tools.annotate import FrameAnnotator
+from service.tools.damage_report import (
+    CONTACT_SHEET,
+    CROPS_DIR,
+    DAMAGE_CSV,
+    DamageCsv,
+    write_contact_sheet,
+)
 from service.tools.replay import (
     PLOT_FILES,
     EstimatesCsv,
@@ -72,8 +82,9 @@ def add_parser(subparsers: Any) -> None:
         description=(
             "Run the net estimator (and with --filter the tracking filter) over every frame of "
             "a recording and write estimates.csv, annotated.mp4, summary.json and PNG plots to "
-            "the output folder. With ground truth (synthetic: source, or --truth CSV) the "
-            "summary and plots include the error against it."
+            "the output folder, and the holes found in the net to damage.csv with a contact "
+            "sheet of their evidence (damage.png). With ground truth (synthetic: source, or "
+            "--truth CSV) the summary and plots include the error against it."
         ),
     )
     p.add_argument(
@@ -109,6 +120,8 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--video-width", type=int, default=DEFAULT_VIDEO_WIDTH, metavar="PX",
                    help=f"annotated video at most this wide (default {DEFAULT_VIDEO_WIDTH})")
     p.add_argument("--no-video", action="store_true", help="do not write the annotated video")
+    p.add_argument("--no-damage", action="store_true",
+                   help="do not inspect the net for holes (no damage.csv, damage.png, marks)")
     p.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
                    help="progress bar on stderr (auto: when stderr is a terminal)")
     p.set_defaults(handler=run)
@@ -310,6 +323,7 @@ class ReplayRun:
     interrupted: bool = False
     stop_reason: str = ""
     outputs: list[str] = field(default_factory=list)
+    holes: int | None = None  # confirmed holes in the net (None: inspection off)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -382,6 +396,7 @@ class Tuning:
     estimator: EstimatorSettings | None = None
     filter: FilterSettings | None = None
     autopilot_distance: AutopilotDistance = "optical_axis"
+    damage: DamageSettings | None = None
 
 
 def _tuning(path: Path | None, mesh_size: float) -> Tuning:
@@ -394,7 +409,8 @@ def _tuning(path: Path | None, mesh_size: float) -> Tuning:
     # the vehicle that is not here: none of that matters to the replay (INPUT is the source).
     config = load_daemon_config(str(path), [f"mesh.bar_length_m={mesh_size!r}",
                                             "camera.url=replay-input"], check_files=False)
-    return Tuning(config.estimator, config.filter, config.service.autopilot_distance)
+    return Tuning(config.estimator, config.filter, config.service.autopilot_distance,
+                  config.damage)
 
 
 def _replay(
@@ -411,7 +427,7 @@ def _replay(
     # written with --filter), so the estimates are the ones the vehicle would have made.
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
                         NetTracker(tuning.filter or FilterSettings()),
-                        tuning.autopilot_distance)
+                        tuning.autopilot_distance, _inspector(args, camera, mesh, tuning))
     state = getattr(args, "pipeline_state", None)
     if state is not None:
         # A recording started mid-dive: continue from the daemon's filter and prior.
@@ -426,6 +442,7 @@ def _replay(
     out_dir: Path = args.out
     csv_file: EstimatesCsv | None = None
     video: AnnotatedVideo | None = None
+    damage_csv: DamageCsv | None = None
 
     with handle_signals(SignalFlags()) as stop:
         frames = replay_frames(source, args.every, stop.stop)
@@ -437,6 +454,13 @@ def _replay(
                     _remove_stale_outputs(out_dir)
                     csv_file = EstimatesCsv(out_dir / "estimates.csv")
                     video = None if annotator is None else AnnotatedVideo(out_dir, fps)
+                    if pipeline.inspector is not None:
+                        damage_csv = DamageCsv(out_dir)
+                report = result.result.damage
+                if damage_csv is not None and report is not None:
+                    for hole in report.confirmed:
+                        damage_csv.write(hole, result.frame.index, result.frame.time_s,
+                                         result.frame.t_capture)
                 if video is not None and annotator is not None:
                     video.write(_annotated(annotator, result))
                 csv_file.write(result)
@@ -457,6 +481,8 @@ def _replay(
                 video.close()
             if csv_file is not None:
                 csv_file.close()
+            if damage_csv is not None:
+                damage_csv.close()
         if stop.stop.is_set():
             outcome.interrupted = True
             outcome.stop_reason = stop.stop_signal or "stopped"
@@ -470,6 +496,11 @@ def _replay(
     outcome.outputs = ["estimates.csv"]
     if video is not None and video.path is not None:
         outcome.outputs.append(video.path.name)
+    if damage_csv is not None:
+        outcome.outputs.append(DAMAGE_CSV)
+        outcome.holes = len(damage_csv.holes)
+        if write_contact_sheet(damage_csv.holes, out_dir) is not None:
+            outcome.outputs += [CONTACT_SHEET, f"{CROPS_DIR}/"]
     _finish(args, url, stats, outcome, out_dir, source)
     if outcome.interrupted:
         print(f"netpose replay: stopped by {outcome.stop_reason} after {outcome.frames_read} "
@@ -487,7 +518,21 @@ def _annotated(annotator: FrameAnnotator, result: FrameResult) -> npt.NDArray[np
         truth=result.truth,
         label=f"frame {frame.index}  t={frame.time_s:.2f} s",
         refused=result.error,
+        damage=result.result.damage,
     )
+
+
+def _inspector(args: argparse.Namespace, camera: CameraModel, mesh: MeshGeometry,
+               tuning: Tuning) -> NetInspector | None:
+    """Net inspection as the daemon does it, on every tracked frame (offline there is no time
+    budget; a configuration's `every_n_frames` is kept), unless --no-damage or the
+    configuration switches it off."""
+    settings = tuning.damage or DamageSettings()
+    if getattr(args, "no_damage", False) or not settings.enabled:
+        return None
+    if settings.every_n_frames == 0:
+        settings = dataclasses.replace(settings, every_n_frames=1)
+    return NetInspector(camera, mesh, settings)
 
 
 def _video_fps(source: FrameSource, every: int) -> float:
@@ -498,8 +543,13 @@ def _video_fps(source: FrameSource, every: int) -> float:
 
 def _remove_stale_outputs(out_dir: Path) -> None:
     """Files an earlier replay left there would be mistaken for this one's."""
-    for name in ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES):
+    for name in ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES,
+                 DAMAGE_CSV, CONTACT_SHEET):
         (out_dir / name).unlink(missing_ok=True)
+    crops = out_dir / CROPS_DIR
+    if crops.is_dir():
+        for png in crops.glob("hole_*.png"):
+            png.unlink()
 
 
 def _finish(
@@ -527,6 +577,7 @@ def _finish(
         "interrupted": outcome.interrupted,
         "stop_reason": outcome.stop_reason or None,
         "source": {"corrupt_frames": source_stats.corrupt, "dropped_frames": source_stats.drops},
+        "damage_holes": outcome.holes,
         **stats.summary(),
     }
     summary["outputs"] = [*outcome.outputs, "summary.json"]

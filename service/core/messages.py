@@ -34,6 +34,7 @@ ESTIMATE_SUFFIX = "estimate"
 STATUS_SUFFIX = "status"
 PREVIEW_SUFFIX = "preview"
 STATE_SUFFIX = "state"
+DAMAGE_SUFFIX = "damage"
 
 Vec3 = tuple[float, float, float]
 
@@ -293,8 +294,42 @@ class PreviewMeta:
     height: int = doc("JPEG height, px")
 
 
-AnyMessage = EstimateMessage | StatusMessage | StateMessage | PreviewMeta
-MESSAGES: tuple[type[Any], ...] = (EstimateMessage, StatusMessage, StateMessage, PreviewMeta)
+# -- damage ---------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class DamageMessage(Message):
+    """A hole in the net, confirmed over several frames (published once per hole: see
+    docs/inspection.md). Sizes are knot to knot on the net plane."""
+
+    KIND: ClassVar[str] = DAMAGE_SUFFIX
+    hole_id: int = doc("number of the hole in this service run")
+    frame_time_unix: float | None = doc("wall-clock capture time of the confirming frame", None)
+    frame_time_mono: float | None = doc("monotonic capture time of the confirming frame", None)
+    first_seen_mono: float | None = doc("monotonic capture time of its first detection", None)
+    width_m: float = doc("extent along the net plane's horizontal (the camera's right laid "
+                         "onto the plane), knot to knot")
+    height_m: float = doc("extent along the plane's vertical (the camera's down laid onto it)")
+    cells: int = doc("mesh openings merged into the hole (2: one bar cut)")
+    missing_bars: int = doc("bars missing inside it")
+    image_x_px: float = doc("centre in the confirming frame, pixels from the left")
+    image_y_px: float = doc("centre in the confirming frame, pixels from the top")
+    image_box_px: list[float] = doc("its knots' box in that frame [x0, y0, x1, y1], pixels", [])
+    plane_x_m: float = doc("centre on the net plane, right of the camera's foot point (the "
+                           "plane's point nearest the camera)")
+    plane_y_m: float = doc("centre on the net plane, below the camera's foot point")
+    position_m: Vec3 = doc("centre in the camera frame [x right, y down, z forward]")
+    range_m: float = doc("distance from the camera to the hole's centre")
+    bearing: str = doc("where it is seen: `ahead`, `ahead-left`, `ahead-right`, with ` high` / "
+                       "` low` when well off the optical axis")
+    confidence: float = doc("0..1, from how clearly its bars are missing and how often it was "
+                            "seen where it was expected")
+    detections: int = doc("frames it was detected in, up to its confirmation")
+    looks: int = doc("inspected frames whose view held its place, up to its confirmation")
+    crop_jpeg: str = doc("the evidence: the frame around the hole, JPEG, base64", "")
+
+
+AnyMessage = EstimateMessage | StatusMessage | StateMessage | PreviewMeta | DamageMessage
+MESSAGES: tuple[type[Any], ...] = (EstimateMessage, StatusMessage, StateMessage, PreviewMeta,
+                                   DamageMessage)
 
 
 # -- serialisation ----------------------------------------------------------------------------
@@ -347,7 +382,8 @@ def schema_problems(payload: Mapping[str, Any]) -> list[str]:
     Extra keys are accepted (a newer publisher may add some); missing keys and another schema
     version are reported.
     """
-    kinds = {cls.KIND: cls for cls in (EstimateMessage, StatusMessage, StateMessage)}
+    kinds = {cls.KIND: cls for cls in (EstimateMessage, StatusMessage, StateMessage,
+                                       DamageMessage)}
     cls = kinds.get(str(payload.get("kind")))
     if cls is None:
         return [f"unknown kind {payload.get('kind')!r}"]
@@ -369,6 +405,8 @@ def _type_text(tp: Any) -> str:
         return " or ".join(parts) + (" or null" if nullable else "")
     if origin is tuple:
         return "[x, y, z]"
+    if origin is list:
+        return "array"
     if origin is dict:
         return "object"
     if dataclasses.is_dataclass(tp):

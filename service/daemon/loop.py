@@ -22,11 +22,13 @@ from dataclasses import dataclass, field
 from service import __version__
 from service.config import Config, config_digest
 from service.core.camera import CameraModel
+from service.core.damage_track import NetInspector
 from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import RangeReading
 from service.core.redact import redact_text
 from service.core.tracking import NetTracker, TrackOutput
+from service.daemon.damage_outputs import DamageOutputs
 from service.daemon.events import OnceLogger, SourceWatch, StateLog, TrackLog
 from service.daemon.outputs import FrameOutputs, PreviewSettings
 from service.daemon.ports import (
@@ -79,6 +81,13 @@ def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
     return estimator
 
 
+def make_inspector(config: Config, camera: CameraModel) -> NetInspector | None:
+    """Net inspection (hole detection), or None when `damage.enabled` is false."""
+    if not config.damage.enabled:
+        return None
+    return NetInspector(camera, config.mesh, config.damage)
+
+
 class Daemon:
     """Owns the loop over its parts. Use `run()`; it always closes what it opened."""
 
@@ -100,7 +109,8 @@ class Daemon:
         self._load_config = load_config
         self._on_reload = on_reload
         self.pipeline = Pipeline(make_estimator(config, parts.camera), NetTracker(config.filter),
-                                 config.service.autopilot_distance)
+                                 config.service.autopilot_distance,
+                                 make_inspector(config, parts.camera))
         self.stats = LoopStats()
         self.problems = OnceLogger(log)
         states = StateLog()
@@ -109,8 +119,11 @@ class Daemon:
         self.track_log = TrackLog(states, config.filter.coast_timeout_s,
                                   config.filter.max_consecutive_rejects)
         self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now)
-        self.outputs = FrameOutputs(parts.link, parts.telemetry, parts.vehicle, parts.preview,
-                                    wall_clock, self.problems, parts.observers)
+        self.outputs = FrameOutputs(
+            parts.link, parts.telemetry, parts.vehicle, parts.preview, wall_clock, self.problems,
+            parts.observers, DamageOutputs(parts.link, parts.telemetry, parts.vehicle,
+                                           wall_clock, config.damage.notify_interval_s,
+                                           parts.observers))
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
                           self.pipeline.tracker, self.track_log, self.source_watch, self.outputs),
@@ -228,6 +241,10 @@ class Daemon:
             changed = self.config.changed_sections(new)
             if "mesh" in changed or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera))
+            if "mesh" in changed or "damage" in changed:
+                self.pipeline.replace_inspector(make_inspector(new, self.parts.camera))
+                if self.outputs.damage is not None:
+                    self.outputs.damage.notices.interval_s = new.damage.notify_interval_s
             if "filter" in changed:
                 self.pipeline.tracker.reconfigure(new.filter)
             if "service" in changed:

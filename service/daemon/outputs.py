@@ -20,6 +20,7 @@ from service.core.messages import (
 )
 from service.core.readings import NetPlane, RangeReading
 from service.core.tracking import TrackOutput
+from service.daemon.damage_outputs import DamageOutputs
 from service.daemon.events import OnceLogger
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
 from service.pipeline import PipelineResult, sigma_range_of
@@ -105,6 +106,7 @@ class FrameOutputs:
         wall_clock: Callable[[], float],
         problems: OnceLogger,
         observers: Sequence[FrameObserver] = (),
+        damage: DamageOutputs | None = None,
     ) -> None:
         self._link = link
         self._telemetry = telemetry
@@ -113,6 +115,7 @@ class FrameOutputs:
         self._wall_clock = wall_clock
         self._problems = problems
         self._observers = tuple(observers)
+        self.damage = damage
         self._seq = 0
         self.last_estimate: EstimateMessage | None = None
 
@@ -133,6 +136,9 @@ class FrameOutputs:
                                    sent=sent)
         self.last_estimate = message
         self._telemetry.publish_estimate(message)
+        if self.damage is not None:
+            report = result.damage
+            self.damage.confirmed(frame, report.confirmed if report is not None else (), now)
         for observer in self._observers:
             observer.observe(frame, result, message)
         if self._telemetry.wants_preview(now):

@@ -18,8 +18,10 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.camera import CameraModel
+from service.core.damage_track import DamageReport
 from service.core.results import NetEstimate, RoiResult
 from service.core.tracking import TrackOutput, TrackState
+from service.tools.damage_report import draw_damage
 from service.tools.preview import TEXT, render_preview
 from service.tools.replay import Truth
 
@@ -168,6 +170,7 @@ class FrameAnnotator:
         truth: Truth | None = None,
         label: str = "",
         refused: str = "",
+        damage: DamageReport | None = None,
     ) -> BGR:
         h, w = frame.shape[:2]
         out_width = w if self._width is None else min(w, self._width)
@@ -186,6 +189,7 @@ class FrameAnnotator:
                         cv2.polylines(image, [pts], True, MESH, thick, cv2.LINE_AA)
             if estimate.detected:
                 self._draw_axes(image, estimate, w, h, scale, font, thick)
+        draw_damage(image, damage, scale, font, thick)
 
         lines = caption_lines(estimate, track, truth, refused)
         step = round(30 * font) + 4

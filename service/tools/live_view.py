@@ -2,7 +2,8 @@
 
 ROI grid coloured by what each ROI contributed, the mesh cells and parallelograms, the net's
 axes and normal back-projected through the calibration, and the distance, tilt, confidence and
-filter state as text: the picture `netpose replay` writes, drawn on the newest frame only
+filter state as text, net damage (candidates yellow, confirmed holes red): the picture
+`netpose replay` writes, drawn on the newest frame only
 when a page is open (drivers/web draws at `web.live_hz` on its own thread).
 """
 
@@ -28,4 +29,5 @@ class LiveView:
         color = getattr(frame, "color", None)
         image = color if color is not None else frame.image
         return self._annotator.annotate(image, result.estimate, track=result.track,
-                                        label=f"frame {frame.index}", refused=result.error)
+                                        label=f"frame {frame.index}", refused=result.error,
+                                        damage=result.damage)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from service.core.messages import (
+    DAMAGE_SUFFIX,
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
     STATE_SUFFIX,
@@ -23,6 +24,8 @@ from service.core.messages import (
 )
 
 STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX)
+# Confirmed holes in the net: rare events, listed rather than counted per second.
+HOLES_SHOWN = 8
 
 
 @dataclass
@@ -65,6 +68,7 @@ class VehicleView:
     preview_bytes: int = 0
     preview_meta: dict[str, Any] | None = None
     problems: set[str] = field(default_factory=set)
+    holes: list[dict[str, Any]] = field(default_factory=list)  # newest last
 
     def stream(self, name: str) -> StreamStats:
         if name not in self.streams:
@@ -133,7 +137,7 @@ class MonitorState:
         if len(parts) < 3:
             return None
         vehicle, kind = parts[-2], parts[-1]
-        if kind not in (*STREAMS, STATE_SUFFIX):
+        if kind not in (*STREAMS, STATE_SUFFIX, DAMAGE_SUFFIX):
             return None
         view = self.vehicles.get(vehicle)
         if view is None:
@@ -156,6 +160,8 @@ class MonitorState:
             view.estimate = payload
         elif kind == STATUS_SUFFIX:
             view.status = payload
+        elif kind == DAMAGE_SUFFIX:
+            view.holes.append(payload)
         return Received(vehicle, kind, key, payload, len(data))
 
     def link_state(self, now_mono: float, vehicle: str | None = None) -> str:
@@ -190,6 +196,8 @@ class MonitorState:
         parts.append(_estimate_text(view.estimate))
         parts.append(f"status {self.rate_hz(view.name, STATUS_SUFFIX, now_mono):.1f}Hz")
         parts.append(_status_text(view.status))
+        if view.holes:
+            parts.append(f"holes {len(view.holes)} (last: {hole_text(view.holes[-1])})")
         return " ".join(p for p in parts if p)
 
     def render(self, now_mono: float) -> list[str]:
@@ -232,6 +240,10 @@ class MonitorState:
                     f"  preview   {view.preview_meta.get('width')}x"
                     f"{view.preview_meta.get('height')}  {view.preview_bytes} bytes"
                 )
+            if view.holes:
+                lines.append(f"  net damage: {len(view.holes)} hole(s) confirmed")
+                for hole in view.holes[-HOLES_SHOWN:][::-1]:
+                    lines.append("    " + hole_text(hole))
             for problem in sorted(view.problems):
                 lines.append(f"  ! {problem}")
         return lines
@@ -241,6 +253,18 @@ def _fmt(value: Any, digits: int = 2) -> str:
     if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
         return f"{value:.{digits}f}"
     return "-"
+
+
+def hole_text(hole: Mapping[str, Any]) -> str:
+    """'hole 3: 6x4 cm, 4 cells, ahead-left at 1.10 m, conf 0.82'."""
+    def cm(value: Any) -> str:
+        if isinstance(value, int | float) and math.isfinite(value):
+            return str(max(1, round(value * 100)))
+        return "?"
+
+    return (f"hole {hole.get('hole_id')}: {cm(hole.get('width_m'))}x{cm(hole.get('height_m'))}"
+            f" cm, {hole.get('cells')} cells, {hole.get('bearing')} at "
+            f"{_fmt(hole.get('range_m'))} m, conf {_fmt(hole.get('confidence'))}")
 
 
 def _estimate_text(estimate: Mapping[str, Any] | None) -> str:

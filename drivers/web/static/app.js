@@ -50,6 +50,7 @@ function onMessage(msg) {
     case "estimate": onEstimate(msg); break;
     case "status": onStatus(msg); break;
     case "recording": onRecording(msg); break;
+    case "damage": onDamage(msg.holes || []); break;
     case "settings": if (view === "full") loadSettings(); break;
   }
 }
@@ -311,6 +312,28 @@ async function applyCalibration() {
 }
 
 // -- recording -------------------------------------------------------------------------------------
+// -- net damage: holes confirmed in this run, newest first ---------------------------------
+function onDamage(holes) {
+  page.holes = holes;
+  const body = $("holes") && $("holes").tBodies[0];
+  if (!body) return;
+  if ($("holes-count")) $("holes-count").textContent = holes.length ? `(${holes.length})` : "";
+  body.replaceChildren();
+  for (const h of holes) {
+    const tr = body.insertRow();
+    tr.className = "hole";
+    const img = document.createElement("img");
+    img.alt = `evidence of hole ${h.hole_id}`;
+    if (h.crop_jpeg) img.src = "data:image/jpeg;base64," + h.crop_jpeg;
+    tr.insertCell().append(img);
+    const size = `${Math.max(1, Math.round(h.width_m * 100))} × ${Math.max(1, Math.round(h.height_m * 100))} cm`;
+    const when = new Date(h.frame_time_unix * 1000).toLocaleTimeString();
+    const cells = [`hole ${h.hole_id}`, size, `${h.cells} cells`, `${h.bearing} at ${fmt(h.range_m)} m`,
+                   `conf ${fmt(h.confidence)}`, when];
+    for (const text of cells) tr.insertCell().textContent = text;
+  }
+}
+
 function onRecording(r) {
   page.recording = r;
   if (!$("record")) return;

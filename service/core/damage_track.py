@@ -1,0 +1,285 @@
+"""Net inspection over time: a candidate hole becomes a hole when it stays put on the net.
+
+`DamageDetector` judges one frame. Here candidates are followed from frame to frame on the net
+plane (coordinates right and down of the camera's foot point on the plane, in metres, from the
+estimated pose), so a hole is reported once, when confirmed, not once per frame:
+
+- a candidate joins the track whose predicted place on the net (its last place moved by its
+  own velocity) is nearest, within `gate_m` plus how far the net can have moved since;
+- a track is confirmed after `confirm_frames` detections, in at least `confirm_ratio` of the
+  inspected frames whose view held its predicted place (a caustic, a fish or a streak of
+  light does not come back at the same place of the net);
+- a track not seen for `track_timeout_s` ends (a confirmed one is then forgotten: the net is
+  periodic, so netpose cannot tell where on the net it is once the hole has left the view).
+
+`NetInspector` puts detector and tracker together for the pipeline, and decides which frames
+are inspected: only frames whose track is valid, at most `max_cost_fraction` of the
+estimator's time on average (or every `every_n_frames`-th frame).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.camera import CameraModel
+from service.core.damage import DamageDetector, DamageScan, DamageSettings, HoleCandidate
+from service.core.mesh import MeshGeometry
+from service.core.results import NetEstimate
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+
+# How fast the net may move across the view between two inspected frames before its velocity
+# is known (m/s): an ROV inspecting a net moves at a few tenths of a metre per second.
+MAX_SPEED_MPS = 0.6
+# Once the velocity is known, how much it may change (m/s).
+SPEED_UNCERTAINTY_MPS = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class ConfirmedHole:
+    """A hole seen at the same place of the net in several frames: what is reported."""
+
+    hole_id: int
+    t_first: float  # capture time of the first detection (frames' clock)
+    t_confirmed: float  # capture time of the frame that confirmed it
+    frame_index: int  # that frame's number
+    detections: int  # frames it was detected in, up to confirmation
+    looks: int  # inspected frames whose view held its place, up to confirmation
+    width_m: float  # median of the detections, knot to knot along the plane's horizontal
+    height_m: float  # along the plane's vertical
+    cells: int  # mesh openings merged (median of the detections)
+    missing_bars: int
+    centre_px: Vec2  # in the confirming frame
+    box_px: tuple[float, float, float, float]
+    plane_xy_m: Vec2  # on the net plane, right/down of the camera's foot point
+    point_m: Vec3  # camera frame
+    range_m: float  # camera to the hole
+    confidence: float  # 0..1
+    crop: npt.NDArray[np.uint8] | None = field(default=None, repr=False)  # best evidence
+
+    @property
+    def bearing(self) -> str:
+        """Where it is seen from the camera, in a pilot's words: ahead, ahead-left, ...,
+        with "high"/"low" when well above or below the optical axis."""
+        x, y, z = self.point_m
+        side = math.degrees(math.atan2(x, z))
+        up = math.degrees(math.atan2(-y, z))
+        words = "ahead" if abs(side) < 10.0 else ("ahead-right" if side > 0 else "ahead-left")
+        if up > 15.0:
+            words += " high"
+        elif up < -15.0:
+            words += " low"
+        return words
+
+    def pilot_text(self) -> str:
+        """The STATUSTEXT (at most 50 characters): "net: hole ~6x4 cm ahead-left at 1.1 m"."""
+        w = max(1, round(self.width_m * 100))
+        h = max(1, round(self.height_m * 100))
+        return f"net: hole ~{w}x{h} cm {self.bearing} at {self.range_m:.1f} m"[:50]
+
+
+@dataclass
+class _Track:
+    track_id: int
+    t_first: float
+    t_last: float
+    position: npt.NDArray[np.float64]  # on the plane, metres
+    velocity: npt.NDArray[np.float64] | None = None
+    hits: list[HoleCandidate] = field(default_factory=list)
+    looks: int = 0
+    confirmed: bool = False
+
+    def predicted(self, t: float) -> npt.NDArray[np.float64]:
+        if self.velocity is None:
+            return self.position
+        return np.asarray(self.position + self.velocity * (t - self.t_last), dtype=np.float64)
+
+    def gate(self, t: float, base: float) -> float:
+        dt = max(t - self.t_last, 0.0)
+        speed = MAX_SPEED_MPS if self.velocity is None else SPEED_UNCERTAINTY_MPS
+        size = max((max(c.width_m, c.height_m) for c in self.hits[-1:]), default=0.0)
+        return base + 0.5 * size + speed * dt
+
+
+@dataclass(frozen=True)
+class TrackView:
+    """A track as drawn and listed: where it is in the frame and whether it is confirmed."""
+
+    track_id: int
+    confirmed: bool
+    detections: int
+    centre_px: Vec2
+    box_px: tuple[float, float, float, float]
+    width_m: float
+    height_m: float
+
+
+class HoleTracker:
+    """Follows candidate holes on the net plane across frames and confirms them once."""
+
+    def __init__(self, camera: CameraModel, settings: DamageSettings | None = None) -> None:
+        self.camera = camera
+        self.settings = settings or DamageSettings()
+        self._tracks: list[_Track] = []
+        self._next_id = 1
+
+    def reset(self) -> None:
+        self._tracks = []
+
+    @property
+    def tracks(self) -> list[TrackView]:
+        out = []
+        for tr in self._tracks:
+            last = tr.hits[-1]
+            out.append(TrackView(tr.track_id, tr.confirmed, len(tr.hits), last.centre_px,
+                                 last.box_px, last.width_m, last.height_m))
+        return out
+
+    def update(self, scan: DamageScan, t: float, frame_index: int) -> list[ConfirmedHole]:
+        """One inspected frame's candidates; returns the holes confirmed by this frame."""
+        st = self.settings
+        self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s]
+        candidates = list(scan.candidates)
+        pairs = []
+        for ci, cand in enumerate(candidates):
+            p = np.array(cand.plane_xy_m)
+            for ti, tr in enumerate(self._tracks):
+                dist = float(np.linalg.norm(p - tr.predicted(t)))
+                if dist <= tr.gate(t, st.gate_m):
+                    pairs.append((dist, ci, ti))
+        used_c: set[int] = set()
+        used_t: set[int] = set()
+        for _, ci, ti in sorted(pairs):
+            if ci in used_c or ti in used_t:
+                continue
+            used_c.add(ci)
+            used_t.add(ti)
+            self._extend(self._tracks[ti], candidates[ci], t)
+        # Tracks whose place was in view but not seen this time count a look without a hit.
+        for ti, tr in enumerate(self._tracks):
+            if ti not in used_t and self._in_view(scan, tr.predicted(t)):
+                tr.looks += 1
+        for ci, cand in enumerate(candidates):
+            if ci not in used_c:
+                self._tracks.append(_Track(self._next_id, t, t, np.array(cand.plane_xy_m),
+                                           hits=[cand], looks=1))
+                self._next_id += 1
+        confirmed = []
+        for tr in self._tracks:
+            if tr.confirmed or len(tr.hits) < st.confirm_frames:
+                continue
+            if len(tr.hits) < st.confirm_ratio * tr.looks:
+                continue
+            tr.confirmed = True
+            confirmed.append(self._report(tr, t, frame_index))
+        return confirmed
+
+    def _extend(self, tr: _Track, cand: HoleCandidate, t: float) -> None:
+        p = np.array(cand.plane_xy_m)
+        dt = t - tr.t_last
+        if dt > 1e-6:
+            v = (p - tr.position) / dt
+            tr.velocity = v if tr.velocity is None else 0.5 * tr.velocity + 0.5 * v
+        tr.position = p
+        tr.t_last = t
+        tr.hits.append(cand)
+        tr.looks += 1
+
+    def _in_view(self, scan: DamageScan, plane_xy: npt.NDArray[np.float64]) -> bool:
+        """Was this place of the net inside the region inspected in this frame?"""
+        import cv2
+
+        net = scan.geometry
+        if net is None or len(scan.outline_px) < 3:
+            return False
+        foot = -net.normal * net.distance_m
+        point = foot + plane_xy[0] * net.horizontal + plane_xy[1] * net.vertical
+        if point[2] <= 1e-6:
+            return False
+        px = self.camera.project_normalized(point[:2] / point[2])
+        contour = np.array(scan.outline_px, dtype=np.float32).reshape(-1, 1, 2)
+        return bool(cv2.pointPolygonTest(contour, (float(px[0]), float(px[1])), False) >= 0)
+
+    def _report(self, tr: _Track, t: float, frame_index: int) -> ConfirmedHole:
+        last = tr.hits[-1]
+        best = max(tr.hits, key=lambda c: c.significance)
+        conf_frame = float(np.median([c.confidence for c in tr.hits]))
+        # Repeated sightings add up: each further one halves what is left of the doubt.
+        repeat = 1.0 - 0.5 ** max(len(tr.hits) - 1, 0)
+        confidence = conf_frame * (0.5 + 0.5 * repeat) * min(1.0, len(tr.hits) / tr.looks
+                                                              / self.settings.confirm_ratio)
+        return ConfirmedHole(
+            hole_id=tr.track_id, t_first=tr.t_first, t_confirmed=t, frame_index=frame_index,
+            detections=len(tr.hits), looks=tr.looks,
+            width_m=float(np.median([c.width_m for c in tr.hits])),
+            height_m=float(np.median([c.height_m for c in tr.hits])),
+            cells=int(round(float(np.median([c.cells for c in tr.hits])))),
+            missing_bars=int(round(float(np.median([c.missing_bars for c in tr.hits])))),
+            centre_px=last.centre_px, box_px=last.box_px, plane_xy_m=last.plane_xy_m,
+            point_m=last.point_m, range_m=last.range_m, confidence=min(1.0, confidence),
+            crop=best.crop,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class DamageReport:
+    """What inspection did with one frame of the pipeline."""
+
+    inspected: bool  # the detector ran on this frame
+    reason: str = ""  # why not, or why it saw nothing ("" when it did)
+    scan: DamageScan | None = None
+    confirmed: tuple[ConfirmedHole, ...] = ()  # holes confirmed by this frame
+    tracks: tuple[TrackView, ...] = ()  # candidates being followed (confirmed or not)
+    inspect_ms: float = 0.0
+
+
+class NetInspector:
+    """Detector + tracker + the decision which frames to inspect (pure; times come in)."""
+
+    def __init__(self, camera: CameraModel, mesh: MeshGeometry,
+                 settings: DamageSettings | None = None) -> None:
+        self.settings = settings or DamageSettings()
+        self.detector = DamageDetector(camera, mesh, self.settings)
+        self.tracker = HoleTracker(camera, self.settings)
+        self._estimator_ms = 0.0  # decayed sums: the share inspection took recently
+        self._inspect_ms = 0.0
+        self._tracked_frames = 0
+        self.inspected_frames = 0
+        self.skipped_frames = 0
+
+    def step(self, image: npt.NDArray[Any], estimate: NetEstimate | None, t: float,
+             frame_index: int, track_valid: bool, estimate_ms: float) -> DamageReport:
+        """One frame of the pipeline. Inspects it when the track is valid, the frame has a
+        detection and the budget allows; follows candidates either way."""
+        st = self.settings
+        if not st.enabled:
+            return DamageReport(False, "inspection is off (damage.enabled = false)")
+        if not track_valid or estimate is None or not estimate.detected:
+            return DamageReport(False, "no valid net track", tracks=tuple(self.tracker.tracks))
+        decay = 0.98
+        self._estimator_ms = decay * self._estimator_ms + estimate_ms
+        self._inspect_ms *= decay
+        self._tracked_frames += 1
+        if st.every_n_frames > 0:
+            due = (self._tracked_frames - 1) % st.every_n_frames == 0
+        else:
+            due = self._inspect_ms <= st.max_cost_fraction * self._estimator_ms
+        if not due:
+            self.skipped_frames += 1
+            return DamageReport(False, "skipped: inspection budget",
+                                tracks=tuple(self.tracker.tracks))
+        t0 = time.perf_counter()
+        scan = self.detector.inspect(image, estimate, part=self.inspected_frames)
+        confirmed = self.tracker.update(scan, t, frame_index)
+        ms = (time.perf_counter() - t0) * 1e3
+        self._inspect_ms += ms
+        self.inspected_frames += 1
+        return DamageReport(True, scan.reason, scan, tuple(confirmed),
+                            tuple(self.tracker.tracks), ms)

@@ -1,0 +1,111 @@
+"""Confirmed holes in the net to the topside and the pilot: the `damage` message and a
+rate-limited STATUSTEXT ("net: hole ~6x4 cm ahead-left at 1.1 m").
+
+Both happen once per hole, when `service.core.damage_track` confirms it; nothing here waits
+for I/O (the publisher and the link queue what they are given).
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+from collections.abc import Callable
+
+from service.core.damage_track import ConfirmedHole
+from service.core.errors import NetposeError
+from service.core.messages import DamageMessage
+from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
+from service.tools.preview import encode_jpeg
+
+log = logging.getLogger("netpose.daemon")
+
+MAV_SEVERITY_WARNING = 4
+# A text that waited this long for its turn is no longer news (the ROV moved on).
+STALE_TEXT_S = 15.0
+
+
+def damage_message(hole: ConfirmedHole, *, vehicle: str, frame: Frame, now_mono: float,
+                   now_unix: float, crop_quality: int = 80) -> DamageMessage:
+    """The telemetry message of a confirmed hole (the evidence crop as base64 JPEG)."""
+    crop = ""
+    if hole.crop is not None and hole.crop.size:
+        try:
+            crop = base64.b64encode(encode_jpeg(hole.crop, crop_quality)).decode("ascii")
+        except NetposeError as exc:
+            log.warning("cannot encode the evidence of hole %d: %s", hole.hole_id, exc)
+    # The frame's own stamps, moved back to the first detection on the same clocks.
+    first_mono = frame.t_monotonic - (hole.t_confirmed - hole.t_first)
+    return DamageMessage(
+        vehicle=vehicle, time_unix=now_unix, time_mono=now_mono, hole_id=hole.hole_id,
+        frame_time_unix=frame.t_wall, frame_time_mono=frame.t_monotonic,
+        first_seen_mono=first_mono, width_m=hole.width_m, height_m=hole.height_m,
+        cells=hole.cells, missing_bars=hole.missing_bars, image_x_px=hole.centre_px[0],
+        image_y_px=hole.centre_px[1], image_box_px=list(hole.box_px),
+        plane_x_m=hole.plane_xy_m[0], plane_y_m=hole.plane_xy_m[1], position_m=hole.point_m,
+        range_m=hole.range_m, bearing=hole.bearing, confidence=hole.confidence,
+        detections=hole.detections, looks=hole.looks, crop_jpeg=crop,
+    )
+
+
+class PilotNotices:
+    """At most one STATUSTEXT per `interval_s`. Holes confirmed in between are not lost: the
+    next text names the newest of them and says how many more there were ("(+2)")."""
+
+    def __init__(self, link: AutopilotLink, interval_s: float) -> None:
+        self._link = link
+        self.interval_s = interval_s
+        self._last_sent = -float("inf")
+        self._pending: tuple[ConfirmedHole, float] | None = None
+        self._held_back = 0  # holes confirmed since the last text, besides the pending one
+        self.sent: list[str] = []
+
+    def hole(self, hole: ConfirmedHole, now: float) -> None:
+        if self._pending is not None:
+            self._held_back += 1
+        self._pending = (hole, now)
+        self.tick(now)
+
+    def tick(self, now: float) -> None:
+        if self._pending is None or now - self._last_sent < self.interval_s:
+            return
+        hole, at = self._pending
+        self._pending = None
+        if now - at > STALE_TEXT_S:
+            self._held_back += 1
+            return
+        text = hole.pilot_text()
+        if self._held_back:
+            text = f"{text} (+{self._held_back})"[:50]
+        self._held_back = 0
+        self._last_sent = now
+        self.sent.append(text)
+        self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
+
+
+class DamageOutputs:
+    """Publishes each confirmed hole and tells the pilot (rate-limited)."""
+
+    def __init__(self, link: AutopilotLink, telemetry: TelemetrySink, vehicle: str,
+                 wall_clock: Callable[[], float], notify_interval_s: float,
+                 observers: tuple[FrameObserver, ...] = ()) -> None:
+        self._telemetry = telemetry
+        self._observers = observers
+        self._vehicle = vehicle
+        self._wall_clock = wall_clock
+        self.notices = PilotNotices(link, notify_interval_s)
+        self.reported = 0
+
+    def confirmed(self, frame: Frame, holes: tuple[ConfirmedHole, ...], now: float) -> None:
+        for hole in holes:
+            self.reported += 1
+            log.warning("net damage: hole %d confirmed, %.0f x %.0f cm (%d cells), %s at %.2f m "
+                        "(confidence %.2f, seen in %d of %d frames)", hole.hole_id,
+                        hole.width_m * 100, hole.height_m * 100, hole.cells, hole.bearing,
+                        hole.range_m, hole.confidence, hole.detections, hole.looks)
+            message = damage_message(hole, vehicle=self._vehicle, frame=frame, now_mono=now,
+                                     now_unix=self._wall_clock())
+            self._telemetry.publish_damage(message)
+            for observer in self._observers:
+                observer.observe_damage(message)
+            self.notices.hole(hole, now)
+        self.notices.tick(now)

@@ -1,0 +1,140 @@
+"""The replay's record of net damage: damage.csv (one row per confirmed hole), the evidence
+crops and a contact sheet of them (damage.png), and the marks drawn on annotated frames."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from service.core.damage_track import ConfirmedHole, DamageReport
+
+BGR = npt.NDArray[np.uint8]
+
+CONFIRMED = (0, 0, 255)  # red: a confirmed hole
+CANDIDATE = (0, 220, 255)  # yellow: a candidate being followed
+INSPECTED = (200, 160, 0)  # teal: the part of the frame inspected in this frame
+
+DAMAGE_CSV = "damage.csv"
+CONTACT_SHEET = "damage.png"
+CROPS_DIR = "damage"
+DAMAGE_COLUMNS = (
+    "hole_id", "frame", "time_s", "width_cm", "height_cm", "cells", "missing_bars",
+    "image_x_px", "image_y_px", "plane_x_m", "plane_y_m", "range_m", "bearing", "confidence",
+    "detections", "looks", "first_seen_s", "crop",
+)
+
+
+def hole_label(hole: ConfirmedHole) -> str:
+    """"hole 3: 6x4 cm" (knot to knot on the net plane)."""
+    return (f"hole {hole.hole_id}: {max(1, round(hole.width_m * 100))}x"
+            f"{max(1, round(hole.height_m * 100))} cm")
+
+
+class DamageCsv:
+    """damage.csv and the crops: one row and one PNG per confirmed hole, written as they come
+    (a replay that is interrupted keeps what it found)."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = out_dir
+        self.path = out_dir / DAMAGE_CSV
+        self._file: IO[str] = self.path.open("w", newline="", encoding="utf-8")
+        self._writer = csv.writer(self._file)
+        self._writer.writerow(DAMAGE_COLUMNS)
+        self.holes: list[tuple[ConfirmedHole, int]] = []
+
+    def write(self, hole: ConfirmedHole, frame: int, time_s: float, t0_capture: float) -> None:
+        crop_name = ""
+        if hole.crop is not None and hole.crop.size:
+            crops = self.out_dir / CROPS_DIR
+            crops.mkdir(exist_ok=True)
+            crop_name = f"{CROPS_DIR}/hole_{hole.hole_id:03d}.png"
+            cv2.imwrite(str(self.out_dir / crop_name), hole.crop)
+        first = time_s - (hole.t_confirmed - hole.t_first)
+        self._writer.writerow([
+            hole.hole_id, frame, f"{time_s:.3f}", f"{hole.width_m * 100:.1f}",
+            f"{hole.height_m * 100:.1f}", hole.cells, hole.missing_bars,
+            f"{hole.centre_px[0]:.1f}", f"{hole.centre_px[1]:.1f}", f"{hole.plane_xy_m[0]:.3f}",
+            f"{hole.plane_xy_m[1]:.3f}", f"{hole.range_m:.3f}", hole.bearing,
+            f"{hole.confidence:.2f}", hole.detections, hole.looks, f"{first:.3f}", crop_name,
+        ])
+        self._file.flush()
+        del t0_capture
+        self.holes.append((hole, frame))
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def contact_sheet(holes: Sequence[tuple[ConfirmedHole, int]], tile: int = 160,
+                  columns: int = 5) -> BGR | None:
+    """The evidence crops side by side, each captioned with its hole, size and frame."""
+    tiles = []
+    for hole, frame in holes:
+        crop = hole.crop
+        if crop is None or not crop.size:
+            image = np.zeros((tile, tile, 3), np.uint8)
+        else:
+            grey = crop if crop.ndim == 2 else cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)
+            f = tile / max(grey.shape[:2])
+            size = (max(1, round(grey.shape[1] * f)), max(1, round(grey.shape[0] * f)))
+            small = cv2.resize(grey, size, interpolation=cv2.INTER_AREA if f < 1 else
+                               cv2.INTER_LINEAR)
+            image = np.zeros((tile, tile, 3), np.uint8)
+            y0, x0 = (tile - size[1]) // 2, (tile - size[0]) // 2
+            image[y0:y0 + size[1], x0:x0 + size[0]] = cv2.cvtColor(small, cv2.COLOR_GRAY2BGR)
+        caption = np.zeros((36, tile, 3), np.uint8)
+        cv2.putText(caption, hole_label(hole), (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(caption, f"frame {frame}, {hole.range_m:.2f} m, {hole.bearing}", (4, 30),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.36, (200, 200, 200), 1, cv2.LINE_AA)
+        tiles.append(np.vstack([image, caption]))
+    if not tiles:
+        return None
+    columns = min(columns, len(tiles))
+    while len(tiles) % columns:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.hstack(tiles[i:i + columns]) for i in range(0, len(tiles), columns)]
+    return np.asarray(np.vstack(rows), dtype=np.uint8)
+
+
+def write_contact_sheet(holes: Sequence[tuple[ConfirmedHole, int]], out_dir: Path
+                        ) -> Path | None:
+    sheet = contact_sheet(holes)
+    if sheet is None:
+        return None
+    path = out_dir / CONTACT_SHEET
+    cv2.imwrite(str(path), sheet)
+    return path
+
+
+def draw_damage(image: BGR, report: DamageReport | None, scale: float, font: float,
+                thick: int) -> None:
+    """Marks on an annotated frame (drawn in place): the part of the frame inspected in this
+    frame, candidates being followed (yellow) and confirmed holes (red, with their size)."""
+    if report is None:
+        return
+    scan = report.scan
+    if scan is not None and len(scan.outline_px) >= 3:
+        pts = np.round(np.array(scan.outline_px) * scale).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(image, [pts], True, INSPECTED, max(1, thick - 1), cv2.LINE_AA)
+    for track in report.tracks:
+        x0, y0, x1, y1 = (v * scale for v in track.box_px)
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+            continue
+        pad = max(3.0, 0.25 * max(x1 - x0, y1 - y0))
+        p0 = (round(x0 - pad), round(y0 - pad))
+        p1 = (round(x1 + pad), round(y1 + pad))
+        colour = CONFIRMED if track.confirmed else CANDIDATE
+        cv2.rectangle(image, p0, p1, colour, thick + (1 if track.confirmed else 0), cv2.LINE_AA)
+        if track.confirmed:
+            text = (f"hole {track.track_id}: {max(1, round(track.width_m * 100))}x"
+                    f"{max(1, round(track.height_m * 100))} cm")
+            cv2.putText(image, text, (p0[0], max(12, p0[1] - 6)), cv2.FONT_HERSHEY_SIMPLEX,
+                        font * 0.7, colour, max(1, thick), cv2.LINE_AA)

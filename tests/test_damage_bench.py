@@ -1,0 +1,74 @@
+"""The short, seeded version of `netpose bench damage` (the full one: docs/inspection.md).
+
+A few rendered passes (realistic scenes, as the benchmark draws them) through the pipeline and
+the real frames of shared/data: the machinery that the benchmark's figures come from, and the
+two targets a short run can check exactly: no false hole confirmed on an intact net, and no
+candidate at all on the real frames (none of which shows a hole).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from service.benchmarks import damage
+from tests.shared_data import shared_data_dir
+
+PASSES = 4
+WIDTH, HEIGHT = 960, 540
+
+
+@pytest.fixture(scope="module")
+def results() -> list[damage.PassResult]:
+    return damage.run_passes(damage.BenchSpec(PASSES, seed=3, width=WIDTH, height=HEIGHT,
+                                              keep_misses=True), jobs=1)
+
+
+def test_passes_are_scored_frame_by_frame(results: list[damage.PassResult]) -> None:
+    assert [r.case_index for r in results] == list(range(PASSES))
+    for res in results:
+        frames = {row.frame for row in res.rows}
+        assert frames == set(range(damage.FRAMES_PER_PASS))
+        case = damage.draw_pass(3, res.case_index, WIDTH, HEIGHT)
+        assert len(res.holes) == len(case.holes) == res.case_index % 2
+        for row in res.rows:
+            assert row.estimate_ms > 0 and math.isfinite(row.range_m)
+            if row.inspected:
+                assert row.inspect_ms > 0
+            if row.hole_cells:
+                # Scored only where the frame shows the hole, with its contrast over the noise.
+                assert row.cnr > 0 and (row.detected or row.why)
+
+
+def test_no_false_hole_is_confirmed_on_an_intact_net(results: list[damage.PassResult]) -> None:
+    intact = [r for r in results if not r.holes]
+    assert intact
+    assert sum(r.confirmed_false for r in intact) == 0
+
+
+def test_confirmed_holes_are_measured_within_20_percent(
+        results: list[damage.PassResult]) -> None:
+    for res in results:
+        for _, width_error, height_error in res.confirmed_true:
+            assert abs(width_error) <= damage.TARGET_SIZE_ERROR
+            assert abs(height_error) <= damage.TARGET_SIZE_ERROR
+
+
+def test_the_report_states_every_target(results: list[damage.PassResult]) -> None:
+    lines = damage.format_report(results, [])
+    text = "\n".join(lines)
+    assert "confirmed holes by size and distance" in text and "false holes confirmed" in text
+    assert "inspection / estimator time" in text
+    summary = damage.summarise(results, [])
+    assert summary.intact_frames == damage.FRAMES_PER_PASS * sum(not r.holes for r in results)
+    assert len(summary.targets) == 5
+
+
+def test_no_candidate_on_the_real_frames() -> None:
+    data = shared_data_dir()
+    rows = damage.run_real(data)
+    with_net = [r for r in rows if r.detected]
+    assert len(with_net) >= 8  # the stills and the sequence frames the estimator measures
+    assert sum(r.inspected_cells > 0 for r in with_net) >= 8
+    assert [(r.name, r.candidates) for r in rows if r.candidates] == []

@@ -1,0 +1,162 @@
+"""A rendered pass along a net with two holes, through the real daemon loop: each hole is
+confirmed once (not once per frame), measured within 20 %, published on Zenoh (a real session
+on loopback) and told to the pilot as a STATUSTEXT (real MAVLink 2 to the fake autopilot).
+
+Only the frame source is a stand-in (the rendered frames, played on a fake clock); estimator,
+filter, inspection, publisher and MAVLink link are the production ones.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from drivers.mavlink_link import MavlinkLink
+from drivers.mavlink_settings import MavlinkSettings
+from drivers.sdnotify import RecordingNotifier
+from drivers.sources import Frame
+from drivers.synthetic_damage import (
+    HoleTruth,
+    NetDamage,
+    cell_at_pixel,
+    hole_truth,
+    missing_knot,
+    torn_hole,
+)
+from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+from drivers.telemetry import TelemetrySettings, ZenohPublisher
+from drivers.telemetry_subscriber import TelemetrySubscriber
+from service.benchmarks.scenes import bench_camera
+from service.core.mesh import MeshGeometry
+from service.core.messages import schema_problems
+from service.daemon.loop import Daemon, DaemonParts
+from tests.daemon_harness import WALL_OFFSET, FakeClock, ScriptedSource, Step, demo_config
+from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
+
+CAMERA = bench_camera(960, 540)
+MESH = MeshGeometry(bar_length_m=0.02)
+FPS = 10.0
+FRAMES = 36
+SPEED_CELLS_PER_FRAME = 0.35  # the net moves ~0.07 m/s through the view (7 mm a frame)
+SIZE_TOLERANCE = 0.20
+
+
+@dataclass
+class PassRun:
+    truths: list[list[HoleTruth]]  # per frame, per hole
+    damages: list[dict]
+    texts: list[str]
+    daemon_holes: int
+
+
+def _pose(k: int) -> NetPose:
+    return NetPose(1.0, 15.0, 20.0, 12.0, (0.2 + SPEED_CELLS_PER_FRAME * k, 0.4))
+
+
+@pytest.fixture(scope="module")
+def ran() -> Iterator[PassRun]:
+    renderer = NetRenderer(CAMERA, MESH)
+    middle = _pose(FRAMES // 2)
+    rng = np.random.default_rng(8)
+    first = cell_at_pixel(CAMERA, middle, MESH, (330.0, 230.0))
+    second = cell_at_pixel(CAMERA, middle, MESH, (640.0, 330.0))
+    assert first is not None and second is not None
+    holes = [torn_hole(first, 6, rng), missing_knot(second, rng)]
+    damage = NetDamage(holes)
+    clock = FakeClock(100.0)
+    script = []
+    truths = []
+    for k in range(FRAMES):
+        pose = _pose(k)
+        image, _ = renderer.render(pose, np.random.default_rng([8, k]), SceneStyle(),
+                                   damage=damage)
+        t = 100.0 + k / FPS
+        script.append(Step(Frame(image, k, t, t + WALL_OFFSET), processing_s=0.05))
+        truths.append([hole_truth(h, CAMERA, pose, MESH) for h in holes])
+    tel = TelemetrySubscriber(vehicle="pass")
+    autopilot = FakeAutopilot(UdpServerTransport()).start()
+    config = demo_config("mesh.bar_length_m=0.02", "damage.every_n_frames=1",
+                         "damage.notify_interval_s=0.5", "telemetry.vehicle=pass")
+    publisher = ZenohPublisher(TelemetrySettings(
+        vehicle="pass", mode="peer", connect=(tel.endpoint,), listen=(), scouting=False))
+    link = MavlinkLink(MavlinkSettings(url=autopilot.url, allow_simulated=True))
+    parts = DaemonParts(source=ScriptedSource(script, clock), link=link, telemetry=publisher,
+                        notifier=RecordingNotifier(), camera=CAMERA, vehicle="pass")
+    daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall)
+    try:
+        daemon.start()
+        deadline = time.monotonic() + 10.0
+        while not publisher.online:  # the session opens in the background
+            assert time.monotonic() < deadline, "the Zenoh session did not open"
+            time.sleep(0.05)
+        for _ in range(FRAMES):
+            daemon.iterate()
+        outputs = daemon.outputs.damage
+        assert outputs is not None
+        daemon_holes = outputs.reported
+        expected = len(outputs.notices.sent)
+        autopilot.wait_for("STATUSTEXT", count=expected, timeout=10.0,
+                           where=lambda r: "hole" in r.msg.text)
+        deadline = time.monotonic() + 10.0
+        while len(tel.damages) < daemon_holes and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        daemon.close()
+        autopilot.close()
+        damages = list(tel.damages)
+        tel.close()
+    texts = [r.msg.text for r in autopilot.received("STATUSTEXT") if "hole" in r.msg.text]
+    yield PassRun(truths, damages, texts, daemon_holes)
+
+
+def _matching(message: dict, truths: list[HoleTruth]) -> list[int]:
+    x, y = message["image_x_px"], message["image_y_px"]
+    return [k for k, t in enumerate(truths)
+            if t.box_px[0] - 5 <= x <= t.box_px[2] + 5 and t.box_px[1] - 5 <= y <= t.box_px[3] + 5]
+
+
+def test_both_holes_are_confirmed_once(ran: PassRun) -> None:
+    assert ran.daemon_holes == 2
+    assert len(ran.damages) == 2
+    assert len({m["hole_id"] for m in ran.damages}) == 2
+    found = set()
+    for message in ran.damages:
+        assert schema_problems(message) == []
+        frame = round((message["frame_time_mono"] - 100.0) * FPS)
+        match = _matching(message, ran.truths[frame])
+        assert len(match) == 1, (message["image_x_px"], message["image_y_px"])
+        found.add(match[0])
+    assert found == {0, 1}
+
+
+def test_their_sizes_are_within_20_percent(ran: PassRun) -> None:
+    for message in ran.damages:
+        frame = round((message["frame_time_mono"] - 100.0) * FPS)
+        truth = ran.truths[frame][_matching(message, ran.truths[frame])[0]]
+        assert message["width_m"] == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
+        assert message["height_m"] == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
+        assert message["cells"] == truth.cells
+        assert message["range_m"] == pytest.approx(truth.range_m, rel=0.05)
+        assert 0.0 < message["confidence"] <= 1.0
+        jpeg = base64.b64decode(message["crop_jpeg"])
+        assert jpeg[:2] == b"\xff\xd8"  # the evidence is a JPEG
+
+
+def test_the_pilot_is_told_about_each_hole(ran: PassRun) -> None:
+    """One STATUSTEXT per hole ("net: hole ~6x4 cm ahead-left at 1.1 m"), or one naming the
+    newest and counting the other when both came within damage.notify_interval_s."""
+    assert ran.texts
+    told = sum(1 + (1 if text.endswith("(+1)") else 0) for text in ran.texts)
+    assert told == 2
+    sizes = {f"~{max(1, round(m['width_m'] * 100))}x{max(1, round(m['height_m'] * 100))} cm"
+             for m in ran.damages}
+    for text in ran.texts:
+        assert text.startswith("net: hole ~") and len(text) <= 50
+        assert any(size in text for size in sizes), text
+        assert math.isfinite(float(text.split(" at ")[1].split(" m")[0]))
