@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 AutopilotDistance = Literal["perpendicular", "optical_axis"]
 
+# Frames in a row the estimator must call "too close" before the autopilot is told so: one
+# frame of a blur filling the view (a fish passing the lens) must not replace a distance.
+TOO_CLOSE_FRAMES = 2
+
 
 @dataclass(frozen=True, eq=False)
 class PipelineResult:
@@ -91,6 +95,7 @@ class Pipeline:
         self._prior: NetEstimate | None = None
         # Confidence of the last accepted measurement: what a coasting reading is worth.
         self._last_quality = math.nan
+        self._too_close_frames = 0
 
     @property
     def estimator(self) -> NetEstimator:
@@ -120,7 +125,8 @@ class Pipeline:
         """What the next frame's result depends on besides the frame: the filter's state, the
         prior (the last detection) and the last accepted quality, as exact JSON values."""
         return {"tracker": self._tracker.snapshot(), "prior": to_plain(self._prior),
-                "last_quality": to_plain(self._last_quality)}
+                "last_quality": to_plain(self._last_quality),
+                "too_close_frames": self._too_close_frames}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a `snapshot`, as if the frames before it had been processed here."""
@@ -128,6 +134,7 @@ class Pipeline:
         prior = state.get("prior")
         self._prior = None if prior is None else from_plain(NetEstimate, prior)
         self._last_quality = from_plain(float, state["last_quality"])
+        self._too_close_frames = int(state.get("too_close_frames", 0))
 
     def process(self, image: npt.NDArray[Any], t: float, index: int) -> PipelineResult:
         """One frame captured at `t`."""
@@ -143,6 +150,8 @@ class Pipeline:
             failure = exc
         estimate_ms = (time.perf_counter() - t0) * 1e3
         self._prior = estimate if estimate is not None and estimate.detected else None
+        too_close = estimate is not None and estimate.too_close
+        self._too_close_frames = self._too_close_frames + 1 if too_close else 0
         track = self._tracker.step(t, estimate)
         damage = None
         if self._inspector is not None:
@@ -170,6 +179,11 @@ class Pipeline:
     ) -> RangeReading:
         if track.measurement in (Outcome.ACCEPTED, Outcome.RESET) and estimate is not None:
             self._last_quality = estimate.confidence
+        if estimate is not None and self._too_close_frames >= TOO_CLOSE_FRAMES:
+            # Nearer than the mesh can be resolved: the autopilot must see "below minimum"
+            # (OutOfRangeLow), not the silence of open water, and not a coasting prediction
+            # from before the net came this close.
+            return RangeReading(RangeStatus.TOO_CLOSE, t_capture=t)
         if not track.valid or track.distance_m is None:
             return RangeReading.none(t)
         distance = track.distance_m

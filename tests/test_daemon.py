@@ -269,3 +269,46 @@ def test_net_plane_of_every_frame_for_the_net_hold_applet(frames: list[Frame]) -
     distance = RANGE_M * math.cos(math.radians(TILT_DEG))
     assert all(abs(p.distance_m / distance - 1.0) < 0.02 for p in confirmed)
     assert all(p.foot_m == (0.0, 0.0, 0.0) for p in planes[20:])
+
+
+CLOSE_URL = "synthetic:?width=640&height=360&trajectory=static&range=0.18&tilt=10&seed=5"
+RHOMBIC_URL = URL + "&angle=45"
+
+
+def test_a_net_too_close_to_measure_is_told_to_the_autopilot_and_the_pilot(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 17, item 4: nearer than the mesh can be resolved, the autopilot gets a reading
+    below its minimum (OutOfRangeLow), not silence, and the pilot a STATUSTEXT, once."""
+    close = render_frames(CLOSE_URL, 6)
+    seq = frames_at([*frames[:15], *close, *frames[15:25]], FPS, 100.0)
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    h = make_harness(demo_config(), [Step(frame=f) for f in seq])
+    h.run_script()
+    statuses = [r.status for r in h.link.ranges]
+    assert statuses[14] is RangeStatus.GOOD
+    # Two frames in a row confirm "too close"; from then on until the net is measured again.
+    assert statuses[15] is not RangeStatus.TOO_CLOSE
+    assert statuses[16:21] == [RangeStatus.TOO_CLOSE] * 5
+    assert RangeStatus.TOO_CLOSE not in statuses[21:]
+    assert statuses[-1] is RangeStatus.GOOD
+    assert [t for _, t in h.link.texts] == ["netpose: net too close to measure, back off"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "net too close to measure" in warnings[0]
+    assert any("net too close to measure ended" in r.getMessage() for r in caplog.records)
+
+
+def test_a_net_of_another_opening_angle_gives_no_distance_and_says_the_angle(
+    caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 17, item 3: a 45 deg rhombic net against the configured 90 deg is refused with
+    the measured angle in the log and on the pilot's screen, never measured with a bias."""
+    rhombic = frames_at(render_frames(RHOMBIC_URL, 12), FPS, 100.0)
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    h = make_harness(demo_config(), [Step(frame=f) for f in rhombic])
+    h.run_script()
+    assert h.link.sent == []
+    assert [t for _, t in h.link.texts] == ["netpose: mesh angle 45 deg, config 90: no dist"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1, warnings
+    assert "mesh opening angle measured 45 deg, configured 90 deg" in warnings[0]

@@ -79,9 +79,9 @@ class Trajectory:
 
     def __init__(self, parsed: SourceUrl) -> None:
         self.kind = parsed.choice("trajectory", "approach", TRAJECTORIES)
-        self.near = parsed.number_or("near", 0.6, 0.2, 20.0)
-        self.far = parsed.number_or("far", 2.0, 0.2, 20.0)
-        self.range = parsed.number_or("range", 1.2, 0.2, 20.0)
+        self.near = parsed.number_or("near", 0.6, 0.05, 20.0)
+        self.far = parsed.number_or("far", 2.0, 0.05, 20.0)
+        self.range = parsed.number_or("range", 1.2, 0.05, 20.0)
         self.tilt = parsed.number_or("tilt", 20.0 if self.kind != "approach" else 10.0, 0.0, 70.0)
         self.axis = parsed.number_or("tilt_axis", 30.0, -360.0, 360.0)
         self.roll = parsed.number_or("roll", 0.0, -360.0, 360.0)

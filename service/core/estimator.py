@@ -73,6 +73,13 @@ _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells
               "mesh opening angle measured")
 
 
+def refused_as_another_grid(estimate: NetEstimate) -> bool:
+    """The view was recognised as a regular grid that is not the configured net (a brick wall,
+    a checkerboard, cells of another shape, or a net of another opening angle): worth telling
+    the pilot, unlike a view with no lattice at all."""
+    return not estimate.detected and estimate.reason.startswith(_NOT_A_NET)
+
+
 @dataclass(frozen=True)
 class EstimatorSettings:
     """Tuning of the estimator; the defaults are what the benchmarks were run with."""

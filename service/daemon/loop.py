@@ -40,6 +40,7 @@ from service.daemon.ports import (
 )
 from service.daemon.stats import LoopStats
 from service.daemon.status import ReportContext, StatusReporter
+from service.daemon.view_notices import ViewNotices
 from service.pipeline import Pipeline, PipelineResult
 from service.signals import SignalFlags
 
@@ -131,6 +132,7 @@ class Daemon:
             summary_interval_s=config.service.summary_interval_s, started_at=now,
             wall_clock=wall_clock, states=states,
         )
+        self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg)
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
         self._closed = False
@@ -154,6 +156,7 @@ class Daemon:
             self._note_errors(result)
             self.outputs.publish(frame, result, sent, self.clock())
         self.track_log.update(result.track, now)
+        self.view_notices.update(result, now)
         self.last = result.track
         self.reporter.tick(now, self.last)
         return result
@@ -241,6 +244,7 @@ class Daemon:
             changed = self.config.changed_sections(new)
             if "mesh" in changed or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera))
+                self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
             if "mesh" in changed or "damage" in changed:
                 self.pipeline.replace_inspector(make_inspector(new, self.parts.camera))
                 if self.outputs.damage is not None:

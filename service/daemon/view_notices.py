@@ -1,0 +1,102 @@
+"""What the pilot must hear about the view itself: the net is too close to measure, or the
+camera sees a regular grid that is not the configured net (a pool's tiles, a brick wall, a net
+of another opening angle). Both mean "no distance" for a reason the pilot can act on, unlike
+open water, so each is logged as a warning and sent as a STATUSTEXT when it starts.
+
+An episode must last a few frames before it is announced (one frame of a fish at the lens is
+not news), and a STATUSTEXT of the same kind goes out at most once per `interval_s`, so a view
+that flickers at the limit does not flood the pilot's screen. The log says when it ends.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+
+from service.core.estimator import refused_as_another_grid
+from service.core.readings import RangeStatus
+from service.daemon.ports import AutopilotLink
+from service.pipeline import PipelineResult
+
+log = logging.getLogger("netpose.daemon")
+
+MAV_SEVERITY_WARNING = 4
+STATUSTEXT_CHARS = 50  # MAVLink 1 STATUSTEXT: longer texts are cut by ground stations
+
+
+class View(enum.Enum):
+    NET = "net"  # measured, or nothing to say
+    TOO_CLOSE = "too_close"
+    ANOTHER_GRID = "another_grid"
+
+
+def classify(result: PipelineResult) -> View:
+    if result.reading.status is RangeStatus.TOO_CLOSE:
+        return View.TOO_CLOSE
+    if result.estimate is not None and refused_as_another_grid(result.estimate):
+        return View.ANOTHER_GRID
+    return View.NET
+
+
+def pilot_text(view: View, result: PipelineResult, configured_opening_deg: float) -> str:
+    est = result.estimate
+    if view is View.TOO_CLOSE:
+        return "netpose: net too close to measure, back off"
+    measured = est.measured_opening_deg if est is not None else None
+    if measured is not None and abs(measured - configured_opening_deg) > 1.0 and (
+        est is not None and est.reason.startswith("mesh opening angle")
+    ):
+        return (f"netpose: mesh angle {measured:.0f} deg, config {configured_opening_deg:.0f}:"
+                " no dist")[:STATUSTEXT_CHARS]
+    return "netpose: grid is not the configured net: no dist"
+
+
+class ViewNotices:
+    """Announces TOO_CLOSE and ANOTHER_GRID episodes to the log and the pilot."""
+
+    def __init__(self, link: AutopilotLink, configured_opening_deg: float,
+                 confirm_frames: int = 3, interval_s: float = 30.0) -> None:
+        self._link = link
+        self.configured_opening_deg = configured_opening_deg
+        self.confirm_frames = confirm_frames
+        self.interval_s = interval_s
+        self._candidate = View.NET
+        self._frames = 0
+        self._announced = View.NET
+        self._last_text_at: dict[View, float] = {}
+        self.sent: list[str] = []
+
+    @property
+    def view(self) -> View:
+        """The episode announced last (NET when none is going on)."""
+        return self._announced
+
+    def update(self, result: PipelineResult, now: float) -> None:
+        """One processed frame (ticks without a frame say nothing about the view)."""
+        if not result.has_frame:
+            return
+        view = classify(result)
+        self._frames = self._frames + 1 if view is self._candidate else 1
+        self._candidate = view
+        # TOO_CLOSE comes confirmed: the pipeline asks for frames in a row before it says so.
+        needed = 1 if view is View.TOO_CLOSE else self.confirm_frames
+        if view is self._announced or self._frames < needed:
+            return
+        previous, self._announced = self._announced, view
+        if view is View.NET:
+            log.info("%s ended", _episode(previous))
+            return
+        est = result.estimate
+        reason = est.reason if est is not None else ""
+        log.warning("%s: no distance to the autopilot (%s)", _episode(view), reason)
+        if now - self._last_text_at.get(view, -float("inf")) >= self.interval_s:
+            self._last_text_at[view] = now
+            text = pilot_text(view, result, self.configured_opening_deg)
+            self.sent.append(text)
+            self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
+
+
+def _episode(view: View) -> str:
+    if view is View.TOO_CLOSE:
+        return "net too close to measure"
+    return "the camera sees a grid that is not the configured net"
