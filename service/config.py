@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+from service.core.budget import BudgetSettings
 from service.core.damage import DamageSettings
 from service.core.errors import ConfigError
 from service.core.estimator import EstimatorSettings
@@ -106,6 +107,7 @@ def core_sections() -> dict[str, type]:
         "estimator": EstimatorSettings,
         "service": ServiceSettings,
         "damage": DamageSettings,
+        "budget": BudgetSettings,
     }
 
 
@@ -148,6 +150,10 @@ class Config:
     @property
     def damage(self) -> DamageSettings:
         return self.section("damage", DamageSettings)
+
+    @property
+    def budget(self) -> BudgetSettings:
+        return self.section("budget", BudgetSettings)
 
     def calibration_path(self) -> Path | None:
         """The calibration file to load, or None for a source that describes its own camera."""

@@ -201,6 +201,11 @@ class EstimatorHealth:
     latency_ms_max: float | None = doc("frame capture to result, max, ms", None)
     errors: int = doc("frames the estimator could not use (total)", 0)
     last_error: str = doc("why, for the last of them (empty if none)", "")
+    budget_level: int = doc(
+        "work per frame in use: 0 full ... 3 least (`[budget]`, lowered when frames take longer"
+        " than the camera's interval)", 0)
+    frame_interval_ms: float | None = doc("the camera's frame interval (median), ms", None)
+    frame_work_ms: float | None = doc("the loop's time per frame at that level, ms", None)
 
 
 @dataclass(frozen=True, kw_only=True)

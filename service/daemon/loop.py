@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 from service import __version__
 from service.config import Config, config_digest
+from service.core.budget import BudgetController
 from service.core.camera import CameraModel
 from service.core.damage_track import NetInspector
 from service.core.errors import NetposeError
@@ -113,6 +114,7 @@ class Daemon:
                                  config.service.autopilot_distance,
                                  make_inspector(config, parts.camera))
         self.stats = LoopStats()
+        self.budget = BudgetController(config.budget)
         self.problems = OnceLogger(log)
         states = StateLog()
         now = clock()
@@ -127,7 +129,8 @@ class Daemon:
                                            parts.observers))
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
-                          self.pipeline.tracker, self.track_log, self.source_watch, self.outputs),
+                          self.pipeline.tracker, self.track_log, self.source_watch, self.outputs,
+                          self.budget),
             vehicle=parts.vehicle, interval_s=config.service.status_interval_s,
             summary_interval_s=config.service.summary_interval_s, started_at=now,
             wall_clock=wall_clock, states=states,
@@ -155,6 +158,7 @@ class Daemon:
         if frame is not None:
             self._note_errors(result)
             self.outputs.publish(frame, result, sent, self.clock())
+            self._account(frame.t_monotonic, frame.index, self.clock() - now)
         self.track_log.update(result.track, now)
         self.view_notices.update(result, now)
         self.last = result.track
@@ -218,6 +222,16 @@ class Daemon:
             except Exception:
                 log.exception("closing the %s failed", name)
 
+    def _account(self, t_capture: float, index: int, work_s: float) -> None:
+        """The frame's loop time decides the next frame's budget level."""
+        before = self.budget.level
+        after = self.budget.frame(t_capture, index, work_s)
+        if after != before:
+            interval = self.budget.frame_interval_s or 0.0
+            log.info("budget level %d -> %d: a frame takes %.0f ms at level %d, the camera "
+                     "gives one every %.0f ms", before, after,
+                     (self.budget.cost_s(before) or 0.0) * 1e3, before, interval * 1e3)
+
     # -- problems ----------------------------------------------------------------------------
     def _note_errors(self, result: PipelineResult) -> None:
         if result.crashed:
@@ -251,6 +265,8 @@ class Daemon:
                     self.outputs.damage.notices.interval_s = new.damage.notify_interval_s
             if "filter" in changed:
                 self.pipeline.tracker.reconfigure(new.filter)
+            if "budget" in changed:
+                self.budget.reset(new.budget)
             if "service" in changed:
                 logging.getLogger().setLevel(new.service.log_level)
                 self.pipeline.set_autopilot_distance(new.service.autopilot_distance)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from service import __version__
+from service.core.budget import BudgetController
 from service.core.messages import (
     AutopilotHealth,
     CpuHealth,
@@ -66,6 +67,7 @@ class ReportContext:
     track_log: TrackLog
     source_watch: SourceWatch
     outputs: FrameOutputs
+    budget: BudgetController
 
 
 class StatusReporter:
@@ -178,6 +180,9 @@ class StatusReporter:
                 detected_fraction=period.detected / period.frames if period.frames else None,
                 latency_ms_mean=latency.mean_ms, latency_ms_max=latency.max_ms,
                 errors=ctx.stats.errors, last_error=ctx.stats.last_error,
+                budget_level=ctx.budget.level,
+                frame_interval_ms=_ms(ctx.budget.frame_interval_s),
+                frame_work_ms=_ms(ctx.budget.cost_s(ctx.budget.level)),
             ),
             cpu=CpuHealth(
                 cores=os.cpu_count(), load_1m=_load_1m(),
@@ -262,3 +267,7 @@ def _load_1m() -> float | None:
         return os.getloadavg()[0]
     except OSError:
         return None
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else seconds * 1e3

@@ -1,0 +1,161 @@
+"""How much work per frame the estimator may do: the budget level, chosen from measured time.
+
+On a busy Raspberry Pi the full estimator can take longer than the camera's frame interval.
+The loop then only ever sees the newest frame (older ones are dropped), so every frame costs
+its capture-to-result latency plus a whole processing time of age before the next one: the
+autopilot's distance goes stale, and ArduPilot drops a rangefinder after 500 ms. Fresh
+readings matter more than processing every frame at full precision, so when the loop falls
+behind the camera the estimator is asked for less (`NetEstimator.estimate(budget=...)`: skipped
+second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
+
+The controller is pure: the daemon hands it each processed frame's capture time, frame number
+and the loop time that frame took (a measurement), and uses the level it returns for the next
+frame. The level is recorded in every estimate message, so a replay can tell which work each
+frame got. Under a test's fake clock the measured time is zero and the level stays put.
+
+Hysteresis keeps the level from hunting: up only when the current level has been measured on
+several frames and is over budget for a second; down only after a longer hold, and only when
+the cheaper-to-richer step is predicted to fit with a margin (from that level's own measured
+cost when it is recent, else from the current cost times a typical step ratio).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from service.core.errors import ConfigError
+
+# The estimator's levels: 0 = full work ... LEVELS - 1 = least work.
+LEVELS = 4
+FRAMES_TO_JUDGE = 5  # frames measured at a level before it is judged
+UP_HOLD_S = 1.0  # a level is kept at least this long before more is cut
+DOWN_HOLD_S = 5.0  # ... and this long before work is added back
+DOWN_MARGIN = 0.7  # a richer level must be predicted to use at most this share of the budget
+STEP_RATIO = 1.6  # assumed cost ratio between neighbouring levels when not measured lately
+COST_MEMORY_S = 30.0  # a level's measured cost is trusted this long after it was last used
+COST_SMOOTHING = 0.25  # weight of a new frame in a level's running cost
+INTERVAL_WINDOW = 31  # frames over which the camera's frame interval is taken (median)
+
+
+@dataclass(frozen=True)
+class BudgetSettings:
+    """`[budget]`: work per frame on a slow or busy CPU (docs/daemon.md)."""
+
+    # "auto": the daemon lowers the work when it falls behind the camera and raises it when
+    # there is room; "fixed": always `level`.
+    mode: Literal["auto", "fixed"] = "auto"
+    # The fixed level, or where "auto" starts (0 = full work, 3 = least).
+    level: int = 0
+    # The most "auto" may cut.
+    max_level: int = LEVELS - 1
+    # Share of the camera's frame interval a frame may take before the loop counts as behind.
+    load: float = 0.9
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("auto", "fixed"):
+            raise ConfigError("budget.mode", "must be \"auto\" or \"fixed\"")
+        if not 0 <= self.level < LEVELS:
+            raise ConfigError("budget.level", f"must be 0..{LEVELS - 1}")
+        if not 0 <= self.max_level < LEVELS:
+            raise ConfigError("budget.max_level", f"must be 0..{LEVELS - 1}")
+        if self.mode == "auto" and self.level > self.max_level:
+            raise ConfigError("budget.level", "must not exceed budget.max_level")
+        if not 0.3 <= self.load <= 1.0:
+            raise ConfigError("budget.load", "must be 0.3..1.0")
+
+
+@dataclass
+class _Cost:
+    seconds: float
+    frames: int
+    last_t: float
+
+
+class BudgetController:
+    """Picks the estimator's budget level from measured frame times (see the module doc)."""
+
+    def __init__(self, settings: BudgetSettings) -> None:
+        self.settings = settings
+        self.level = settings.level
+        self._costs: dict[int, _Cost] = {}
+        self._intervals: collections.deque[float] = collections.deque(maxlen=INTERVAL_WINDOW)
+        self._last: tuple[float, int] | None = None
+        self._changed_at: float | None = None
+        self.changes = 0
+
+    @property
+    def frame_interval_s(self) -> float | None:
+        """The camera's frame interval (median over recent frames), None until known."""
+        if not self._intervals:
+            return None
+        ordered = sorted(self._intervals)
+        return ordered[len(ordered) // 2]
+
+    def cost_s(self, level: int) -> float | None:
+        """The measured loop time per frame at `level` (None if never measured)."""
+        cost = self._costs.get(level)
+        return None if cost is None else cost.seconds
+
+    def frame(self, t_capture: float, index: int, work_s: float) -> int:
+        """One processed frame at the current level: its capture time, the source's frame
+        number and the loop time it took. Returns the level for the next frame."""
+        self._note_interval(t_capture, index)
+        if math.isfinite(work_s) and work_s >= 0.0:
+            cost = self._costs.get(self.level)
+            if cost is None or t_capture - cost.last_t > COST_MEMORY_S:
+                self._costs[self.level] = _Cost(work_s, 1, t_capture)
+            else:
+                cost.seconds += COST_SMOOTHING * (work_s - cost.seconds)
+                cost.frames += 1
+                cost.last_t = t_capture
+        if self._changed_at is None:
+            self._changed_at = t_capture
+        if self.settings.mode == "auto":
+            self._decide(t_capture)
+        return self.level
+
+    def reset(self, settings: BudgetSettings) -> None:
+        """New settings (a reload): measured costs stay, the level starts over."""
+        self.settings = settings
+        self._set(settings.level, self._changed_at or 0.0)
+
+    # -- internals -------------------------------------------------------------------------
+    def _note_interval(self, t: float, index: int) -> None:
+        if self._last is not None:
+            t0, i0 = self._last
+            if index > i0 and t > t0:
+                # Frames dropped while the loop was busy still count: index - i0 camera frames.
+                self._intervals.append((t - t0) / (index - i0))
+        self._last = (t, index)
+
+    def _decide(self, t: float) -> None:
+        interval = self.frame_interval_s
+        cost = self._costs.get(self.level)
+        if interval is None or cost is None or cost.frames < FRAMES_TO_JUDGE:
+            return
+        budget = self.settings.load * interval
+        held = t - (self._changed_at if self._changed_at is not None else t)
+        if cost.seconds > budget and self.level < self.settings.max_level:
+            if held >= UP_HOLD_S:
+                self._set(self.level + 1, t)
+            return
+        if self.level > 0 and held >= DOWN_HOLD_S:
+            richer = self._costs.get(self.level - 1)
+            predicted = (richer.seconds if richer is not None
+                         and t - richer.last_t <= COST_MEMORY_S
+                         else cost.seconds * STEP_RATIO)
+            if predicted <= DOWN_MARGIN * budget:
+                self._set(self.level - 1, t)
+
+    def _set(self, level: int, t: float) -> None:
+        if level != self.level:
+            self.changes += 1
+            # The new level is judged on its own frames only.
+            stale = self._costs.get(level)
+            if stale is not None:
+                stale.frames = 0
+        self.level = level
+        self._changed_at = t

@@ -1,0 +1,107 @@
+"""The budget controller: the level follows measured frame time against the camera's interval,
+with hysteresis, and never hunts (service/core/budget.py)."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from service.core.budget import (
+    DOWN_HOLD_S,
+    LEVELS,
+    STEP_RATIO,
+    UP_HOLD_S,
+    BudgetController,
+    BudgetSettings,
+)
+from service.core.errors import ConfigError
+
+FPS = 30.0
+
+
+def run(ctrl: BudgetController, seconds: float, cost_at_level: list[float], start: float = 0.0,
+        start_index: int = 0, times: list[float] | None = None) -> tuple[list[int], float, int]:
+    """Frames of a 30 frames/s camera for `seconds`, each taking the level's cost; the loop
+    sees only the newest frame when busy (frames are dropped, as the live sources do)."""
+    levels = []
+    t, index = start, start_index
+    while t < start + seconds:
+        level = ctrl.level
+        work = cost_at_level[level]
+        levels.append(ctrl.frame(t, index, work))
+        if times is not None:
+            times.append(t)
+        # The next frame the loop sees: the first captured after this one was done.
+        skip = max(1, int(work * FPS) + 1)
+        index += skip
+        t += skip / FPS
+    return levels, t, index
+
+
+def test_a_loop_that_keeps_up_stays_at_full_work() -> None:
+    ctrl = BudgetController(BudgetSettings())
+    levels, _, _ = run(ctrl, 20.0, [0.020, 0.015, 0.010, 0.008])
+    assert set(levels) == {0} and ctrl.changes == 0
+    assert ctrl.frame_interval_s == pytest.approx(1 / FPS)
+
+
+def test_a_slow_loop_steps_down_until_it_keeps_up_and_stays_there() -> None:
+    # Level 0 takes 3 frame intervals, level 2 fits in 0.9 of one.
+    costs = [0.100, 0.060, 0.028, 0.020]
+    ctrl = BudgetController(BudgetSettings())
+    times: list[float] = []
+    levels, _, _ = run(ctrl, 60.0, costs, times=times)
+    # Two steps down, each after the level was held a second, then it stays: level 1's cost
+    # is known to be too high, and level 2's times the step ratio would not fit either.
+    assert ctrl.changes == 2 and levels[-1] == 2
+    assert times[levels.index(2)] < 2 * UP_HOLD_S + 2 * costs[0]
+
+
+def test_the_frame_interval_counts_dropped_frames() -> None:
+    ctrl = BudgetController(BudgetSettings(mode="fixed"))
+    for k in range(10):
+        ctrl.frame(k * 3 / FPS, k * 3, 0.09)  # every third frame processed
+    assert ctrl.frame_interval_s == pytest.approx(1 / FPS)
+    assert ctrl.level == 0  # fixed: never moves
+
+
+def test_room_again_brings_the_work_back_after_the_hold() -> None:
+    ctrl = BudgetController(BudgetSettings())
+    _, t, i = run(ctrl, 10.0, [0.1, 0.1, 0.1, 0.1])  # a competitor takes the CPU
+    assert ctrl.level == LEVELS - 1
+    # The competitor is gone: every level fits easily, even predicted with the step ratio.
+    cheap = [0.004, 0.003, 0.002, 0.001]
+    assert cheap[3] * STEP_RATIO < 0.7 * 0.9 / FPS
+    times: list[float] = []
+    levels, _, _ = run(ctrl, 40.0, cheap, start=t, start_index=i, times=times)
+    assert levels[-1] == 0
+    # Work is added back one level per DOWN_HOLD_S at most.
+    changes = [times[k] for k in range(1, len(levels)) if levels[k] != levels[k - 1]]
+    assert len(changes) == 3
+    gaps = [b - a for a, b in itertools.pairwise(changes)]
+    assert all(g >= DOWN_HOLD_S - 1e-9 for g in gaps)
+
+
+def test_an_overload_is_answered_within_the_hold_and_not_before() -> None:
+    ctrl = BudgetController(BudgetSettings())
+    times: list[float] = []
+    levels, _, _ = run(ctrl, 3.0, [0.05, 0.01, 0.01, 0.01], times=times)
+    # Frames at 0.05 s are processed every 2 camera frames (1/15 s): the first step comes when
+    # the level has been held UP_HOLD_S, not at the first slow frame.
+    assert times[levels.index(1)] == pytest.approx(UP_HOLD_S, abs=1 / 15.0 + 1e-9)
+
+
+def test_zero_measured_time_never_changes_the_level() -> None:
+    """Under a test's fake clock the loop takes no time: replay equals the daemon."""
+    ctrl = BudgetController(BudgetSettings())
+    levels, _, _ = run(ctrl, 10.0, [0.0] * LEVELS)
+    assert set(levels) == {0}
+
+
+@pytest.mark.parametrize("key,value", [("level", 4), ("max_level", -1), ("load", 1.5),
+                                       ("mode", "fast")])
+def test_bad_settings_name_their_key(key: str, value: object) -> None:
+    with pytest.raises(ConfigError) as err:
+        BudgetSettings(**{key: value})  # type: ignore[arg-type]
+    assert err.value.key == f"budget.{key}"
