@@ -126,9 +126,19 @@ def test_a_hole_is_found_and_measured(renderer: NetRenderer, estimator: NetEstim
     found = scan.candidates[0]
     x0, y0, x1, y1 = truth.box_px
     assert x0 <= found.centre_px[0] <= x1 and y0 <= found.centre_px[1] <= y1
-    assert found.cells == truth.cells and found.missing_bars == truth.missing_bars
-    assert found.width_m == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
-    assert found.height_m == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
+    if kind != "torn":
+        assert found.cells == truth.cells and found.missing_bars == truth.missing_bars
+        assert found.width_m == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
+        assert found.height_m == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
+    else:
+        # A torn edge keeps stubs of up to a third of a bar at each knot: a bar cut short in
+        # the middle (here 44 % of its twine left, 3 px of gap at 6 px cells) may read as
+        # intact, and the hole as one cell smaller, knot to knot.
+        assert abs(found.cells - truth.cells) <= 1
+        assert abs(found.missing_bars - truth.missing_bars) <= 1
+        cell_m = MESH.bar_length_m
+        for got, want in ((found.width_m, truth.width_m), (found.height_m, truth.height_m)):
+            assert abs(got - want) <= max(SIZE_TOLERANCE * want, 1.01 * cell_m)
     assert found.range_m == pytest.approx(truth.range_m, rel=0.05)
     assert found.crop is not None and found.crop.shape[0] >= 48
 

@@ -40,6 +40,8 @@ Vec3 = tuple[float, float, float]
 MAX_SPEED_MPS = 0.6
 # Once the velocity is known, how much it may change (m/s).
 SPEED_UNCERTAINTY_MPS = 0.2
+# Inspection time banked at most: this many frames' worth of earned share.
+CREDIT_FRAMES = 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,8 +250,11 @@ class NetInspector:
         self.settings = settings or DamageSettings()
         self.detector = DamageDetector(camera, mesh, self.settings)
         self.tracker = HoleTracker(camera, self.settings)
-        self._estimator_ms = 0.0  # decayed sums: the share inspection took recently
-        self._inspect_ms = 0.0
+        # Inspection time earned (max_cost_fraction of the estimator's time per tracked frame)
+        # minus time spent: an inspection runs while it is not negative, so what is spent never
+        # exceeds the share earned by more than one inspection. Capped, so a long stretch of
+        # skipped frames does not bank a burst of inspections.
+        self._credit_ms = 0.0
         self._tracked_frames = 0
         self.inspected_frames = 0
         self.skipped_frames = 0
@@ -263,14 +268,13 @@ class NetInspector:
             return DamageReport(False, "inspection is off (damage.enabled = false)")
         if not track_valid or estimate is None or not estimate.detected:
             return DamageReport(False, "no valid net track", tracks=tuple(self.tracker.tracks))
-        decay = 0.98
-        self._estimator_ms = decay * self._estimator_ms + estimate_ms
-        self._inspect_ms *= decay
+        earned = st.max_cost_fraction * max(estimate_ms, 0.0)
+        self._credit_ms = min(self._credit_ms + earned, CREDIT_FRAMES * earned)
         self._tracked_frames += 1
         if st.every_n_frames > 0:
             due = (self._tracked_frames - 1) % st.every_n_frames == 0
         else:
-            due = self._inspect_ms <= st.max_cost_fraction * self._estimator_ms
+            due = self._credit_ms >= 0.0
         if not due:
             self.skipped_frames += 1
             return DamageReport(False, "skipped: inspection budget",
@@ -279,7 +283,8 @@ class NetInspector:
         scan = self.detector.inspect(image, estimate, part=self.inspected_frames)
         confirmed = self.tracker.update(scan, t, frame_index)
         ms = (time.perf_counter() - t0) * 1e3
-        self._inspect_ms += ms
+        if st.every_n_frames <= 0:
+            self._credit_ms -= ms
         self.inspected_frames += 1
         return DamageReport(True, scan.reason, scan, tuple(confirmed),
                             tuple(self.tracker.tracks), ms)
