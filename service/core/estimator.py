@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -67,6 +66,12 @@ _REFINEMENTS = tuple(
     )
 )
 
+
+# Work levels of `NetEstimator.estimate(budget=...)`: 0 is the full work.
+BUDGET_LEVELS = 4
+# Coarse rectified ROIs (the leanest level) only where the mesh keeps this period in them: its
+# second harmonic then still lies inside the analysed band.
+_COARSE_MIN_PERIOD_PX = 4.4
 
 # How a refusal begins when the view was recognised as a grid that is not the configured net.
 _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
@@ -144,7 +149,8 @@ class _Layout:
     grids: dict[int, list[_Geometry]]
     probes: dict[int, list[_Geometry]]
     max_footprint: float  # half the frame's smaller side: rows and columns keep a baseline
-    rect: dict[int, list[_Geometry]] = field(default_factory=dict)  # by footprint (px)
+    # By (footprint in px, FFT size, ROI budget or 0).
+    rect: dict[tuple[int, int, int], list[_Geometry]] = field(default_factory=dict)
 
 
 @dataclass
@@ -192,6 +198,65 @@ class _Pass:
     plane: PlaneFit | None
     level: int
     note: str = ""
+
+
+# A pass's convergence: new normal, new distance, the plane before it, and the step taken.
+_Converged = tuple[F64, float, tuple[F64, float] | None, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class _Budget:
+    """What one work level may spend on a frame (docs/estimator.md, "Budget levels").
+
+    Every level keeps the checks that make a distance honest (proof of scale, mesh shape, the
+    tracked plane's blind scale check, the sigma limits): a leaner level measures fewer or
+    coarser ROIs, so it refuses more frames or reports a larger sigma, never a surer one.
+    """
+
+    tracking_passes: int  # rectified passes while tracking (the first usually converges)
+    cold_passes: int  # rectified passes from a cold seed (the seed pass is loose)
+    max_rois: int | None  # ROIs per grid (cold grid and rectified passes); None: the full grid
+    coarse: bool  # rectified ROIs at half size, one pyramid level coarser
+    cold_levels: int  # pyramid levels whose grid a cold search measures after the probes
+    blind_levels: int  # levels searched when the probes saw no lattice at all
+
+
+_BUDGETS = (
+    _Budget(tracking_passes=4, cold_passes=6, max_rois=None, coarse=False, cold_levels=2,
+            blind_levels=5),
+    _Budget(tracking_passes=1, cold_passes=4, max_rois=None, coarse=False, cold_levels=2,
+            blind_levels=5),
+    _Budget(tracking_passes=1, cold_passes=4, max_rois=9, coarse=False, cold_levels=1,
+            blind_levels=2),
+    _Budget(tracking_passes=1, cold_passes=3, max_rois=9, coarse=True, cold_levels=1,
+            blind_levels=0),
+)
+
+
+class _Frame:
+    """One frame being estimated: its pyramid (built as far as it is needed), the work level,
+    and the work done so far (stage times, spectra computed)."""
+
+    def __init__(self, gray: Image, layout: _Layout, budget: _Budget) -> None:
+        self.layout = layout
+        self.budget = budget
+        self.timings: dict[str, float] = {}
+        self.ffts: dict[int, int] = {}
+        self._pyramid: list[Image] = [gray]
+
+    def image(self, level: int) -> Image:
+        import cv2
+
+        while len(self._pyramid) <= level:
+            self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
+        return self._pyramid[level]
+
+    def lap(self, stage: str, since: float) -> None:
+        """Add the time since `since` (perf_counter) to `stage`, in ms."""
+        self.timings[stage] = self.timings.get(stage, 0.0) + (time.perf_counter() - since) * 1e3
+
+    def count_fft(self, size: int, count: int = 1) -> None:
+        self.ffts[size] = self.ffts.get(size, 0) + count
 
 
 class NetEstimator:
@@ -266,20 +331,27 @@ class NetEstimator:
         foot = max(min(w, h) / 2.0, min(64.0, min(w, h)))
         return _Layout(cam, tuple(levels), grids, probes, foot)
 
-    def _rect_grid(self, layout: _Layout, footprint: float, size: int) -> list[_Geometry]:
+    def _rect_grid(
+        self, layout: _Layout, footprint: float, size: int, max_rois: int | None = None
+    ) -> list[_Geometry]:
         """Centres of rectified ROIs of this footprint (source pixels): spaced half a footprint
         apart (each ROI overlaps its neighbours by half) and covering the frame to its edges,
         thinned out evenly when that would exceed the ROI budget (grid_cols x grid_rows ROIs
-        of roi_size; four times as many of half the size)."""
-        key = int(round(footprint / 8.0)) * 8 * 1000 + size
+        of roi_size; four times as many of half the size), or `max_rois` when a lower work level
+        asks for fewer: the thinned grid still spans the frame, so the plane keeps its
+        baseline."""
+        rounded = int(round(footprint / 8.0)) * 8
+        key = (rounded, size, max_rois or 0)
         if key in layout.rect:
             return layout.rect[key]
         s = self.settings
         cam = layout.camera
         w, h = cam.width, cam.height
-        f = min(float(key // 1000), float(min(w, h)))
+        f = min(float(rounded), float(min(w, h)))
         budget = s.grid_cols * s.grid_rows * (s.roi_size // size) ** 2
         budget = min(budget, 4 * s.grid_cols * s.grid_rows)
+        if max_rois is not None:
+            budget = min(budget, max_rois)
         cols = int((w - f) // (f / 2)) + 1
         rows = int((h - f) // (f / 2)) + 1
         # A plane needs ROIs spread both ways: at least three rows and columns where they can be
@@ -332,9 +404,10 @@ class NetEstimator:
         self._layout(width, height)
 
     # -- per ROI -------------------------------------------------------------------------------
-    def _measure(self, image: Image, geom: _Geometry, level: int) -> _Roi:
+    def _measure(self, frame: _Frame, geom: _Geometry, level: int) -> _Roi:
         n = geom.size
-        patch = image[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
+        patch = frame.image(level)[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
+        frame.count_fft(n)
         peaks = self._spectra[n].peaks(np.asarray(patch, dtype=np.float32))
         fit = self._lattice.fit(peaks)
         meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks),
@@ -360,27 +433,30 @@ class NetEstimator:
         return float(np.median(periods)) if periods else None
 
     # -- per frame -----------------------------------------------------------------------------
-    def estimate(self, frame: Image, prior: NetEstimate | None = None) -> NetEstimate:
+    def estimate(
+        self, frame: Image, prior: NetEstimate | None = None, budget: int = 0
+    ) -> NetEstimate:
         """Estimate the net plane in one frame (grey, or BGR/BGRA which is converted).
 
         `prior` (the previous frame's estimate, while tracking) lets the estimator skip the
         scale search: the ROIs are rectified with the prior plane straight away. Without a
         detection that way it falls back to the full search.
-        """
-        import cv2
 
+        `budget` (0 .. BUDGET_LEVELS - 1) lowers the work per frame for a CPU that cannot keep
+        up: 0 is the full work; each higher level measures less (see `_Budget`). A higher level
+        may detect less often or less precisely, never with a sigma that no longer covers its
+        error.
+        """
+        if isinstance(budget, bool) or not isinstance(budget, int) or not (
+            0 <= budget < BUDGET_LEVELS
+        ):
+            raise ValueError(f"budget must be an int in 0..{BUDGET_LEVELS - 1}, got {budget!r}")
         t0 = time.perf_counter()
         gray = _as_gray(frame)
         h, w = gray.shape
         layout = self._layout(w, h)  # fails early on a resolution the calibration cannot serve
-        timings: dict[str, float] = {}
-        pyramid: list[Image] = [gray]
-
-        def level_image(level: int) -> Image:
-            while len(pyramid) <= level:
-                pyramid.append(cv2.pyrDown(pyramid[-1]))
-            return pyramid[level]
-
+        current = _Frame(gray, layout, _BUDGETS[budget])
+        current.lap("grey", t0)
         if not layout.levels:
             raise EstimatorInputError(
                 f"frame {w}x{h} is smaller than one {max(64, self.settings.roi_size // 2)}px ROI"
@@ -391,18 +467,22 @@ class NetEstimator:
         ) and min(w, h) / self._period_at_centre(layout, prior.range_m) >= 12.0:
             # Tracking only while the mesh is well resolved: near the "too close" limit a net
             # that came closer shows harmonics at the old scale that no check can tell from it.
-            tracked = self._refine(prior, level_image, layout, timings, prior.level,
-                                   self._prior_rois(prior, layout), iterations=2)
-            if tracked.detected and _agrees(tracked, prior) and self._blind_scale_agrees(
-                tracked, level_image, layout
-            ):
-                result = tracked
+            tracked = self._refine(prior, current, layout, prior.level,
+                                   self._prior_rois(prior, layout),
+                                   passes=current.budget.tracking_passes)
+            if tracked.detected and _agrees(tracked, prior):
+                t1 = time.perf_counter()
+                if self._blind_scale_agrees(tracked, current, layout):
+                    result = tracked
+                current.lap("blind_check", t1)
         if result is None:
-            result = self._cold(level_image, layout, timings)
+            result = self._cold(current, layout)
         if not result.detected and not result.reason.startswith(_NOT_A_NET):
             # Not when the view was positively recognised as something else (a brick wall, a
             # checkerboard, cells of another shape): "too close" must never fire without a net.
-            close = self._too_close(gray, layout, prior)
+            t1 = time.perf_counter()
+            close = self._too_close(current, layout, prior)
+            current.lap("too_close", t1)
             if close is not None:
                 period, range_m = close
                 result = replace(
@@ -410,11 +490,12 @@ class NetEstimator:
                     reason=(f"net too close to measure: a mesh of ~{period:.0f} px period fills "
                             f"the view (about {range_m:.2f} m away or less)"),
                 )
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        return replace(result, timings_ms=timings)
+        current.timings["total"] = (time.perf_counter() - t0) * 1e3
+        return replace(result, timings_ms=current.timings, budget_level=budget,
+                       fft_counts=dict(sorted(current.ffts.items())))
 
     def _too_close(
-        self, gray: Image, layout: _Layout, prior: NetEstimate | None = None
+        self, frame: _Frame, layout: _Layout, prior: NetEstimate | None = None
     ) -> tuple[float, float] | None:
         """(mesh period in pixels, implied range in m) when a mesh too coarse for the ROIs fills
         the view; None otherwise.
@@ -431,7 +512,7 @@ class NetEstimator:
         do (its harmonics often outshine its fundamentals when so close, so its shape is not
         required).
         """
-        whole = self._whole_lattice(gray)
+        whole = self._whole_lattice(frame)
         if whole is None:
             return None
         side, fit = whole
@@ -461,7 +542,7 @@ class NetEstimator:
         return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
 
     def _blind_scale_agrees(
-        self, result: NetEstimate, level_image: Callable[[int], Image], layout: _Layout
+        self, result: NetEstimate, frame: _Frame, layout: _Layout
     ) -> bool:
         """Do the probe ROIs, fitted blind at the pyramid level where `result` predicts the
         preferred mesh period, see that period (within 30 %)? A tracked plane was rectified with
@@ -480,7 +561,7 @@ class NetEstimator:
         coarser: list[float] = []
         for level in [lv for lv in layout.levels if first <= lv <= first + 2]:
             for g in layout.probes[level]:
-                m = self._measure(level_image(level), g, level)
+                m = self._measure(frame, g, level)
                 if not m.valid or m.fit is None:
                     continue
                 a_g = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / (
@@ -494,7 +575,7 @@ class NetEstimator:
         if len(coarser) >= 2 and max(coarser) / min(coarser) < 1.4:
             return False
         # So does a mesh so coarse that it fills the whole frame with a few cycles.
-        whole = self._whole_lattice(level_image(0))
+        whole = self._whole_lattice(frame)
         if whole is not None:
             side, fit = whole
             if fit.inliers >= 3 and fit.mean_snr >= 4.0 and fit.inlier_weight_fraction >= 0.5 and (
@@ -504,19 +585,21 @@ class NetEstimator:
         return True
 
     def _whole_lattice(
-        self, gray: Image, twine: bool = False
+        self, frame: _Frame, twine: bool = False
     ) -> tuple[int, LatticeFit] | None:
         """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
         None when there is none (or, with `twine`, when its harmonics are not those of twine:
         a brick wall or a checkerboard filling the view is not a net too close)."""
         import cv2
 
+        gray = frame.image(0)
         h, w = gray.shape
         side = min(h, w)
         y0, x0 = (h - side) // 2, (w - side) // 2
         small = np.asarray(cv2.resize(
             np.asarray(gray[y0 : y0 + side, x0 : x0 + side], dtype=np.float32), (64, 64),
             interpolation=cv2.INTER_AREA), dtype=np.float32)
+        frame.count_fft(self._whole.size)
         peaks, snr, logp = self._whole.analyse(small)
         fit = self._lattice.fit(peaks)
         if fit is None or (twine and _twine_profile(self._whole, snr, logp, fit.basis, 1)):
@@ -542,12 +625,10 @@ class NetEstimator:
             out.append(m)
         return out
 
-    def _cold(
-        self, level_image: Callable[[int], Image], layout: _Layout, timings: dict[str, float]
-    ) -> NetEstimate:
+    def _cold(self, frame: _Frame, layout: _Layout) -> NetEstimate:
         t1 = time.perf_counter()
-        order, probes = self._level_order(layout, level_image)
-        timings["scale_search"] = (time.perf_counter() - t1) * 1e3
+        order, probes = self._level_order(layout, frame)
+        frame.lap("scale_search", t1)
         best: NetEstimate | None = None
         tried: list[NetEstimate] = []
 
@@ -555,12 +636,12 @@ class NetEstimator:
             if any(_agrees(seed, t, 0.05, 5.0) for t in tried):
                 return None
             tried.append(seed)
-            return self._refine(seed, level_image, layout, timings, level, rois)
+            return self._refine(seed, frame, layout, level, rois, frame.budget.cold_passes)
 
         if order:
             # The probes are spread over the frame: when they all agree on a plane, that plane
             # seeds the rectified pass and the unrectified grid pass is not needed.
-            seed = self._conclude_seed(probes, order[0], timings)
+            seed = self._conclude_seed(probes, order[0], frame.timings)
             if seed is not None and seed.rois_used == len(probes):
                 quick = attempt(seed, order[0], probes)
                 if quick is not None and quick.detected:
@@ -568,16 +649,18 @@ class NetEstimator:
                 best = quick
         # Normally the two best levels at most; when the probes saw nothing (no net, or fish
         # over every probe) the full grid at every level.
-        searched = order[:2] if order else list(layout.levels)
+        # (Lower budgets search fewer levels.)
+        searched = (order[: frame.budget.cold_levels] if order
+                    else list(layout.levels)[: frame.budget.blind_levels])
         for level in searched:
             t0 = time.perf_counter()
-            rois = self._measure_grid(level_image, layout, level)
-            timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
+            rois = self._measure_grid(frame, layout, level)
+            frame.lap("rois", t0)
             # Seeds: the plane of the ROIs' cell areas; and, when that fails (few ROIs see the
             # net, or they are bunched), a plane facing the camera at the distance of the
             # largest group of ROIs that see the same lattice: the rectified passes find the
             # tilt from there.
-            seeds = [sd for sd in (self._conclude_seed(rois, level, timings),
+            seeds = [sd for sd in (self._conclude_seed(rois, level, frame.timings),
                                    self._facing_seed(rois, level)) if sd is not None]
             if not seeds:
                 result = _no_net(rois, level, self._count_reason(rois))
@@ -624,7 +707,7 @@ class NetEstimator:
         return "ROI lattices do not agree on a plane"
 
     def _level_order(
-        self, layout: _Layout, level_image: Callable[[int], Image]
+        self, layout: _Layout, frame: _Frame
     ) -> tuple[list[int], list[_Roi]]:
         """Levels to try, best first: the finest level where the probes see a lattice whose
         period is not too coarse. Finest first because a coarser level can only lose harmonics
@@ -634,7 +717,7 @@ class NetEstimator:
         coarse_probes: list[_Roi] = []
         levels = list(layout.levels)
         for level in levels:
-            probes = [self._measure(level_image(level), g, level) for g in layout.probes[level]]
+            probes = [self._measure(frame, g, level) for g in layout.probes[level]]
             period = self._median_period(probes)
             if period is None:
                 continue
@@ -646,14 +729,14 @@ class NetEstimator:
         return coarse[::-1], coarse_probes
 
     def _measure_grid(
-        self, level_image: Callable[[int], Image], layout: _Layout, level: int
+        self, frame: _Frame, layout: _Layout, level: int
     ) -> list[_Roi]:
         """The grid at `level`; ROIs whose period sits badly there (the far side of a tilted
         net is finer, the near side coarser) are re-measured one level finer or coarser at the
         same place, keeping the better measurement."""
         s = self.settings
-        grid = layout.grids[level]
-        measurements = [self._measure(level_image(level), g, level) for g in grid]
+        grid = _thinned(layout.grids[level], frame.budget.max_rois)
+        measurements = [self._measure(frame, g, level) for g in grid]
         lo, hi = s.preferred_period_px / 1.8, s.preferred_period_px * 1.8
         for i, m in enumerate(measurements):
             period = m.size / math.sqrt(m.fit.det) if m.fit is not None else None
@@ -663,7 +746,7 @@ class NetEstimator:
             if alt not in layout.grids:
                 continue
             geom = self._regrid(layout, grid[i], alt)
-            other = self._measure(level_image(alt), geom, alt)
+            other = self._measure(frame, geom, alt)
             if other.valid and other.fit is not None and (
                 not m.valid or period is None
                 or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
@@ -713,12 +796,11 @@ class NetEstimator:
     def _refine(
         self,
         seed: NetEstimate,
-        level_image: Callable[[int], Image],
+        frame: _Frame,
         layout: _Layout,
-        timings: dict[str, float],
         level: int,
         seed_rois: list[_Roi] | None = None,
-        iterations: int = 4,
+        passes: int = 6,
     ) -> NetEstimate:
         """Rectified passes until one lands on the plane it was rectified with; then the checks
         that prove the scale and the net, and the verdict. `seed_rois` (the ROIs the seed came
@@ -733,17 +815,23 @@ class NetEstimator:
         previous: tuple[F64, float] | None = None
         last: _Pass | None = None
         corrected = 0
-        for _ in range(iterations + 2):
+
+        def verdict(p: _Pass, converged: _Converged | None, failure: str) -> NetEstimate:
+            t1 = time.perf_counter()
+            result = self._verdict(p, converged, layout, failure)
+            frame.lap("proofs", t1)
+            return result
+
+        for _ in range(passes):
             t0 = time.perf_counter()
             # The first pass is rectified with a rough plane (the seed): its ROIs' lattices still
             # differ by the residual perspective, so agreement is judged loosely there.
-            p = self._rectified_pass(level_image, layout, normal, distance, hints, level,
+            p = self._rectified_pass(frame, layout, normal, distance, hints, level,
                                      guide_rois, None if rectified_once else 2.5 *
                                      self.settings.lattice_tolerance, footprint_scale)
             guide_rois = None
             rectified_once = True
-            timings["rectified"] = timings.get("rectified", 0.0) + (
-                time.perf_counter() - t0) * 1e3
+            frame.lap("rectified", t0)
             last = p
             if p.consensus is not None and p.plane is None and (
                 hints is None or footprint_scale == 1.0
@@ -757,16 +845,18 @@ class NetEstimator:
                 rectified_once = False
                 continue
             if p.plane is None or p.consensus is None:
-                return self._verdict(p, None, layout, p.note or "ROI lattices do not agree")
+                return verdict(p, None, p.note or "ROI lattices do not agree")
             n_new = -(p.rotation.T @ p.plane.normal_away)
             n_new /= np.linalg.norm(n_new)
             d_new = p.plane.distance_m
             # Proof of scale: coarser-mesh lattice points must be empty in the averaged spectrum.
+            t1 = time.perf_counter()
             factor = self._scale_check(p)
+            frame.lap("proofs", t1)
             if factor is not None:
                 if corrected >= 2:
-                    return self._verdict(p, None, layout,
-                                         "mesh scale not proved (peaks between the lattice's)")
+                    return verdict(p, None,
+                                   "mesh scale not proved (peaks between the lattice's)")
                 corrected += 1
                 # The lattice was a harmonic: the mesh is coarser, the net nearer.
                 distance = d_new / math.sqrt(factor)
@@ -783,16 +873,16 @@ class NetEstimator:
             # second order, so the pass measured the plane without the chirp already.
             rel_sigma, sigma_n = _plane_sigmas(p)
             if step[0] < max(0.05, 1.5 * rel_sigma) and step[1] < max(1.5, 1.5 * sigma_n):
-                return self._verdict(p, (n_new, d_new, previous, step), layout, "")
+                return verdict(p, (n_new, d_new, previous, step), "")
             previous = (normal, distance)
             normal, distance = n_new, d_new
         assert last is not None
-        return self._verdict(last, None, layout,
-                             "the ROIs do not converge on one plane (rectified passes disagree)")
+        return verdict(last, None,
+                       "the ROIs do not converge on one plane (rectified passes disagree)")
 
     def _rectified_pass(
         self,
-        level_image: Callable[[int], Image],
+        frame: _Frame,
         layout: _Layout,
         normal: F64,
         distance: float,
@@ -829,13 +919,17 @@ class NetEstimator:
         footprint = min(max(footprint, 6.0 * p_max), 0.9 * frame_side)
         cycles = footprint / p_max
         size = s.roi_size if cycles * s.preferred_period_px >= 0.75 * s.roi_size else small
+        if frame.budget.coarse and small / cycles >= _COARSE_MIN_PERIOD_PX:
+            # Half the samples over the same footprint: a quarter of the FFT work, the same
+            # number of mesh cycles (so the same relative precision per peak), fewer harmonics.
+            size = small
         period_out = size / cycles
-        grid = self._rect_grid(layout, footprint, size)
+        grid = self._rect_grid(layout, footprint, size, frame.budget.max_rois)
         expected = hint
         if expected is None and seed_rois:
             expected = self._guide(seed_rois, rotation, distance, size, period_out)
         rois = [
-            self._measure_rectified(level_image, g, rotation, distance, size, period_out,
+            self._measure_rectified(frame, g, rotation, distance, size, period_out,
                                     expected)
             for g in grid
         ]
@@ -851,7 +945,7 @@ class NetEstimator:
                 ratio = float(np.median(ratios))
                 if abs(math.log(ratio)) > math.log(1.35):
                     distance = distance / ratio
-                    rois = [self._measure_rectified(level_image, g, rotation, distance, size,
+                    rois = [self._measure_rectified(frame, g, rotation, distance, size,
                                                     period_out, None) for g in grid]
                     consensus = _consensus(rois, tol)
             if consensus is None:
@@ -931,7 +1025,7 @@ class NetEstimator:
 
     def _measure_rectified(
         self,
-        level_image: Callable[[int], Image],
+        frame: _Frame,
         geom: _Geometry,
         rotation: F64,
         distance_m: float,
@@ -959,10 +1053,11 @@ class NetEstimator:
              [0, 0, 1]]
         )
         patch = cv2.warpPerspective(
-            level_image(level), to_level @ full, (n, n),
+            frame.image(level), to_level @ full, (n, n),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
         )
         spectrum = self._spectra[n]
+        frame.count_fft(n)
         patch = _normalise_contrast(np.asarray(patch, dtype=np.float32), period_out)
         peaks, snr, logp = spectrum.analyse(patch)
         guided = expected is not None
@@ -1122,7 +1217,7 @@ class NetEstimator:
     def _verdict(
         self,
         p: _Pass,
-        converged: tuple[F64, float, tuple[F64, float] | None, tuple[float, float]] | None,
+        converged: _Converged | None,
         layout: _Layout,
         failure: str,
     ) -> NetEstimate:
@@ -1472,6 +1567,16 @@ def _overlap(rois: list[_Roi]) -> float:
         cov |= (np.abs(gx[None, :] - cx) <= f / 2) & (np.abs(gy[:, None] - cy) <= f / 2)
     union = float(cov.sum()) * step * step
     return max(1.0, total / max(union, 1e-9))
+
+
+def _thinned(grid: list[_Geometry], max_rois: int | None) -> list[_Geometry]:
+    """Every other column of a grid that has more than `max_rois` ROIs (the outer columns
+    stay, so the ROIs still span the frame)."""
+    if max_rois is None or len(grid) <= max_rois:
+        return grid
+    xs = sorted({g.x0 for g in grid})
+    keep = {x for i, x in enumerate(xs) if i % 2 == 0 or i == len(xs) - 1}
+    return [g for g in grid if g.x0 in keep]
 
 
 def _level_size(size: int, level: int) -> int:
