@@ -405,10 +405,28 @@ class NetEstimator:
 
     # -- per ROI -------------------------------------------------------------------------------
     def _measure(self, frame: _Frame, geom: _Geometry, level: int) -> _Roi:
+        return self._measure_many(frame, [geom], level)[0]
+
+    def _measure_many(self, frame: _Frame, geoms: list[_Geometry], level: int) -> list[_Roi]:
+        """Unrectified ROIs of one pyramid level, their spectra computed together."""
+        if not geoms:
+            return []
+        image = frame.image(level)
+        out: list[_Roi] = []
+        # One stack per FFT size (a level's grid has one size; a re-gridded ROI may differ).
+        for n in sorted({g.size for g in geoms}):
+            group = [g for g in geoms if g.size == n]
+            stack = np.stack([image[g.y0 : g.y0 + n, g.x0 : g.x0 + n] for g in group])
+            frame.count_fft(n, len(group))
+            spectra = self._spectra[n].analyse_many(stack)
+            out.extend(self._roi_from_peaks(g, level, peaks)
+                       for g, (peaks, _, _) in zip(group, spectra, strict=True))
+        order = {id(g): i for i, g in enumerate(geoms)}
+        out.sort(key=lambda m: order[id(m.geometry)])
+        return out
+
+    def _roi_from_peaks(self, geom: _Geometry, level: int, peaks: Peaks) -> _Roi:
         n = geom.size
-        patch = frame.image(level)[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
-        frame.count_fft(n)
-        peaks = self._spectra[n].peaks(np.asarray(patch, dtype=np.float32))
         fit = self._lattice.fit(peaks)
         meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks),
                     footprint_px=float(n * 2**level))
@@ -560,8 +578,8 @@ class NetEstimator:
         # has too few cycles for the ROIs of the predicted level, but not for coarser ones.
         coarser: list[float] = []
         for level in [lv for lv in layout.levels if first <= lv <= first + 2]:
-            for g in layout.probes[level]:
-                m = self._measure(frame, g, level)
+            for g, m in zip(layout.probes[level],
+                            self._measure_many(frame, layout.probes[level], level), strict=True):
                 if not m.valid or m.fit is None:
                     continue
                 a_g = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / (
@@ -717,7 +735,7 @@ class NetEstimator:
         coarse_probes: list[_Roi] = []
         levels = list(layout.levels)
         for level in levels:
-            probes = [self._measure(frame, g, level) for g in layout.probes[level]]
+            probes = self._measure_many(frame, layout.probes[level], level)
             period = self._median_period(probes)
             if period is None:
                 continue
@@ -736,24 +754,39 @@ class NetEstimator:
         same place, keeping the better measurement."""
         s = self.settings
         grid = _thinned(layout.grids[level], frame.budget.max_rois)
-        measurements = [self._measure(frame, g, level) for g in grid]
+        measurements = self._measure_many(frame, grid, level)
         lo, hi = s.preferred_period_px / 1.8, s.preferred_period_px * 1.8
+        # Re-measure one level finer or coarser, each level's ROIs together.
+        moves: dict[int, list[tuple[int, _Geometry]]] = {}
+        periods: list[float | None] = []
         for i, m in enumerate(measurements):
             period = m.size / math.sqrt(m.fit.det) if m.fit is not None else None
+            periods.append(period)
             if period is not None and lo <= period <= hi and m.valid:
                 continue
             alt = level - 1 if period is None or period < lo else level + 1
             if alt not in layout.grids:
                 continue
-            geom = self._regrid(layout, grid[i], alt)
-            other = self._measure(frame, geom, alt)
-            if other.valid and other.fit is not None and (
-                not m.valid or period is None
-                or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
-                < abs(math.log(period / s.preferred_period_px))
-            ):
-                measurements[i] = other
+            moves.setdefault(alt, []).append((i, self._regrid(layout, grid[i], alt)))
+        for alt, moved in moves.items():
+            others = self._measure_many(frame, [g for _, g in moved], alt)
+            for (i, _), other in zip(moved, others, strict=True):
+                self._keep_better(measurements, i, other, periods[i])
         return measurements
+
+    def _keep_better(
+        self, measurements: list[_Roi], i: int, other: _Roi, period: float | None
+    ) -> None:
+        """Replace ROI `i` by its re-measurement at another level if that one is valid and its
+        period nearer the preferred one."""
+        s = self.settings
+        m = measurements[i]
+        if other.valid and other.fit is not None and (
+            not m.valid or period is None
+            or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
+            < abs(math.log(period / s.preferred_period_px))
+        ):
+            measurements[i] = other
 
     def _regrid(self, layout: _Layout, geom: _Geometry, level: int) -> _Geometry:
         """The ROI of `level` centred where `geom` is (clamped into the frame)."""
@@ -928,11 +961,8 @@ class NetEstimator:
         expected = hint
         if expected is None and seed_rois:
             expected = self._guide(seed_rois, rotation, distance, size, period_out)
-        rois = [
-            self._measure_rectified(frame, g, rotation, distance, size, period_out,
-                                    expected)
-            for g in grid
-        ]
+        rois = self._measure_rectified(frame, grid, rotation, distance, size, period_out,
+                                       expected)
         tol = tolerance or s.lattice_tolerance
         consensus = _consensus(rois, tol)
         note = ""
@@ -945,8 +975,8 @@ class NetEstimator:
                 ratio = float(np.median(ratios))
                 if abs(math.log(ratio)) > math.log(1.35):
                     distance = distance / ratio
-                    rois = [self._measure_rectified(frame, g, rotation, distance, size,
-                                                    period_out, None) for g in grid]
+                    rois = self._measure_rectified(frame, grid, rotation, distance, size,
+                                                   period_out, None)
                     consensus = _consensus(rois, tol)
             if consensus is None:
                 note = f"{sum(m.valid for m in rois)} of {len(rois)} ROIs show a lattice, " \
@@ -1026,79 +1056,91 @@ class NetEstimator:
     def _measure_rectified(
         self,
         frame: _Frame,
-        geom: _Geometry,
+        grid: list[_Geometry],
         rotation: F64,
         distance_m: float,
         size: int,
         period_out: float,
         expected: F64 | None,
-    ) -> _Roi:
-        """Measure one ROI in a virtual camera that faces the net squarely.
+    ) -> list[_Roi]:
+        """Measure ROIs in a virtual camera that faces the net squarely.
 
-        The patch is resampled through the homography of a camera rotated by `rotation` (so the
+        Each patch is resampled through the homography of a camera rotated by `rotation` (so the
         net plane becomes fronto-parallel and its lattice uniform), scaled so the mesh period is
         `period_out`. Lens distortion enters through its local affine approximation at the ROI
         centre. The lattice found is then the local lattice at the ROI centre, without the
-        perspective chirp across the ROI.
+        perspective chirp across the ROI. The patches' contrast normalisation and spectra are
+        computed for all ROIs together.
         """
         import cv2
 
         s = self.settings
         n = size
-        full, jm, step, virt, t = self._rect_map(geom, rotation, distance_m, size, period_out)
-        level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
-        scale = 2**level
-        to_level = np.array(
-            [[1 / scale, 0, -(scale - 1) / (2 * scale)], [0, 1 / scale, -(scale - 1) / (2 * scale)],
-             [0, 0, 1]]
-        )
-        patch = cv2.warpPerspective(
-            frame.image(level), to_level @ full, (n, n),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
-        )
-        spectrum = self._spectra[n]
-        frame.count_fft(n)
-        patch = _normalise_contrast(np.asarray(patch, dtype=np.float32), period_out)
-        peaks, snr, logp = spectrum.analyse(patch)
-        guided = expected is not None
-        if expected is not None:
-            # The lattice is known roughly (the consensus of the previous pass): faint peaks
-            # where it predicts them count too, and it may explain a smaller share of the
-            # peaks (a board or a rope in the ROI adds its own).
-            weak = spectrum.peaks_near(snr, _lattice_points(expected, order=2), s.guided_snr)
-            peaks = _merge_peaks(peaks, weak)
-            fit = self._lattice.fit(peaks, expected, expected_share=0.3)
-        else:
-            fit = self._lattice.fit(peaks)
-        meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
-                    logp=logp,
-                    footprint_px=n * step)
-        meas.ray = virt
-        if fit is None:
-            return meas
-        lengths = np.linalg.norm(fit.basis, axis=0)
-        period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
-        if guided:
-            quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
-        else:
-            quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
-                s.min_inlier_fraction
+        if not grid:
+            return []
+        maps = [self._rect_map(g, rotation, distance_m, size, period_out) for g in grid]
+        levels: list[int] = []
+        patches: list[Image] = []
+        for full, _, step, _, _ in maps:
+            level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
+            scale = 2**level
+            to_level = np.array(
+                [[1 / scale, 0, -(scale - 1) / (2 * scale)],
+                 [0, 1 / scale, -(scale - 1) / (2 * scale)], [0, 0, 1]]
             )
-        # The rectification was designed to show the mesh at period_out; a lattice far from it
-        # means the seed plane was wrong or the ROI shows something else.
-        found = n / math.sqrt(fit.det)
-        on_target = abs(math.log(found / period_out)) < math.log(1.35)
-        # Resampling cannot restore what the camera never resolved: a mesh finer than ~3.5 px in
-        # the source has aliased harmonics and a peak position biased by the pixel response.
-        resolved = found * step >= s.min_source_period_px
-        k_out = fit.basis / n  # cycles per output pixel
-        meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
-        # For reporting: the lattice in full-resolution image pixels through the local map.
-        meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
-        meas.valid = bool(period_ok and quality_ok and on_target and resolved)
-        if period_ok and quality_ok and resolved:
-            meas.period_ratio = found / period_out
-        return meas
+            patches.append(cv2.warpPerspective(
+                frame.image(level), to_level @ full, (n, n),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
+            ))
+            levels.append(level)
+        spectrum = self._spectra[n]
+        frame.count_fft(n, len(grid))
+        normalised = _normalise_contrast_many(np.stack(patches, axis=-1), period_out)
+        spectra = spectrum.analyse_many(normalised)
+        lattice_points = None if expected is None else _lattice_points(expected, order=2)
+        out: list[_Roi] = []
+        for geom, (_, jm, step, virt, t), level, (peaks, snr, logp) in zip(
+            grid, maps, levels, spectra, strict=True
+        ):
+            if expected is not None and lattice_points is not None:
+                # The lattice is known roughly (the consensus of the previous pass): faint peaks
+                # where it predicts them count too, and it may explain a smaller share of the
+                # peaks (a board or a rope in the ROI adds its own).
+                weak = spectrum.peaks_near(snr, lattice_points, s.guided_snr)
+                peaks = _merge_peaks(peaks, weak)
+                fit = self._lattice.fit(peaks, expected, expected_share=0.3)
+            else:
+                fit = self._lattice.fit(peaks)
+            meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
+                        logp=logp, footprint_px=n * step)
+            meas.ray = virt
+            out.append(meas)
+            if fit is None:
+                continue
+            lengths = np.linalg.norm(fit.basis, axis=0)
+            period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
+            if expected is not None:
+                quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
+            else:
+                quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
+                    s.min_inlier_fraction
+                )
+            # The rectification was designed to show the mesh at period_out; a lattice far from
+            # it means the seed plane was wrong or the ROI shows something else.
+            found = n / math.sqrt(fit.det)
+            on_target = abs(math.log(found / period_out)) < math.log(1.35)
+            # Resampling cannot restore what the camera never resolved: a mesh finer than
+            # ~3.5 px in the source has aliased harmonics and a peak position biased by the
+            # pixel response.
+            resolved = found * step >= s.min_source_period_px
+            k_out = fit.basis / n  # cycles per output pixel
+            meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
+            # For reporting: the lattice in full-resolution image pixels through the local map.
+            meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
+            meas.valid = bool(period_ok and quality_ok and on_target and resolved)
+            if period_ok and quality_ok and resolved:
+                meas.period_ratio = found / period_out
+        return out
 
     # -- proofs --------------------------------------------------------------------------------
     def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
@@ -1375,9 +1417,10 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     return consensus
 
 
-def _normalise_contrast(patch: F32, period: float) -> F32:
-    """Local contrast normalisation: the patch minus its local mean, over its local standard
-    deviation (Gaussian windows of about one and two mesh periods).
+def _normalise_contrast_many(patches: Image, period: float) -> F32:
+    """Local contrast normalisation of ROIs stacked as channels (rows, cols, n): each patch minus
+    its local mean, over its local standard deviation (box windows of about one and two mesh
+    periods); returned as a stack (n, rows, cols).
 
     Real views put high-contrast things beside a faint net: marker boards with white fiducials,
     ropes, fish. Their edges would dominate the spectrum by sheer amplitude; normalised, every
@@ -1386,15 +1429,19 @@ def _normalise_contrast(patch: F32, period: float) -> F32:
     """
     import cv2
 
+    stack = np.asarray(patches, dtype=np.float32)
+    shape = stack.shape
     # Box filters of about one and two periods (cheaper than Gaussians, and just as smooth on
-    # the scale of the ROI's spectral resolution).
+    # the scale of the ROI's spectral resolution). OpenCV filters every channel alike.
     k1 = max(3, int(round(1.6 * period)) | 1)
     k2 = max(3, int(round(3.2 * period)) | 1)
-    mean = cv2.blur(patch, (k1, k1), borderType=cv2.BORDER_REFLECT)
-    detail = patch - mean
-    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT)
-    floor = 1e-3 + 0.1 * float(np.median(var))
-    return np.asarray(detail / np.sqrt(var + floor), dtype=np.float32)
+    mean = cv2.blur(stack, (k1, k1), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    detail = stack - mean
+    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    median = np.median(var.reshape(-1, shape[2]), axis=0)
+    floor = (1e-3 + 0.1 * median.astype(np.float64)).astype(np.float32)
+    out = detail / np.sqrt(var + floor)
+    return np.ascontiguousarray(out.transpose(2, 0, 1), dtype=np.float32)
 
 
 def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
