@@ -122,3 +122,27 @@ def test_a_budget_out_of_range_is_refused(budget: object) -> None:
     frame = np.zeros((720, 1280), np.uint8)
     with pytest.raises(ValueError, match=r"budget must be an int in 0\.\.3"):
         estimator.estimate(frame, budget=budget)  # type: ignore[arg-type]
+
+
+def test_pairwise_agreement_of_lattices_is_the_scalar_rule_for_every_pair() -> None:
+    """The vectorised agreement used for consensus and grouping (`_agreement`) answers what the
+    scalar rule (`_lattices_agree`) answers for each pair: on lattices near each other (some
+    agreeing, some rotated, rescaled, sheared or in another basis of the same lattice)."""
+    from service.core.estimator import _agreement, _lattices_agree
+
+    rng = np.random.default_rng(11)
+    base = np.array([[14.0, 2.5], [-2.4, 14.1]])
+    bases = []
+    for _ in range(40):
+        jitter = base * (1.0 + rng.normal(0.0, 0.04, (2, 2)))
+        unimodular = np.array([[1, rng.integers(-1, 2)], [0, 1]], dtype=np.float64)
+        scale = rng.choice([1.0, 1.2, 1.45])
+        bases.append(jitter @ unimodular * scale)
+    bases.append(np.zeros((2, 2)))  # degenerate: agrees with nothing
+    stack = np.array(bases)
+    for tolerance, floor in ((0.06, 0.5), (0.15, 0.0)):
+        matrix = _agreement(stack, stack, tolerance, 1.3, floor)
+        expected = np.array([[_lattices_agree(b, r, tolerance, 1.3, floor) for r in bases]
+                             for b in bases])
+        np.testing.assert_array_equal(matrix, expected)
+        assert 0 < matrix.sum() < matrix.size

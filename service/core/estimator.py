@@ -703,10 +703,12 @@ class NetEstimator:
         whose lattices agree; None unless two ROIs at least agree."""
         valid = [m for m in rois if m.valid and m.reciprocal_px is not None]
         best: tuple[float, list[_Roi]] | None = None
-        for ref in valid:
-            assert ref.reciprocal_px is not None
-            group = [m for m in valid if m.reciprocal_px is not None and _lattices_agree(
-                m.reciprocal_px, ref.reciprocal_px, 0.15, 1.3, floor=0.0)]
+        if not valid:
+            return None
+        bases = np.array([m.reciprocal_px for m in valid if m.reciprocal_px is not None])
+        agree = _agreement(bases, bases, 0.15, 1.3, floor=0.0)
+        for j in range(len(valid)):
+            group = [m for m, ok in zip(valid, agree[:, j].tolist(), strict=True) if ok]
             weight = sum(m.weight for m in group)
             if len(group) >= 2 and (best is None or weight > best[0]):
                 best = (weight, group)
@@ -1044,14 +1046,19 @@ class NetEstimator:
             if lengths.min() < 2.0 or lengths.max() > 0.45 * size:
                 continue
             mapped.append((basis, max(m.weight, 0.2)))
-        best: tuple[float, F64] | None = None
-        for ref, _ in mapped:
-            total = sum(w for b, w in mapped if _lattices_agree(b, ref, 0.1, 1.3))
-            if best is None or total > best[0]:
-                best = (total, ref)
-        if best is None or sum(1 for b, _ in mapped if _lattices_agree(b, best[1], 0.1)) < 2:
+        if not mapped:
             return None
-        return best[1]
+        bases = np.array([b for b, _ in mapped])
+        agree = _agreement(bases, bases, 0.1, 1.3)
+        best: tuple[float, int] | None = None
+        for j in range(len(mapped)):
+            total = sum(w for (_, w), ok in zip(mapped, agree[:, j].tolist(), strict=True)
+                        if ok)
+            if best is None or total > best[0]:
+                best = (total, j)
+        if best is None or int(agree[:, best[1]].sum()) < 2:
+            return None
+        return mapped[best[1]][0]
 
     def _measure_rectified(
         self,
@@ -1385,18 +1392,16 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     if len(cands) < 2:
         return None
     weights = [m.weight for m in cands]
+    bases = np.array([m.fit.basis for m in cands if m.fit is not None])
+    agree = _agreement(bases, bases, tolerance)  # [i, j]: ROI i agrees with ROI j's lattice
     best: tuple[float, int] | None = None
-    for i, ref in enumerate(cands):
-        assert ref.fit is not None
-        total = sum(w for m, w in zip(cands, weights, strict=True)
-                    if _same_lattice(m, ref.fit.basis, tolerance))
+    for i in range(len(cands)):
+        total = sum(w for w, ok in zip(weights, agree[:, i].tolist(), strict=True) if ok)
         if best is None or total > best[0]:
             best = (total, i)
     assert best is not None
-    ref_fit = cands[best[1]].fit
-    assert ref_fit is not None
-    ref_basis = ref_fit.basis
-    members = [m for m in cands if _same_lattice(m, ref_basis, tolerance)]
+    ref_basis = bases[best[1]]
+    members = [m for m, ok in zip(cands, agree[:, best[1]].tolist(), strict=True) if ok]
     if len(members) < 2:
         return None
     acc = np.zeros((2, 2))
@@ -1412,8 +1417,11 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     shape = acc / wsum
     consensus = reduce_basis(shape / math.sqrt(abs(float(np.linalg.det(shape))))
                              * math.exp(log_scale / wsum))
+    final = _agreement(np.array([m.fit.basis for m in members if m.fit is not None]),
+                       consensus[None], tolerance)[:, 0].tolist()
+    agreeing = {id(m) for m, ok in zip(members, final, strict=True) if ok}
     for m in rois:
-        m.agrees = m in members and _same_lattice(m, consensus, tolerance)
+        m.agrees = id(m) in agreeing
     return consensus
 
 
@@ -1466,13 +1474,6 @@ def _aligned(basis: F64, ref: F64) -> F64:
     return np.asarray(basis @ np.linalg.inv(m), dtype=np.float64)
 
 
-def _same_lattice(roi: _Roi, ref: F64, tolerance: float, max_scale: float = 1.3) -> bool:
-    """Does the ROI's lattice agree with `ref` (2x2, bins)? See `_lattices_agree`."""
-    if roi.fit is None:
-        return False
-    return _lattices_agree(roi.fit.basis, ref, tolerance, max_scale)
-
-
 def _lattices_agree(
     basis: F64, ref: F64, tolerance: float, max_scale: float = 1.3, floor: float = 0.5
 ) -> bool:
@@ -1480,7 +1481,7 @@ def _lattices_agree(
     scale, each basis vector within `tolerance` of its length (but not less than `floor`);
     the scales (square roots of the cell areas) within a factor `max_scale`.
 
-    Plain floats: this runs for every pair of ROIs, where numpy's per-call overhead dominates.
+    The scalar statement of the rule; `_agreement` evaluates it for all pairs at once.
     """
     a, b, c, d = float(basis[0, 0]), float(basis[0, 1]), float(basis[1, 0]), float(basis[1, 1])
     ra, rb, rc, rd = float(ref[0, 0]), float(ref[0, 1]), float(ref[1, 0]), float(ref[1, 1])
@@ -1507,6 +1508,33 @@ def _lattices_agree(
         if math.hypot(ex, ey) > max(tolerance * math.hypot(x, y), floor):
             return False
     return True
+
+
+def _agreement(
+    bases: F64, refs: F64, tolerance: float, max_scale: float = 1.3, floor: float = 0.5
+) -> npt.NDArray[np.bool_]:
+    """`_lattices_agree(bases[i], refs[j], ...)` for every pair at once: (n, m) booleans for
+    bases (n, 2, 2) and refs (m, 2, 2). Every ROI of a pass is compared with every other, and
+    one vectorised evaluation costs what a handful of scalar ones do."""
+    a, b = bases[:, 0, 0][:, None], bases[:, 0, 1][:, None]
+    c, d = bases[:, 1, 0][:, None], bases[:, 1, 1][:, None]
+    ra, rb = refs[:, 0, 0][None, :], refs[:, 0, 1][None, :]
+    rc, rd = refs[:, 1, 0][None, :], refs[:, 1, 1][None, :]
+    det_b, det_r = a * d - b * c, ra * rd - rb * rc
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        scale = np.sqrt(np.abs(det_b / det_r))
+        ok = (det_b != 0.0) & (det_r != 0.0) & (scale >= 1.0 / max_scale) & (scale <= max_scale)
+        inv = 1.0 / (scale * det_r)
+        m00 = np.rint((rd * a - rb * c) * inv)
+        m01 = np.rint((rd * b - rb * d) * inv)
+        m10 = np.rint((-rc * a + ra * c) * inv)
+        m11 = np.rint((-rc * b + ra * d) * inv)
+        ok &= np.abs(m00 * m11 - m01 * m10) == 1.0
+        for x, y, p, q in ((a, c, m00, m10), (b, d, m01, m11)):
+            ex = x - scale * (ra * p + rb * q)
+            ey = y - scale * (rc * p + rd * q)
+            ok &= np.hypot(ex, ey) <= np.maximum(tolerance * np.hypot(x, y), floor)
+    return np.asarray(ok, dtype=bool)
 
 
 def _lattice_points(k: F64, order: int) -> F64:
