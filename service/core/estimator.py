@@ -73,6 +73,8 @@ BUDGET_LEVELS = 4
 # second harmonic then still lies inside the analysed band.
 _COARSE_MIN_PERIOD_PX = 4.4
 
+_REFINEMENT_INDEX = tuple(abs(round(1.0 / float(np.linalg.det(r)))) for r in _REFINEMENTS)
+
 # How a refusal begins when the view was recognised as a grid that is not the configured net.
 _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
               "mesh opening angle measured")
@@ -1104,16 +1106,19 @@ class NetEstimator:
         frame.count_fft(n, len(grid))
         normalised = _normalise_contrast_many(np.stack(patches, axis=-1), period_out)
         spectra = spectrum.analyse_many(normalised)
-        lattice_points = None if expected is None else _lattice_points(expected, order=2)
+        weak_peaks: list[Peaks | None] = [None] * len(grid)
+        if expected is not None:
+            # The lattice is known roughly (the consensus of the previous pass): faint peaks
+            # where it predicts them count too (looked up in all ROIs at once), and it may
+            # explain a smaller share of the peaks (a board or a rope in the ROI adds its own).
+            weak_peaks = list(spectrum.peaks_near_many(
+                np.stack([snr for _, snr, _ in spectra]), _lattice_points(expected, order=2),
+                s.guided_snr))
         out: list[_Roi] = []
-        for geom, (_, jm, step, virt, t), level, (peaks, snr, logp) in zip(
-            grid, maps, levels, spectra, strict=True
+        for geom, (_, jm, step, virt, t), level, (peaks, snr, logp), weak in zip(
+            grid, maps, levels, spectra, weak_peaks, strict=True
         ):
-            if expected is not None and lattice_points is not None:
-                # The lattice is known roughly (the consensus of the previous pass): faint peaks
-                # where it predicts them count too, and it may explain a smaller share of the
-                # peaks (a board or a rope in the ROI adds its own).
-                weak = spectrum.peaks_near(snr, lattice_points, s.guided_snr)
+            if expected is not None and weak is not None:
                 peaks = _merge_peaks(peaks, weak)
                 fit = self._lattice.fit(peaks, expected, expected_share=0.3)
             else:
@@ -1178,25 +1183,34 @@ class NetEstimator:
         fundamentals = _lattice_points(k, order=1)
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
+        # The extra points of every refinement, looked up in one go.
+        groups: list[tuple[int, F64]] = []
+        for inv_s, index in zip(_REFINEMENTS, _REFINEMENT_INDEX, strict=True):
+            extra = _extra_points(k @ inv_s, k, spectrum.size)
+            if extra.shape[0] >= 2:
+                groups.append((index, extra))
+        if not groups:
+            return None
+        points = np.concatenate([extra for _, extra in groups])
+        group_of = np.repeat(np.arange(len(groups)), [extra.shape[0] for _, extra in groups])
+        # A real peak there is a local maximum of its own: the skirt of a strong neighbour
+        # (a harmonic two bins away, smeared by what is left of the perspective) is not.
+        near = spectrum.maxima_near(snr[None], points, null_level)
+        if near is None:
+            return None
+        found, centre, keep, _, inside = near
+        group_of = group_of[inside]
+        # Only peaks that are not the lattice's own (the search around a point may climb onto
+        # a neighbouring lattice peak).
+        real = keep[0] & ~_near_lattice(found[0], k, 1.5)
         best: tuple[float, int] | None = None
-        for inv_s in _REFINEMENTS:
-            fine = k @ inv_s
-            idx = abs(round(1.0 / float(np.linalg.det(inv_s))))
-            extra = _extra_points(fine, k, self._spectra[p.size].size)
-            if extra.shape[0] < 2:
-                continue
-            # A real peak there is a local maximum of its own: the skirt of a strong neighbour
-            # (a harmonic two bins away, smeared by what is left of the perspective) is not.
-            found = spectrum.peaks_near(snr, extra, null_level)
-            # Only peaks that are not the lattice's own (the search around a point may climb
-            # onto a neighbouring lattice peak).
-            own = _near_lattice(found.k, k, 1.5)
-            values = found.snr[~own]
+        for g, (index, _) in enumerate(groups):
+            values = centre[0][real & (group_of == g)]
             # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
             # of them (the others are weak cross terms, or outside the band).
             level = float(values.max()) if values.size else null_level
             if level > threshold and (best is None or level > best[0]):
-                best = (level, idx)
+                best = (level, index)
         del count
         return None if best is None else best[1]
 

@@ -202,38 +202,64 @@ class SpectrumAnalyzer:
         handful of predicted places it does not (a speckle bin exceeds 1.8 with probability
         ~3 %), so a faint mesh that the prediction points at is still seen.
         """
+        return self.peaks_near_many(snr[None], k, min_snr)[0]
+
+    def peaks_near_many(self, snrs: F32, k: npt.ArrayLike, min_snr: float) -> list[Peaks]:
+        """`peaks_near` at the same wave vectors in each whitened spectrum of a stack
+        (n, rows, cols): the ROIs of one rectified pass all expect the same lattice."""
+        near = self.maxima_near(snrs, k, min_snr)
+        if near is None:
+            return [Peaks(np.zeros((0, 2)), np.zeros(0)) for _ in range(snrs.shape[0])]
+        found, centre, keep, flat, _ = near
+        out = []
+        for i in range(snrs.shape[0]):
+            sel = keep[i]
+            if not sel.any():
+                out.append(Peaks(np.zeros((0, 2)), np.zeros(0)))
+                continue
+            # Two points may land on the same bin: keep each peak once.
+            _, first = np.unique(flat[i][sel], return_index=True)
+            out.append(Peaks(found[i][sel][first].astype(np.float64), centre[i][sel][first]))
+        return out
+
+    def maxima_near(
+        self, snrs: F32, k: npt.ArrayLike, min_snr: float
+    ) -> tuple[F64, F64, npt.NDArray[np.bool_], npt.NDArray[np.int64],
+               npt.NDArray[np.bool_]] | None:
+        """For each spectrum of a stack (n, rows, cols) and each wave vector k (m, 2) inside
+        the array: the largest bin within one bin of k, refined to sub-bin (n, m', 2), its value
+        (n, m'), whether it is a local maximum of at least `min_snr` inside the analysed band
+        (n, m'), its flat bin index (n, m'), and which of the m wave vectors these are (m,):
+        those too near the array's edge are left out (m' <= m, in their order). None when none
+        is left."""
         kk = np.asarray(k, dtype=np.float64).reshape(-1, 2).copy()
         flip = (kk[:, 0] < 0) | ((kk[:, 0] == 0) & (kk[:, 1] < 0))
         kk[flip] *= -1.0
-        rows_n, cols_n = snr.shape
+        n, rows_n, cols_n = snrs.shape
         r0 = np.rint(kk[:, 1]).astype(np.int64) + self._row0
         c0 = np.rint(kk[:, 0]).astype(np.int64) + self._col0
         ok = (r0 >= 2) & (r0 < rows_n - 2) & (c0 >= 2) & (c0 < cols_n - 2)
         r0, c0 = r0[ok], c0[ok]
         if r0.size == 0:
-            return Peaks(np.zeros((0, 2)), np.zeros(0))
+            return None
         # The largest of the 3x3 bins around each point, then whether it is a local maximum.
-        offsets = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
-        around = snr[r0[:, None] + offsets[None, :, 0], c0[:, None] + offsets[None, :, 1]]
-        best = np.argmax(around, axis=1)
-        r = r0 + offsets[best, 0]
-        c = c0 + offsets[best, 1]
-        centre = snr[r, c].astype(np.float64)
-        neighbours = snr[r[:, None] + offsets[None, :, 0], c[:, None] + offsets[None, :, 1]]
+        dr, dc = _OFFSETS[:, 0], _OFFSETS[:, 1]
+        roi = np.arange(n)[:, None]
+        around = snrs[roi[:, :, None], (r0[:, None] + dr)[None], (c0[:, None] + dc)[None]]
+        best = np.argmax(around, axis=2)
+        r = r0[None, :] + dr[best]
+        c = c0[None, :] + dc[best]
+        centre = snrs[roi, r, c].astype(np.float64)
+        neighbours = snrs[roi[:, :, None], r[:, :, None] + dr, c[:, :, None] + dc]
         # Inside the analysed band (the mirrored columns kx < 0 hold the conjugate half, so a
         # point near kx = 0 is found on either side).
         radius = np.hypot(c - self._col0, r - self._row0)
         band = (radius >= 2.0) & (radius <= 0.47 * self.size)
-        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=1))
-        if not keep.any():
-            return Peaks(np.zeros((0, 2)), np.zeros(0))
-        r, c, centre = r[keep], c[keep], centre[keep]
-        ddx = _parabolic(snr[r, c - 1], centre, snr[r, c + 1])
-        ddy = _parabolic(snr[r - 1, c], centre, snr[r + 1, c])
-        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=1)
-        # Two points may land on the same bin: keep each peak once.
-        _, first = np.unique(r * cols_n + c, return_index=True)
-        return Peaks(found[first].astype(np.float64), centre[first])
+        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=2))
+        ddx = _parabolic(snrs[roi, r, c - 1], centre, snrs[roi, r, c + 1])
+        ddy = _parabolic(snrs[roi, r - 1, c], centre, snrs[roi, r + 1, c])
+        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=2)
+        return found, centre, keep, r * cols_n + c, ok
 
     def sample(self, snr: F32, k: npt.ArrayLike) -> F64:
         """The whitened spectrum at wave vectors k (m, 2) in bins: the largest value among the
@@ -254,6 +280,10 @@ class SpectrumAnalyzer:
             out[ok] = np.maximum(np.maximum(snr[r, c], snr[r, c + 1]),
                                  np.maximum(snr[r + 1, c], snr[r + 1, c + 1]))
         return out
+
+
+# The 3x3 neighbourhood of a bin, (row, column) offsets.
+_OFFSETS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
 
 
 def _parabolic(left: npt.ArrayLike, centre: F64, right: npt.ArrayLike) -> F64:
