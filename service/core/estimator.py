@@ -1004,32 +1004,44 @@ class NetEstimator:
                 note = f"only {len(agreeing)} ROIs share one lattice"
         return _Pass(rois, rotation, size, period_out, consensus, plane, level, note)
 
-    def _rect_map(
-        self, geom: _Geometry, rotation: F64, distance_m: float, size: int, period_out: float
-    ) -> tuple[F64, F64, float, F64, float]:
-        """The resampling of one rectified ROI: the homography output pixel -> full-resolution
+    def _rect_maps(
+        self, geoms: list[_Geometry], rotation: F64, distance_m: float, size: int,
+        period_out: float,
+    ) -> list[tuple[F64, F64, float, F64, float]]:
+        """The resampling of each rectified ROI: the homography output pixel -> full-resolution
         pixel, its local Jacobian at the centre, source pixels per output pixel, the centre's
-        virtual ray and the virtual normalised units per output pixel."""
-        virt = rotation @ geom.ray
-        virt = virt / virt[2]
+        virtual ray and the virtual normalised units per output pixel. All ROIs at once (the
+        same small matrix algebra for each)."""
+        k = len(geoms)
+        if k == 0:
+            return []
+        rays = np.array([g.ray for g in geoms])
+        virt = rays @ rotation.T
+        virt = virt / virt[:, 2:3]
         # Normalised virtual units per output pixel so the mesh period is period_out.
         t = math.sqrt(self.mesh.cell_area_m2) / distance_m / period_out
         half = (size - 1) / 2.0
-        to_virtual = np.array(
-            [[t, 0.0, virt[0] - t * half], [0.0, t, virt[1] - t * half], [0.0, 0.0, 1.0]]
-        )
-        jinv = np.linalg.inv(geom.jacobian)
-        centre = np.asarray(geom.center_full)
-        to_pixel = np.eye(3)
-        to_pixel[:2, :2] = jinv
-        to_pixel[:2, 2] = centre - jinv @ geom.ray[:2]
-        full = to_pixel @ rotation.T @ to_virtual  # output pixel -> full-res pixel (homogeneous)
-        c0 = full @ np.array([half, half, 1.0])
-        c1 = full @ np.array([half + 1.0, half, 1.0])
-        c2 = full @ np.array([half, half + 1.0, 1.0])
-        jm = np.stack([c1[:2] / c1[2] - c0[:2] / c0[2], c2[:2] / c2[2] - c0[:2] / c0[2]], axis=1)
-        step = math.sqrt(abs(float(np.linalg.det(jm))))
-        return full, jm, step, virt, t
+        to_virtual = np.zeros((k, 3, 3))
+        to_virtual[:, 0, 0] = t
+        to_virtual[:, 1, 1] = t
+        to_virtual[:, 0, 2] = virt[:, 0] - t * half
+        to_virtual[:, 1, 2] = virt[:, 1] - t * half
+        to_virtual[:, 2, 2] = 1.0
+        jinv = np.linalg.inv(np.array([g.jacobian for g in geoms]))
+        centres = np.array([g.center_full for g in geoms])
+        to_pixel = np.zeros((k, 3, 3))
+        to_pixel[:, :2, :2] = jinv
+        to_pixel[:, :2, 2] = centres - np.einsum("kij,kj->ki", jinv, rays[:, :2])
+        to_pixel[:, 2, 2] = 1.0
+        # Output pixel -> full-res pixel (homogeneous).
+        full = to_pixel @ rotation.T @ to_virtual
+        probes = np.array([[half, half, 1.0], [half + 1.0, half, 1.0], [half, half + 1.0, 1.0]])
+        c = np.einsum("kij,pj->kpi", full, probes)  # (k, 3 probes, 3)
+        xy = c[:, :, :2] / c[:, :, 2:3]
+        jm = np.stack([xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0]], axis=2)
+        det = jm[:, 0, 0] * jm[:, 1, 1] - jm[:, 0, 1] * jm[:, 1, 0]
+        steps = np.sqrt(np.abs(det))
+        return [(full[i], jm[i], float(steps[i]), virt[i], t) for i in range(k)]
 
     def _guide(
         self, seed_rois: list[_Roi], rotation: F64, distance_m: float, size: int,
@@ -1039,10 +1051,11 @@ class NetEstimator:
         lattice (cycles per pixel) carried into the rectified view at its place (k . x is
         invariant: k_out = J^T k_pixel), and the one most of them agree on."""
         mapped: list[tuple[F64, float]] = []
-        for m in seed_rois:
-            if not m.valid or m.reciprocal_px is None:
-                continue
-            _, jm, _, _, _ = self._rect_map(m.geometry, rotation, distance_m, size, period_out)
+        usable = [m for m in seed_rois if m.valid and m.reciprocal_px is not None]
+        maps = self._rect_maps([m.geometry for m in usable], rotation, distance_m, size,
+                               period_out)
+        for m, (_, jm, _, _, _) in zip(usable, maps, strict=True):
+            assert m.reciprocal_px is not None
             basis = reduce_basis(jm.T @ m.reciprocal_px * size)
             lengths = np.linalg.norm(basis, axis=0)
             if lengths.min() < 2.0 or lengths.max() > 0.45 * size:
@@ -1087,7 +1100,7 @@ class NetEstimator:
         n = size
         if not grid:
             return []
-        maps = [self._rect_map(g, rotation, distance_m, size, period_out) for g in grid]
+        maps = self._rect_maps(grid, rotation, distance_m, size, period_out)
         levels: list[int] = []
         patches: list[Image] = []
         for full, _, step, _, _ in maps:
