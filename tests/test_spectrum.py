@@ -132,3 +132,26 @@ def test_peaks_are_strongest_first_and_in_one_half_plane() -> None:
 def test_roi_size_must_be_a_power_of_two_of_at_least_32(size: int) -> None:
     with pytest.raises(ValueError, match="power of two"):
         SpectrumAnalyzer(size)
+
+
+def test_a_stack_of_patches_gives_each_patch_its_own_analysis() -> None:
+    """The batched analysis (one stacked FFT, the filters over all ROIs at once) is the
+    single-patch analysis of each: same peaks, same whitened spectrum, bit for bit."""
+    rng = np.random.default_rng(3)
+    analyzer = SpectrumAnalyzer(64)
+    yy, xx = np.mgrid[0:64, 0:64]
+    patches = []
+    for i in range(5):
+        grid = np.cos(2 * np.pi * (xx * (6 + i) + yy * 2) / 64) * np.cos(
+            2 * np.pi * (-xx * 2 + yy * (7 - i)) / 64)
+        patches.append((grid * (i + 1) + rng.normal(0, 0.5, (64, 64))).astype(np.float32))
+    patches.append(np.zeros((64, 64), np.float32))  # a flat patch among them
+    batch = analyzer.analyse_many(np.stack(patches))
+    assert len(batch) == len(patches)
+    for patch, (peaks, snr, logp) in zip(patches, batch, strict=True):
+        one_peaks, one_snr, one_logp = analyzer.analyse(patch)
+        np.testing.assert_array_equal(peaks.k, one_peaks.k)
+        np.testing.assert_array_equal(peaks.snr, one_peaks.snr)
+        np.testing.assert_array_equal(snr, one_snr)
+        np.testing.assert_array_equal(logp, one_logp)
+    assert len(batch[0][0]) >= 2 and len(batch[-1][0]) == 0

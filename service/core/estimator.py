@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -67,6 +66,14 @@ _REFINEMENTS = tuple(
     )
 )
 
+
+# Work levels of `NetEstimator.estimate(budget=...)`: 0 is the full work.
+BUDGET_LEVELS = 4
+# Coarse rectified ROIs (the leanest level) only where the mesh keeps this period in them: its
+# second harmonic then still lies inside the analysed band.
+_COARSE_MIN_PERIOD_PX = 4.4
+
+_REFINEMENT_INDEX = tuple(abs(round(1.0 / float(np.linalg.det(r)))) for r in _REFINEMENTS)
 
 # How a refusal begins when the view was recognised as a grid that is not the configured net.
 _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
@@ -151,7 +158,8 @@ class _Layout:
     grids: dict[int, list[_Geometry]]
     probes: dict[int, list[_Geometry]]
     max_footprint: float  # half the frame's smaller side: rows and columns keep a baseline
-    rect: dict[int, list[_Geometry]] = field(default_factory=dict)  # by footprint (px)
+    # By (footprint in px, FFT size, ROI budget or 0).
+    rect: dict[tuple[int, int, int], list[_Geometry]] = field(default_factory=dict)
 
 
 @dataclass
@@ -199,6 +207,65 @@ class _Pass:
     plane: PlaneFit | None
     level: int
     note: str = ""
+
+
+# A pass's convergence: new normal, new distance, the plane before it, and the step taken.
+_Converged = tuple[F64, float, tuple[F64, float] | None, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class _Budget:
+    """What one work level may spend on a frame (docs/estimator.md, "Budget levels").
+
+    Every level keeps the checks that make a distance honest (proof of scale, mesh shape, the
+    tracked plane's blind scale check, the sigma limits): a leaner level measures fewer or
+    coarser ROIs, so it refuses more frames or reports a larger sigma, never a surer one.
+    """
+
+    tracking_passes: int  # rectified passes while tracking (the first usually converges)
+    cold_passes: int  # rectified passes from a cold seed (the seed pass is loose)
+    max_rois: int | None  # ROIs per grid (cold grid and rectified passes); None: the full grid
+    coarse: bool  # rectified ROIs at half size, one pyramid level coarser
+    cold_levels: int  # pyramid levels whose grid a cold search measures after the probes
+    blind_levels: int  # levels searched when the probes saw no lattice at all
+
+
+_BUDGETS = (
+    _Budget(tracking_passes=4, cold_passes=6, max_rois=None, coarse=False, cold_levels=2,
+            blind_levels=5),
+    _Budget(tracking_passes=1, cold_passes=4, max_rois=None, coarse=False, cold_levels=2,
+            blind_levels=5),
+    _Budget(tracking_passes=1, cold_passes=4, max_rois=9, coarse=False, cold_levels=1,
+            blind_levels=2),
+    _Budget(tracking_passes=1, cold_passes=3, max_rois=9, coarse=True, cold_levels=1,
+            blind_levels=0),
+)
+
+
+class _Frame:
+    """One frame being estimated: its pyramid (built as far as it is needed), the work level,
+    and the work done so far (stage times, spectra computed)."""
+
+    def __init__(self, gray: Image, layout: _Layout, budget: _Budget) -> None:
+        self.layout = layout
+        self.budget = budget
+        self.timings: dict[str, float] = {}
+        self.ffts: dict[int, int] = {}
+        self._pyramid: list[Image] = [gray]
+
+    def image(self, level: int) -> Image:
+        import cv2
+
+        while len(self._pyramid) <= level:
+            self._pyramid.append(cv2.pyrDown(self._pyramid[-1]))
+        return self._pyramid[level]
+
+    def lap(self, stage: str, since: float) -> None:
+        """Add the time since `since` (perf_counter) to `stage`, in ms."""
+        self.timings[stage] = self.timings.get(stage, 0.0) + (time.perf_counter() - since) * 1e3
+
+    def count_fft(self, size: int, count: int = 1) -> None:
+        self.ffts[size] = self.ffts.get(size, 0) + count
 
 
 class NetEstimator:
@@ -273,20 +340,27 @@ class NetEstimator:
         foot = max(min(w, h) / 2.0, min(64.0, min(w, h)))
         return _Layout(cam, tuple(levels), grids, probes, foot)
 
-    def _rect_grid(self, layout: _Layout, footprint: float, size: int) -> list[_Geometry]:
+    def _rect_grid(
+        self, layout: _Layout, footprint: float, size: int, max_rois: int | None = None
+    ) -> list[_Geometry]:
         """Centres of rectified ROIs of this footprint (source pixels): spaced half a footprint
         apart (each ROI overlaps its neighbours by half) and covering the frame to its edges,
         thinned out evenly when that would exceed the ROI budget (grid_cols x grid_rows ROIs
-        of roi_size; four times as many of half the size)."""
-        key = int(round(footprint / 8.0)) * 8 * 1000 + size
+        of roi_size; four times as many of half the size), or `max_rois` when a lower work level
+        asks for fewer: the thinned grid still spans the frame, so the plane keeps its
+        baseline."""
+        rounded = int(round(footprint / 8.0)) * 8
+        key = (rounded, size, max_rois or 0)
         if key in layout.rect:
             return layout.rect[key]
         s = self.settings
         cam = layout.camera
         w, h = cam.width, cam.height
-        f = min(float(key // 1000), float(min(w, h)))
+        f = min(float(rounded), float(min(w, h)))
         budget = s.grid_cols * s.grid_rows * (s.roi_size // size) ** 2
         budget = min(budget, 4 * s.grid_cols * s.grid_rows)
+        if max_rois is not None:
+            budget = min(budget, max_rois)
         cols = int((w - f) // (f / 2)) + 1
         rows = int((h - f) // (f / 2)) + 1
         # A plane needs ROIs spread both ways: at least three rows and columns where they can be
@@ -339,10 +413,29 @@ class NetEstimator:
         self._layout(width, height)
 
     # -- per ROI -------------------------------------------------------------------------------
-    def _measure(self, image: Image, geom: _Geometry, level: int) -> _Roi:
+    def _measure(self, frame: _Frame, geom: _Geometry, level: int) -> _Roi:
+        return self._measure_many(frame, [geom], level)[0]
+
+    def _measure_many(self, frame: _Frame, geoms: list[_Geometry], level: int) -> list[_Roi]:
+        """Unrectified ROIs of one pyramid level, their spectra computed together."""
+        if not geoms:
+            return []
+        image = frame.image(level)
+        out: list[_Roi] = []
+        # One stack per FFT size (a level's grid has one size; a re-gridded ROI may differ).
+        for n in sorted({g.size for g in geoms}):
+            group = [g for g in geoms if g.size == n]
+            stack = np.stack([image[g.y0 : g.y0 + n, g.x0 : g.x0 + n] for g in group])
+            frame.count_fft(n, len(group))
+            spectra = self._spectra[n].analyse_many(stack)
+            out.extend(self._roi_from_peaks(g, level, peaks)
+                       for g, (peaks, _, _) in zip(group, spectra, strict=True))
+        order = {id(g): i for i, g in enumerate(geoms)}
+        out.sort(key=lambda m: order[id(m.geometry)])
+        return out
+
+    def _roi_from_peaks(self, geom: _Geometry, level: int, peaks: Peaks) -> _Roi:
         n = geom.size
-        patch = image[geom.y0 : geom.y0 + n, geom.x0 : geom.x0 + n]
-        peaks = self._spectra[n].peaks(np.asarray(patch, dtype=np.float32))
         fit = self._lattice.fit(peaks)
         meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks),
                     footprint_px=float(n * 2**level))
@@ -367,27 +460,30 @@ class NetEstimator:
         return float(np.median(periods)) if periods else None
 
     # -- per frame -----------------------------------------------------------------------------
-    def estimate(self, frame: Image, prior: NetEstimate | None = None) -> NetEstimate:
+    def estimate(
+        self, frame: Image, prior: NetEstimate | None = None, budget: int = 0
+    ) -> NetEstimate:
         """Estimate the net plane in one frame (grey, or BGR/BGRA which is converted).
 
         `prior` (the previous frame's estimate, while tracking) lets the estimator skip the
         scale search: the ROIs are rectified with the prior plane straight away. Without a
         detection that way it falls back to the full search.
-        """
-        import cv2
 
+        `budget` (0 .. BUDGET_LEVELS - 1) lowers the work per frame for a CPU that cannot keep
+        up: 0 is the full work; each higher level measures less (see `_Budget`). A higher level
+        may detect less often or less precisely, never with a sigma that no longer covers its
+        error.
+        """
+        if isinstance(budget, bool) or not isinstance(budget, int) or not (
+            0 <= budget < BUDGET_LEVELS
+        ):
+            raise ValueError(f"budget must be an int in 0..{BUDGET_LEVELS - 1}, got {budget!r}")
         t0 = time.perf_counter()
         gray = _as_gray(frame)
         h, w = gray.shape
         layout = self._layout(w, h)  # fails early on a resolution the calibration cannot serve
-        timings: dict[str, float] = {}
-        pyramid: list[Image] = [gray]
-
-        def level_image(level: int) -> Image:
-            while len(pyramid) <= level:
-                pyramid.append(cv2.pyrDown(pyramid[-1]))
-            return pyramid[level]
-
+        current = _Frame(gray, layout, _BUDGETS[budget])
+        current.lap("grey", t0)
         if not layout.levels:
             raise EstimatorInputError(
                 f"frame {w}x{h} is smaller than one {max(64, self.settings.roi_size // 2)}px ROI"
@@ -398,18 +494,22 @@ class NetEstimator:
         ) and min(w, h) / self._period_at_centre(layout, prior.range_m) >= 12.0:
             # Tracking only while the mesh is well resolved: near the "too close" limit a net
             # that came closer shows harmonics at the old scale that no check can tell from it.
-            tracked = self._refine(prior, level_image, layout, timings, prior.level,
-                                   self._prior_rois(prior, layout), iterations=2)
-            if tracked.detected and _agrees(tracked, prior) and self._blind_scale_agrees(
-                tracked, level_image, layout
-            ):
-                result = tracked
+            tracked = self._refine(prior, current, layout, prior.level,
+                                   self._prior_rois(prior, layout),
+                                   passes=current.budget.tracking_passes)
+            if tracked.detected and _agrees(tracked, prior):
+                t1 = time.perf_counter()
+                if self._blind_scale_agrees(tracked, current, layout):
+                    result = tracked
+                current.lap("blind_check", t1)
         if result is None:
-            result = self._cold(level_image, layout, timings)
+            result = self._cold(current, layout)
         if not result.detected and not result.reason.startswith(_NOT_A_NET):
             # Not when the view was positively recognised as something else (a brick wall, a
             # checkerboard, cells of another shape): "too close" must never fire without a net.
-            close = self._too_close(gray, layout, prior)
+            t1 = time.perf_counter()
+            close = self._too_close(current, layout, prior)
+            current.lap("too_close", t1)
             if close is not None:
                 period, range_m = close
                 result = replace(
@@ -417,11 +517,12 @@ class NetEstimator:
                     reason=(f"net too close to measure: a mesh of ~{period:.0f} px period fills "
                             f"the view (about {range_m:.2f} m away or less)"),
                 )
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        return replace(result, timings_ms=timings)
+        current.timings["total"] = (time.perf_counter() - t0) * 1e3
+        return replace(result, timings_ms=current.timings, budget_level=budget,
+                       fft_counts=dict(sorted(current.ffts.items())))
 
     def _too_close(
-        self, gray: Image, layout: _Layout, prior: NetEstimate | None = None
+        self, frame: _Frame, layout: _Layout, prior: NetEstimate | None = None
     ) -> tuple[float, float] | None:
         """(mesh period in pixels, implied range in m) when a mesh too coarse for the ROIs fills
         the view; None otherwise.
@@ -438,7 +539,7 @@ class NetEstimator:
         do (its harmonics often outshine its fundamentals when so close, so its shape is not
         required).
         """
-        whole = self._whole_lattice(gray)
+        whole = self._whole_lattice(frame)
         if whole is None:
             return None
         side, fit = whole
@@ -468,7 +569,7 @@ class NetEstimator:
         return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
 
     def _blind_scale_agrees(
-        self, result: NetEstimate, level_image: Callable[[int], Image], layout: _Layout
+        self, result: NetEstimate, frame: _Frame, layout: _Layout
     ) -> bool:
         """Do the probe ROIs, fitted blind at the pyramid level where `result` predicts the
         preferred mesh period, see that period (within 30 %)? A tracked plane was rectified with
@@ -486,8 +587,8 @@ class NetEstimator:
         # has too few cycles for the ROIs of the predicted level, but not for coarser ones.
         coarser: list[float] = []
         for level in [lv for lv in layout.levels if first <= lv <= first + 2]:
-            for g in layout.probes[level]:
-                m = self._measure(level_image(level), g, level)
+            for g, m in zip(layout.probes[level],
+                            self._measure_many(frame, layout.probes[level], level), strict=True):
                 if not m.valid or m.fit is None:
                     continue
                 a_g = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / (
@@ -501,7 +602,7 @@ class NetEstimator:
         if len(coarser) >= 2 and max(coarser) / min(coarser) < 1.4:
             return False
         # So does a mesh so coarse that it fills the whole frame with a few cycles.
-        whole = self._whole_lattice(level_image(0))
+        whole = self._whole_lattice(frame)
         if whole is not None:
             side, fit = whole
             if fit.inliers >= 3 and fit.mean_snr >= 4.0 and fit.inlier_weight_fraction >= 0.5 and (
@@ -511,19 +612,21 @@ class NetEstimator:
         return True
 
     def _whole_lattice(
-        self, gray: Image, twine: bool = False
+        self, frame: _Frame, twine: bool = False
     ) -> tuple[int, LatticeFit] | None:
         """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
         None when there is none (or, with `twine`, when its harmonics are not those of twine:
         a brick wall or a checkerboard filling the view is not a net too close)."""
         import cv2
 
+        gray = frame.image(0)
         h, w = gray.shape
         side = min(h, w)
         y0, x0 = (h - side) // 2, (w - side) // 2
         small = np.asarray(cv2.resize(
             np.asarray(gray[y0 : y0 + side, x0 : x0 + side], dtype=np.float32), (64, 64),
             interpolation=cv2.INTER_AREA), dtype=np.float32)
+        frame.count_fft(self._whole.size)
         peaks, snr, logp = self._whole.analyse(small)
         fit = self._lattice.fit(peaks)
         if fit is None or (twine and _twine_profile(self._whole, snr, logp, fit.basis, 1)):
@@ -549,12 +652,10 @@ class NetEstimator:
             out.append(m)
         return out
 
-    def _cold(
-        self, level_image: Callable[[int], Image], layout: _Layout, timings: dict[str, float]
-    ) -> NetEstimate:
+    def _cold(self, frame: _Frame, layout: _Layout) -> NetEstimate:
         t1 = time.perf_counter()
-        order, probes = self._level_order(layout, level_image)
-        timings["scale_search"] = (time.perf_counter() - t1) * 1e3
+        order, probes = self._level_order(layout, frame)
+        frame.lap("scale_search", t1)
         best: NetEstimate | None = None
         tried: list[NetEstimate] = []
 
@@ -562,12 +663,12 @@ class NetEstimator:
             if any(_agrees(seed, t, 0.05, 5.0) for t in tried):
                 return None
             tried.append(seed)
-            return self._refine(seed, level_image, layout, timings, level, rois)
+            return self._refine(seed, frame, layout, level, rois, frame.budget.cold_passes)
 
         if order:
             # The probes are spread over the frame: when they all agree on a plane, that plane
             # seeds the rectified pass and the unrectified grid pass is not needed.
-            seed = self._conclude_seed(probes, order[0], timings)
+            seed = self._conclude_seed(probes, order[0], frame.timings)
             if seed is not None and seed.rois_used == len(probes):
                 quick = attempt(seed, order[0], probes)
                 if quick is not None and quick.detected:
@@ -575,16 +676,18 @@ class NetEstimator:
                 best = quick
         # Normally the two best levels at most; when the probes saw nothing (no net, or fish
         # over every probe) the full grid at every level.
-        searched = order[:2] if order else list(layout.levels)
+        # (Lower budgets search fewer levels.)
+        searched = (order[: frame.budget.cold_levels] if order
+                    else list(layout.levels)[: frame.budget.blind_levels])
         for level in searched:
             t0 = time.perf_counter()
-            rois = self._measure_grid(level_image, layout, level)
-            timings["rois"] = timings.get("rois", 0.0) + (time.perf_counter() - t0) * 1e3
+            rois = self._measure_grid(frame, layout, level)
+            frame.lap("rois", t0)
             # Seeds: the plane of the ROIs' cell areas; and, when that fails (few ROIs see the
             # net, or they are bunched), a plane facing the camera at the distance of the
             # largest group of ROIs that see the same lattice: the rectified passes find the
             # tilt from there.
-            seeds = [sd for sd in (self._conclude_seed(rois, level, timings),
+            seeds = [sd for sd in (self._conclude_seed(rois, level, frame.timings),
                                    self._facing_seed(rois, level)) if sd is not None]
             if not seeds:
                 result = _no_net(rois, level, self._count_reason(rois))
@@ -609,10 +712,12 @@ class NetEstimator:
         whose lattices agree; None unless two ROIs at least agree."""
         valid = [m for m in rois if m.valid and m.reciprocal_px is not None]
         best: tuple[float, list[_Roi]] | None = None
-        for ref in valid:
-            assert ref.reciprocal_px is not None
-            group = [m for m in valid if m.reciprocal_px is not None and _lattices_agree(
-                m.reciprocal_px, ref.reciprocal_px, 0.15, 1.3, floor=0.0)]
+        if not valid:
+            return None
+        bases = np.array([m.reciprocal_px for m in valid if m.reciprocal_px is not None])
+        agree = _agreement(bases, bases, 0.15, 1.3, floor=0.0)
+        for j in range(len(valid)):
+            group = [m for m, ok in zip(valid, agree[:, j].tolist(), strict=True) if ok]
             weight = sum(m.weight for m in group)
             if len(group) >= 2 and (best is None or weight > best[0]):
                 best = (weight, group)
@@ -631,7 +736,7 @@ class NetEstimator:
         return "ROI lattices do not agree on a plane"
 
     def _level_order(
-        self, layout: _Layout, level_image: Callable[[int], Image]
+        self, layout: _Layout, frame: _Frame
     ) -> tuple[list[int], list[_Roi]]:
         """Levels to try, best first: the finest level where the probes see a lattice whose
         period is not too coarse. Finest first because a coarser level can only lose harmonics
@@ -641,7 +746,7 @@ class NetEstimator:
         coarse_probes: list[_Roi] = []
         levels = list(layout.levels)
         for level in levels:
-            probes = [self._measure(level_image(level), g, level) for g in layout.probes[level]]
+            probes = self._measure_many(frame, layout.probes[level], level)
             period = self._median_period(probes)
             if period is None:
                 continue
@@ -653,31 +758,46 @@ class NetEstimator:
         return coarse[::-1], coarse_probes
 
     def _measure_grid(
-        self, level_image: Callable[[int], Image], layout: _Layout, level: int
+        self, frame: _Frame, layout: _Layout, level: int
     ) -> list[_Roi]:
         """The grid at `level`; ROIs whose period sits badly there (the far side of a tilted
         net is finer, the near side coarser) are re-measured one level finer or coarser at the
         same place, keeping the better measurement."""
         s = self.settings
-        grid = layout.grids[level]
-        measurements = [self._measure(level_image(level), g, level) for g in grid]
+        grid = _thinned(layout.grids[level], frame.budget.max_rois)
+        measurements = self._measure_many(frame, grid, level)
         lo, hi = s.preferred_period_px / 1.8, s.preferred_period_px * 1.8
+        # Re-measure one level finer or coarser, each level's ROIs together.
+        moves: dict[int, list[tuple[int, _Geometry]]] = {}
+        periods: list[float | None] = []
         for i, m in enumerate(measurements):
             period = m.size / math.sqrt(m.fit.det) if m.fit is not None else None
+            periods.append(period)
             if period is not None and lo <= period <= hi and m.valid:
                 continue
             alt = level - 1 if period is None or period < lo else level + 1
             if alt not in layout.grids:
                 continue
-            geom = self._regrid(layout, grid[i], alt)
-            other = self._measure(level_image(alt), geom, alt)
-            if other.valid and other.fit is not None and (
-                not m.valid or period is None
-                or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
-                < abs(math.log(period / s.preferred_period_px))
-            ):
-                measurements[i] = other
+            moves.setdefault(alt, []).append((i, self._regrid(layout, grid[i], alt)))
+        for alt, moved in moves.items():
+            others = self._measure_many(frame, [g for _, g in moved], alt)
+            for (i, _), other in zip(moved, others, strict=True):
+                self._keep_better(measurements, i, other, periods[i])
         return measurements
+
+    def _keep_better(
+        self, measurements: list[_Roi], i: int, other: _Roi, period: float | None
+    ) -> None:
+        """Replace ROI `i` by its re-measurement at another level if that one is valid and its
+        period nearer the preferred one."""
+        s = self.settings
+        m = measurements[i]
+        if other.valid and other.fit is not None and (
+            not m.valid or period is None
+            or abs(math.log(other.size / math.sqrt(other.fit.det) / s.preferred_period_px))
+            < abs(math.log(period / s.preferred_period_px))
+        ):
+            measurements[i] = other
 
     def _regrid(self, layout: _Layout, geom: _Geometry, level: int) -> _Geometry:
         """The ROI of `level` centred where `geom` is (clamped into the frame)."""
@@ -720,12 +840,11 @@ class NetEstimator:
     def _refine(
         self,
         seed: NetEstimate,
-        level_image: Callable[[int], Image],
+        frame: _Frame,
         layout: _Layout,
-        timings: dict[str, float],
         level: int,
         seed_rois: list[_Roi] | None = None,
-        iterations: int = 4,
+        passes: int = 6,
     ) -> NetEstimate:
         """Rectified passes until one lands on the plane it was rectified with; then the checks
         that prove the scale and the net, and the verdict. `seed_rois` (the ROIs the seed came
@@ -740,17 +859,23 @@ class NetEstimator:
         previous: tuple[F64, float] | None = None
         last: _Pass | None = None
         corrected = 0
-        for _ in range(iterations + 2):
+
+        def verdict(p: _Pass, converged: _Converged | None, failure: str) -> NetEstimate:
+            t1 = time.perf_counter()
+            result = self._verdict(p, converged, layout, failure)
+            frame.lap("proofs", t1)
+            return result
+
+        for _ in range(passes):
             t0 = time.perf_counter()
             # The first pass is rectified with a rough plane (the seed): its ROIs' lattices still
             # differ by the residual perspective, so agreement is judged loosely there.
-            p = self._rectified_pass(level_image, layout, normal, distance, hints, level,
+            p = self._rectified_pass(frame, layout, normal, distance, hints, level,
                                      guide_rois, None if rectified_once else 2.5 *
                                      self.settings.lattice_tolerance, footprint_scale)
             guide_rois = None
             rectified_once = True
-            timings["rectified"] = timings.get("rectified", 0.0) + (
-                time.perf_counter() - t0) * 1e3
+            frame.lap("rectified", t0)
             last = p
             if p.consensus is not None and p.plane is None and (
                 hints is None or footprint_scale == 1.0
@@ -764,16 +889,18 @@ class NetEstimator:
                 rectified_once = False
                 continue
             if p.plane is None or p.consensus is None:
-                return self._verdict(p, None, layout, p.note or "ROI lattices do not agree")
+                return verdict(p, None, p.note or "ROI lattices do not agree")
             n_new = -(p.rotation.T @ p.plane.normal_away)
             n_new /= np.linalg.norm(n_new)
             d_new = p.plane.distance_m
             # Proof of scale: coarser-mesh lattice points must be empty in the averaged spectrum.
+            t1 = time.perf_counter()
             factor = self._scale_check(p)
+            frame.lap("proofs", t1)
             if factor is not None:
                 if corrected >= 2:
-                    return self._verdict(p, None, layout,
-                                         "mesh scale not proved (peaks between the lattice's)")
+                    return verdict(p, None,
+                                   "mesh scale not proved (peaks between the lattice's)")
                 corrected += 1
                 # The lattice was a harmonic: the mesh is coarser, the net nearer.
                 distance = d_new / math.sqrt(factor)
@@ -790,16 +917,16 @@ class NetEstimator:
             # second order, so the pass measured the plane without the chirp already.
             rel_sigma, sigma_n = _plane_sigmas(p)
             if step[0] < max(0.05, 1.5 * rel_sigma) and step[1] < max(1.5, 1.5 * sigma_n):
-                return self._verdict(p, (n_new, d_new, previous, step), layout, "")
+                return verdict(p, (n_new, d_new, previous, step), "")
             previous = (normal, distance)
             normal, distance = n_new, d_new
         assert last is not None
-        return self._verdict(last, None, layout,
-                             "the ROIs do not converge on one plane (rectified passes disagree)")
+        return verdict(last, None,
+                       "the ROIs do not converge on one plane (rectified passes disagree)")
 
     def _rectified_pass(
         self,
-        level_image: Callable[[int], Image],
+        frame: _Frame,
         layout: _Layout,
         normal: F64,
         distance: float,
@@ -836,16 +963,17 @@ class NetEstimator:
         footprint = min(max(footprint, 6.0 * p_max), 0.9 * frame_side)
         cycles = footprint / p_max
         size = s.roi_size if cycles * s.preferred_period_px >= 0.75 * s.roi_size else small
+        if frame.budget.coarse and small / cycles >= _COARSE_MIN_PERIOD_PX:
+            # Half the samples over the same footprint: a quarter of the FFT work, the same
+            # number of mesh cycles (so the same relative precision per peak), fewer harmonics.
+            size = small
         period_out = size / cycles
-        grid = self._rect_grid(layout, footprint, size)
+        grid = self._rect_grid(layout, footprint, size, frame.budget.max_rois)
         expected = hint
         if expected is None and seed_rois:
             expected = self._guide(seed_rois, rotation, distance, size, period_out)
-        rois = [
-            self._measure_rectified(level_image, g, rotation, distance, size, period_out,
-                                    expected)
-            for g in grid
-        ]
+        rois = self._measure_rectified(frame, grid, rotation, distance, size, period_out,
+                                       expected)
         tol = tolerance or s.lattice_tolerance
         consensus = _consensus(rois, tol)
         note = ""
@@ -858,8 +986,8 @@ class NetEstimator:
                 ratio = float(np.median(ratios))
                 if abs(math.log(ratio)) > math.log(1.35):
                     distance = distance / ratio
-                    rois = [self._measure_rectified(level_image, g, rotation, distance, size,
-                                                    period_out, None) for g in grid]
+                    rois = self._measure_rectified(frame, grid, rotation, distance, size,
+                                                   period_out, None)
                     consensus = _consensus(rois, tol)
             if consensus is None:
                 note = f"{sum(m.valid for m in rois)} of {len(rois)} ROIs show a lattice, " \
@@ -883,32 +1011,44 @@ class NetEstimator:
                 note = f"only {len(agreeing)} ROIs share one lattice"
         return _Pass(rois, rotation, size, period_out, consensus, plane, level, note)
 
-    def _rect_map(
-        self, geom: _Geometry, rotation: F64, distance_m: float, size: int, period_out: float
-    ) -> tuple[F64, F64, float, F64, float]:
-        """The resampling of one rectified ROI: the homography output pixel -> full-resolution
+    def _rect_maps(
+        self, geoms: list[_Geometry], rotation: F64, distance_m: float, size: int,
+        period_out: float,
+    ) -> list[tuple[F64, F64, float, F64, float]]:
+        """The resampling of each rectified ROI: the homography output pixel -> full-resolution
         pixel, its local Jacobian at the centre, source pixels per output pixel, the centre's
-        virtual ray and the virtual normalised units per output pixel."""
-        virt = rotation @ geom.ray
-        virt = virt / virt[2]
+        virtual ray and the virtual normalised units per output pixel. All ROIs at once (the
+        same small matrix algebra for each)."""
+        k = len(geoms)
+        if k == 0:
+            return []
+        rays = np.array([g.ray for g in geoms])
+        virt = rays @ rotation.T
+        virt = virt / virt[:, 2:3]
         # Normalised virtual units per output pixel so the mesh period is period_out.
         t = math.sqrt(self.mesh.cell_area_m2) / distance_m / period_out
         half = (size - 1) / 2.0
-        to_virtual = np.array(
-            [[t, 0.0, virt[0] - t * half], [0.0, t, virt[1] - t * half], [0.0, 0.0, 1.0]]
-        )
-        jinv = np.linalg.inv(geom.jacobian)
-        centre = np.asarray(geom.center_full)
-        to_pixel = np.eye(3)
-        to_pixel[:2, :2] = jinv
-        to_pixel[:2, 2] = centre - jinv @ geom.ray[:2]
-        full = to_pixel @ rotation.T @ to_virtual  # output pixel -> full-res pixel (homogeneous)
-        c0 = full @ np.array([half, half, 1.0])
-        c1 = full @ np.array([half + 1.0, half, 1.0])
-        c2 = full @ np.array([half, half + 1.0, 1.0])
-        jm = np.stack([c1[:2] / c1[2] - c0[:2] / c0[2], c2[:2] / c2[2] - c0[:2] / c0[2]], axis=1)
-        step = math.sqrt(abs(float(np.linalg.det(jm))))
-        return full, jm, step, virt, t
+        to_virtual = np.zeros((k, 3, 3))
+        to_virtual[:, 0, 0] = t
+        to_virtual[:, 1, 1] = t
+        to_virtual[:, 0, 2] = virt[:, 0] - t * half
+        to_virtual[:, 1, 2] = virt[:, 1] - t * half
+        to_virtual[:, 2, 2] = 1.0
+        jinv = np.linalg.inv(np.array([g.jacobian for g in geoms]))
+        centres = np.array([g.center_full for g in geoms])
+        to_pixel = np.zeros((k, 3, 3))
+        to_pixel[:, :2, :2] = jinv
+        to_pixel[:, :2, 2] = centres - np.einsum("kij,kj->ki", jinv, rays[:, :2])
+        to_pixel[:, 2, 2] = 1.0
+        # Output pixel -> full-res pixel (homogeneous).
+        full = to_pixel @ rotation.T @ to_virtual
+        probes = np.array([[half, half, 1.0], [half + 1.0, half, 1.0], [half, half + 1.0, 1.0]])
+        c = np.einsum("kij,pj->kpi", full, probes)  # (k, 3 probes, 3)
+        xy = c[:, :, :2] / c[:, :, 2:3]
+        jm = np.stack([xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0]], axis=2)
+        det = jm[:, 0, 0] * jm[:, 1, 1] - jm[:, 0, 1] * jm[:, 1, 0]
+        steps = np.sqrt(np.abs(det))
+        return [(full[i], jm[i], float(steps[i]), virt[i], t) for i in range(k)]
 
     def _guide(
         self, seed_rois: list[_Roi], rotation: F64, distance_m: float, size: int,
@@ -918,99 +1058,121 @@ class NetEstimator:
         lattice (cycles per pixel) carried into the rectified view at its place (k . x is
         invariant: k_out = J^T k_pixel), and the one most of them agree on."""
         mapped: list[tuple[F64, float]] = []
-        for m in seed_rois:
-            if not m.valid or m.reciprocal_px is None:
-                continue
-            _, jm, _, _, _ = self._rect_map(m.geometry, rotation, distance_m, size, period_out)
+        usable = [m for m in seed_rois if m.valid and m.reciprocal_px is not None]
+        maps = self._rect_maps([m.geometry for m in usable], rotation, distance_m, size,
+                               period_out)
+        for m, (_, jm, _, _, _) in zip(usable, maps, strict=True):
+            assert m.reciprocal_px is not None
             basis = reduce_basis(jm.T @ m.reciprocal_px * size)
             lengths = np.linalg.norm(basis, axis=0)
             if lengths.min() < 2.0 or lengths.max() > 0.45 * size:
                 continue
             mapped.append((basis, max(m.weight, 0.2)))
-        best: tuple[float, F64] | None = None
-        for ref, _ in mapped:
-            total = sum(w for b, w in mapped if _lattices_agree(b, ref, 0.1, 1.3))
-            if best is None or total > best[0]:
-                best = (total, ref)
-        if best is None or sum(1 for b, _ in mapped if _lattices_agree(b, best[1], 0.1)) < 2:
+        if not mapped:
             return None
-        return best[1]
+        bases = np.array([b for b, _ in mapped])
+        agree = _agreement(bases, bases, 0.1, 1.3)
+        best: tuple[float, int] | None = None
+        for j in range(len(mapped)):
+            total = sum(w for (_, w), ok in zip(mapped, agree[:, j].tolist(), strict=True)
+                        if ok)
+            if best is None or total > best[0]:
+                best = (total, j)
+        if best is None or int(agree[:, best[1]].sum()) < 2:
+            return None
+        return mapped[best[1]][0]
 
     def _measure_rectified(
         self,
-        level_image: Callable[[int], Image],
-        geom: _Geometry,
+        frame: _Frame,
+        grid: list[_Geometry],
         rotation: F64,
         distance_m: float,
         size: int,
         period_out: float,
         expected: F64 | None,
-    ) -> _Roi:
-        """Measure one ROI in a virtual camera that faces the net squarely.
+    ) -> list[_Roi]:
+        """Measure ROIs in a virtual camera that faces the net squarely.
 
-        The patch is resampled through the homography of a camera rotated by `rotation` (so the
+        Each patch is resampled through the homography of a camera rotated by `rotation` (so the
         net plane becomes fronto-parallel and its lattice uniform), scaled so the mesh period is
         `period_out`. Lens distortion enters through its local affine approximation at the ROI
         centre. The lattice found is then the local lattice at the ROI centre, without the
-        perspective chirp across the ROI.
+        perspective chirp across the ROI. The patches' contrast normalisation and spectra are
+        computed for all ROIs together.
         """
         import cv2
 
         s = self.settings
         n = size
-        full, jm, step, virt, t = self._rect_map(geom, rotation, distance_m, size, period_out)
-        level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
-        scale = 2**level
-        to_level = np.array(
-            [[1 / scale, 0, -(scale - 1) / (2 * scale)], [0, 1 / scale, -(scale - 1) / (2 * scale)],
-             [0, 0, 1]]
-        )
-        patch = cv2.warpPerspective(
-            level_image(level), to_level @ full, (n, n),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
-        )
+        if not grid:
+            return []
+        maps = self._rect_maps(grid, rotation, distance_m, size, period_out)
+        levels: list[int] = []
+        patches: list[Image] = []
+        for full, _, step, _, _ in maps:
+            level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
+            scale = 2**level
+            to_level = np.array(
+                [[1 / scale, 0, -(scale - 1) / (2 * scale)],
+                 [0, 1 / scale, -(scale - 1) / (2 * scale)], [0, 0, 1]]
+            )
+            patches.append(cv2.warpPerspective(
+                frame.image(level), to_level @ full, (n, n),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
+            ))
+            levels.append(level)
         spectrum = self._spectra[n]
-        patch = _normalise_contrast(np.asarray(patch, dtype=np.float32), period_out)
-        peaks, snr, logp = spectrum.analyse(patch)
-        guided = expected is not None
+        frame.count_fft(n, len(grid))
+        normalised = _normalise_contrast_many(np.stack(patches, axis=-1), period_out)
+        spectra = spectrum.analyse_many(normalised)
+        weak_peaks: list[Peaks | None] = [None] * len(grid)
         if expected is not None:
             # The lattice is known roughly (the consensus of the previous pass): faint peaks
-            # where it predicts them count too, and it may explain a smaller share of the
-            # peaks (a board or a rope in the ROI adds its own).
-            weak = spectrum.peaks_near(snr, _lattice_points(expected, order=2), s.guided_snr)
-            peaks = _merge_peaks(peaks, weak)
-            fit = self._lattice.fit(peaks, expected, expected_share=0.3)
-        else:
-            fit = self._lattice.fit(peaks)
-        meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
-                    logp=logp,
-                    footprint_px=n * step)
-        meas.ray = virt
-        if fit is None:
-            return meas
-        lengths = np.linalg.norm(fit.basis, axis=0)
-        period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
-        if guided:
-            quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
-        else:
-            quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
-                s.min_inlier_fraction
-            )
-        # The rectification was designed to show the mesh at period_out; a lattice far from it
-        # means the seed plane was wrong or the ROI shows something else.
-        found = n / math.sqrt(fit.det)
-        on_target = abs(math.log(found / period_out)) < math.log(1.35)
-        # Resampling cannot restore what the camera never resolved: a mesh finer than ~3.5 px in
-        # the source has aliased harmonics and a peak position biased by the pixel response.
-        resolved = found * step >= s.min_source_period_px
-        k_out = fit.basis / n  # cycles per output pixel
-        meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
-        # For reporting: the lattice in full-resolution image pixels through the local map.
-        meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
-        meas.valid = bool(period_ok and quality_ok and on_target and resolved)
-        if period_ok and quality_ok and resolved:
-            meas.period_ratio = found / period_out
-        return meas
+            # where it predicts them count too (looked up in all ROIs at once), and it may
+            # explain a smaller share of the peaks (a board or a rope in the ROI adds its own).
+            weak_peaks = list(spectrum.peaks_near_many(
+                np.stack([snr for _, snr, _ in spectra]), _lattice_points(expected, order=2),
+                s.guided_snr))
+        out: list[_Roi] = []
+        for geom, (_, jm, step, virt, t), level, (peaks, snr, logp), weak in zip(
+            grid, maps, levels, spectra, weak_peaks, strict=True
+        ):
+            if expected is not None and weak is not None:
+                peaks = _merge_peaks(peaks, weak)
+                fit = self._lattice.fit(peaks, expected, expected_share=0.3)
+            else:
+                fit = self._lattice.fit(peaks)
+            meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
+                        logp=logp, footprint_px=n * step)
+            meas.ray = virt
+            out.append(meas)
+            if fit is None:
+                continue
+            lengths = np.linalg.norm(fit.basis, axis=0)
+            period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
+            if expected is not None:
+                quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
+            else:
+                quality_ok = fit.mean_snr >= s.min_roi_snr and fit.inlier_weight_fraction >= (
+                    s.min_inlier_fraction
+                )
+            # The rectification was designed to show the mesh at period_out; a lattice far from
+            # it means the seed plane was wrong or the ROI shows something else.
+            found = n / math.sqrt(fit.det)
+            on_target = abs(math.log(found / period_out)) < math.log(1.35)
+            # Resampling cannot restore what the camera never resolved: a mesh finer than
+            # ~3.5 px in the source has aliased harmonics and a peak position biased by the
+            # pixel response.
+            resolved = found * step >= s.min_source_period_px
+            k_out = fit.basis / n  # cycles per output pixel
+            meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
+            # For reporting: the lattice in full-resolution image pixels through the local map.
+            meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
+            meas.valid = bool(period_ok and quality_ok and on_target and resolved)
+            if period_ok and quality_ok and resolved:
+                meas.period_ratio = found / period_out
+        return out
 
     # -- proofs --------------------------------------------------------------------------------
     def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
@@ -1041,25 +1203,34 @@ class NetEstimator:
         fundamentals = _lattice_points(k, order=1)
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
+        # The extra points of every refinement, looked up in one go.
+        groups: list[tuple[int, F64]] = []
+        for inv_s, index in zip(_REFINEMENTS, _REFINEMENT_INDEX, strict=True):
+            extra = _extra_points(k @ inv_s, k, spectrum.size)
+            if extra.shape[0] >= 2:
+                groups.append((index, extra))
+        if not groups:
+            return None
+        points = np.concatenate([extra for _, extra in groups])
+        group_of = np.repeat(np.arange(len(groups)), [extra.shape[0] for _, extra in groups])
+        # A real peak there is a local maximum of its own: the skirt of a strong neighbour
+        # (a harmonic two bins away, smeared by what is left of the perspective) is not.
+        near = spectrum.maxima_near(snr[None], points, null_level)
+        if near is None:
+            return None
+        found, centre, keep, _, inside = near
+        group_of = group_of[inside]
+        # Only peaks that are not the lattice's own (the search around a point may climb onto
+        # a neighbouring lattice peak).
+        real = keep[0] & ~_near_lattice(found[0], k, 1.5)
         best: tuple[float, int] | None = None
-        for inv_s in _REFINEMENTS:
-            fine = k @ inv_s
-            idx = abs(round(1.0 / float(np.linalg.det(inv_s))))
-            extra = _extra_points(fine, k, self._spectra[p.size].size)
-            if extra.shape[0] < 2:
-                continue
-            # A real peak there is a local maximum of its own: the skirt of a strong neighbour
-            # (a harmonic two bins away, smeared by what is left of the perspective) is not.
-            found = spectrum.peaks_near(snr, extra, null_level)
-            # Only peaks that are not the lattice's own (the search around a point may climb
-            # onto a neighbouring lattice peak).
-            own = _near_lattice(found.k, k, 1.5)
-            values = found.snr[~own]
+        for g, (index, _) in enumerate(groups):
+            values = centre[0][real & (group_of == g)]
             # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
             # of them (the others are weak cross terms, or outside the band).
             level = float(values.max()) if values.size else null_level
             if level > threshold and (best is None or level > best[0]):
-                best = (level, idx)
+                best = (level, index)
         del count
         return None if best is None else best[1]
 
@@ -1129,7 +1300,7 @@ class NetEstimator:
     def _verdict(
         self,
         p: _Pass,
-        converged: tuple[F64, float, tuple[F64, float] | None, tuple[float, float]] | None,
+        converged: _Converged | None,
         layout: _Layout,
         failure: str,
     ) -> NetEstimate:
@@ -1255,18 +1426,16 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     if len(cands) < 2:
         return None
     weights = [m.weight for m in cands]
+    bases = np.array([m.fit.basis for m in cands if m.fit is not None])
+    agree = _agreement(bases, bases, tolerance)  # [i, j]: ROI i agrees with ROI j's lattice
     best: tuple[float, int] | None = None
-    for i, ref in enumerate(cands):
-        assert ref.fit is not None
-        total = sum(w for m, w in zip(cands, weights, strict=True)
-                    if _same_lattice(m, ref.fit.basis, tolerance))
+    for i in range(len(cands)):
+        total = sum(w for w, ok in zip(weights, agree[:, i].tolist(), strict=True) if ok)
         if best is None or total > best[0]:
             best = (total, i)
     assert best is not None
-    ref_fit = cands[best[1]].fit
-    assert ref_fit is not None
-    ref_basis = ref_fit.basis
-    members = [m for m in cands if _same_lattice(m, ref_basis, tolerance)]
+    ref_basis = bases[best[1]]
+    members = [m for m, ok in zip(cands, agree[:, best[1]].tolist(), strict=True) if ok]
     if len(members) < 2:
         return None
     acc = np.zeros((2, 2))
@@ -1282,14 +1451,18 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     shape = acc / wsum
     consensus = reduce_basis(shape / math.sqrt(abs(float(np.linalg.det(shape))))
                              * math.exp(log_scale / wsum))
+    final = _agreement(np.array([m.fit.basis for m in members if m.fit is not None]),
+                       consensus[None], tolerance)[:, 0].tolist()
+    agreeing = {id(m) for m, ok in zip(members, final, strict=True) if ok}
     for m in rois:
-        m.agrees = m in members and _same_lattice(m, consensus, tolerance)
+        m.agrees = id(m) in agreeing
     return consensus
 
 
-def _normalise_contrast(patch: F32, period: float) -> F32:
-    """Local contrast normalisation: the patch minus its local mean, over its local standard
-    deviation (Gaussian windows of about one and two mesh periods).
+def _normalise_contrast_many(patches: Image, period: float) -> F32:
+    """Local contrast normalisation of ROIs stacked as channels (rows, cols, n): each patch minus
+    its local mean, over its local standard deviation (box windows of about one and two mesh
+    periods); returned as a stack (n, rows, cols).
 
     Real views put high-contrast things beside a faint net: marker boards with white fiducials,
     ropes, fish. Their edges would dominate the spectrum by sheer amplitude; normalised, every
@@ -1298,15 +1471,19 @@ def _normalise_contrast(patch: F32, period: float) -> F32:
     """
     import cv2
 
+    stack = np.asarray(patches, dtype=np.float32)
+    shape = stack.shape
     # Box filters of about one and two periods (cheaper than Gaussians, and just as smooth on
-    # the scale of the ROI's spectral resolution).
+    # the scale of the ROI's spectral resolution). OpenCV filters every channel alike.
     k1 = max(3, int(round(1.6 * period)) | 1)
     k2 = max(3, int(round(3.2 * period)) | 1)
-    mean = cv2.blur(patch, (k1, k1), borderType=cv2.BORDER_REFLECT)
-    detail = patch - mean
-    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT)
-    floor = 1e-3 + 0.1 * float(np.median(var))
-    return np.asarray(detail / np.sqrt(var + floor), dtype=np.float32)
+    mean = cv2.blur(stack, (k1, k1), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    detail = stack - mean
+    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    median = np.median(var.reshape(-1, shape[2]), axis=0)
+    floor = (1e-3 + 0.1 * median.astype(np.float64)).astype(np.float32)
+    out = detail / np.sqrt(var + floor)
+    return np.ascontiguousarray(out.transpose(2, 0, 1), dtype=np.float32)
 
 
 def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
@@ -1331,13 +1508,6 @@ def _aligned(basis: F64, ref: F64) -> F64:
     return np.asarray(basis @ np.linalg.inv(m), dtype=np.float64)
 
 
-def _same_lattice(roi: _Roi, ref: F64, tolerance: float, max_scale: float = 1.3) -> bool:
-    """Does the ROI's lattice agree with `ref` (2x2, bins)? See `_lattices_agree`."""
-    if roi.fit is None:
-        return False
-    return _lattices_agree(roi.fit.basis, ref, tolerance, max_scale)
-
-
 def _lattices_agree(
     basis: F64, ref: F64, tolerance: float, max_scale: float = 1.3, floor: float = 0.5
 ) -> bool:
@@ -1345,7 +1515,7 @@ def _lattices_agree(
     scale, each basis vector within `tolerance` of its length (but not less than `floor`);
     the scales (square roots of the cell areas) within a factor `max_scale`.
 
-    Plain floats: this runs for every pair of ROIs, where numpy's per-call overhead dominates.
+    The scalar statement of the rule; `_agreement` evaluates it for all pairs at once.
     """
     a, b, c, d = float(basis[0, 0]), float(basis[0, 1]), float(basis[1, 0]), float(basis[1, 1])
     ra, rb, rc, rd = float(ref[0, 0]), float(ref[0, 1]), float(ref[1, 0]), float(ref[1, 1])
@@ -1372,6 +1542,33 @@ def _lattices_agree(
         if math.hypot(ex, ey) > max(tolerance * math.hypot(x, y), floor):
             return False
     return True
+
+
+def _agreement(
+    bases: F64, refs: F64, tolerance: float, max_scale: float = 1.3, floor: float = 0.5
+) -> npt.NDArray[np.bool_]:
+    """`_lattices_agree(bases[i], refs[j], ...)` for every pair at once: (n, m) booleans for
+    bases (n, 2, 2) and refs (m, 2, 2). Every ROI of a pass is compared with every other, and
+    one vectorised evaluation costs what a handful of scalar ones do."""
+    a, b = bases[:, 0, 0][:, None], bases[:, 0, 1][:, None]
+    c, d = bases[:, 1, 0][:, None], bases[:, 1, 1][:, None]
+    ra, rb = refs[:, 0, 0][None, :], refs[:, 0, 1][None, :]
+    rc, rd = refs[:, 1, 0][None, :], refs[:, 1, 1][None, :]
+    det_b, det_r = a * d - b * c, ra * rd - rb * rc
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        scale = np.sqrt(np.abs(det_b / det_r))
+        ok = (det_b != 0.0) & (det_r != 0.0) & (scale >= 1.0 / max_scale) & (scale <= max_scale)
+        inv = 1.0 / (scale * det_r)
+        m00 = np.rint((rd * a - rb * c) * inv)
+        m01 = np.rint((rd * b - rb * d) * inv)
+        m10 = np.rint((-rc * a + ra * c) * inv)
+        m11 = np.rint((-rc * b + ra * d) * inv)
+        ok &= np.abs(m00 * m11 - m01 * m10) == 1.0
+        for x, y, p, q in ((a, c, m00, m10), (b, d, m01, m11)):
+            ex = x - scale * (ra * p + rb * q)
+            ey = y - scale * (rc * p + rd * q)
+            ok &= np.hypot(ex, ey) <= np.maximum(tolerance * np.hypot(x, y), floor)
+    return np.asarray(ok, dtype=bool)
 
 
 def _lattice_points(k: F64, order: int) -> F64:
@@ -1479,6 +1676,16 @@ def _overlap(rois: list[_Roi]) -> float:
         cov |= (np.abs(gx[None, :] - cx) <= f / 2) & (np.abs(gy[:, None] - cy) <= f / 2)
     union = float(cov.sum()) * step * step
     return max(1.0, total / max(union, 1e-9))
+
+
+def _thinned(grid: list[_Geometry], max_rois: int | None) -> list[_Geometry]:
+    """Every other column of a grid that has more than `max_rois` ROIs (the outer columns
+    stay, so the ROIs still span the frame)."""
+    if max_rois is None or len(grid) <= max_rois:
+        return grid
+    xs = sorted({g.x0 for g in grid})
+    keep = {x for i, x in enumerate(xs) if i % 2 == 0 or i == len(xs) - 1}
+    return [g for g in grid if g.x0 in keep]
 
 
 def _level_size(size: int, level: int) -> int:

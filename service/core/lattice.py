@@ -172,6 +172,8 @@ class LatticeFinder:
         self.tolerance_bins = tolerance_bins
         self.tolerance_relative = tolerance_relative
         self.min_sin = math.sin(math.radians(min_angle_deg))
+        # Index pairs of the strongest peaks, by how many there are (used for every ROI).
+        self._pairs = {top: np.triu_indices(top, 1) for top in range(hypothesis_peaks + 1)}
 
     def fit(
         self, peaks: Peaks, expected: F64 | None = None, expected_share: float = 0.6
@@ -183,9 +185,13 @@ class LatticeFinder:
         if len(peaks) < 2:
             return None
         k, w = peaks.k, peaks.snr
-        tol = np.maximum(self.tolerance_bins, self.tolerance_relative * np.linalg.norm(k, axis=1))
+        radius = np.sqrt(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1])
+        tol = np.maximum(self.tolerance_bins, self.tolerance_relative * radius)
         total = float(w.sum())
-        if expected is not None and abs(np.linalg.det(expected)) > 1e-9:
+        if expected is not None and abs(
+            float(expected[0, 0]) * float(expected[1, 1])
+            - float(expected[0, 1]) * float(expected[1, 0])
+        ) > 1e-9:
             basis = reduce_basis(np.asarray(expected, dtype=np.float64))
             inl, idx = _assign(basis, k, tol)
             if (
@@ -196,7 +202,7 @@ class LatticeFinder:
                 fitted = self._refine(basis, k, w, tol, total)
                 if fitted is not None:
                     return fitted
-        candidates = self._hypotheses(k, w, tol)
+        candidates = self._hypotheses(k, w, tol, radius)
         best: tuple[float, int, F64, npt.NDArray[np.bool_]] | None = None
         for basis in candidates:
             inl, idx = _assign(basis, k, tol)
@@ -220,13 +226,16 @@ class LatticeFinder:
         basis = self._coarsen(basis, k, w, tol, inl)
         return self._refine(basis, k, w, tol, total)
 
-    def _hypotheses(self, k: F64, w: F64, tol: F64, keep: int = 2) -> list[F64]:
-        """Score every basis made of two strong peaks at once (vectorised); keep the best few."""
+    def _hypotheses(
+        self, k: F64, w: F64, tol: F64, radius: F64, keep: int = 2
+    ) -> list[F64]:
+        """Score every basis made of two strong peaks at once (vectorised); keep the best few.
+        `radius`: the peaks' distances from the origin (bins)."""
         top = min(len(k), self.hypothesis_peaks)
-        ii, jj = np.triu_indices(top, 1)
+        ii, jj = self._pairs[top]
         a, b = k[ii], k[jj]
         det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-        ok = np.abs(det) >= self.min_sin * np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+        ok = np.abs(det) >= self.min_sin * radius[ii] * radius[jj]
         if not ok.any():
             return []
         a, b, det = a[ok], b[ok], det[ok]

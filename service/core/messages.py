@@ -135,6 +135,9 @@ class EstimateMessage(Message):
     rois: int = doc("regions of interest analysed in this frame", 0)
     rois_used: int = doc("regions whose lattice entered the plane fit", 0)
     reason: str = doc("why nothing was detected (empty when detected)", "")
+    budget_level: int = doc(
+        "estimator work level of this frame: 0 full work, up to 3 the leanest (slow CPU)", 0
+    )
     filtered: FilteredView | None = doc("the tracking filter's view (null without a filter)", None)
     latency_ms: EstimateLatency = doc("per-stage latency", EstimateLatency())
     truth: TruthView | None = doc("ground truth of a rendered frame, else null", None)

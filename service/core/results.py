@@ -67,6 +67,11 @@ class NetEstimate:
     # Opening angle (degrees) of the mesh as measured on the rectified lattice, whenever a lattice
     # was measured; a mismatch with the configured mesh refuses the distance (see `reason`).
     measured_opening_deg: float | None = None
+    # The work level this frame was measured at (0 = full work; higher levels measure fewer
+    # ROIs, fewer rectified passes, coarser spectra: see docs/estimator.md, "Budget levels").
+    budget_level: int = 0
+    # ROI spectra computed for this frame, by FFT size: the work done, whatever the clock says.
+    fft_counts: dict[int, int] = field(default_factory=dict)
 
     @property
     def tilt_deg(self) -> float | None:
@@ -94,5 +99,6 @@ class NetEstimate:
             "rois_used": self.rois_used,
             "rois": len(self.rois),
             "reason": self.reason,
+            "budget_level": self.budget_level,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }

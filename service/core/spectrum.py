@@ -90,26 +90,46 @@ class SpectrumAnalyzer:
 
         Rows are ky + size/2, columns kx + MARGIN.
         """
+        return self._log_power_many(patch[None])[0]
+
+    def _log_power_many(self, patches: F32) -> F32:
+        """`log_power` of each patch of a stack (n, size, size): one stacked real FFT."""
         import cv2
         from scipy import fft
 
-        p = patch.astype(np.float32, copy=False)
-        p = (p - float(p.mean())) * self._modulated_window
+        p = patches.astype(np.float32, copy=False)
+        p = (p - p.mean(axis=(1, 2), keepdims=True)) * self._modulated_window
         spec = fft.rfft2(p, workers=1)
-        power = (spec.real * spec.real + spec.imag * spec.imag).astype(np.float32)
+        power = np.asarray(spec.real * spec.real + spec.imag * spec.imag, dtype=np.float32)
         # A flat patch has no spectrum at all: a floor keeps the log finite.
-        np.maximum(power, float(power.mean()) * 1e-10 + 1e-20, out=power)
-        mirrored = power[self._mirror_rows][:, self._mirror_cols]
-        full = np.concatenate([mirrored, power], axis=1)
-        return np.asarray(cv2.log(full), dtype=np.float32)
+        floor = power.mean(axis=(1, 2), keepdims=True) * np.float32(1e-10) + np.float32(1e-20)
+        np.maximum(power, floor, out=power)
+        n, rows, cols = power.shape
+        m = self.MARGIN
+        full = np.empty((n, rows, cols + m), dtype=np.float32)
+        full[:, :, m:] = power
+        full[:, :, :m] = power[:, :, self._mirror_cols][:, self._mirror_rows]
+        flat = full.reshape(n * rows, cols + m)
+        cv2.log(flat, flat)
+        return full
 
     def background(self, logp: F32) -> F32:
         """Mean log power over a ring (11x11 box minus the 5x5 core) around each bin."""
+        return self._background_many(logp[None])[0]
+
+    @staticmethod
+    def _background_many(logp: F32) -> F32:
+        """`background` of a stack (n, rows, cols): OpenCV filters the ROIs as channels of one
+        image, one call for all of them."""
         import cv2
 
-        outer = cv2.boxFilter(logp, -1, (11, 11), normalize=False, borderType=cv2.BORDER_REFLECT)
-        inner = cv2.boxFilter(logp, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)
-        return np.asarray((outer - inner) * (1.0 / (121.0 - 25.0)), dtype=np.float32)
+        channels = np.ascontiguousarray(logp.transpose(1, 2, 0))
+        outer = cv2.boxFilter(channels, -1, (11, 11), normalize=False,
+                              borderType=cv2.BORDER_REFLECT)
+        inner = cv2.boxFilter(channels, -1, (5, 5), normalize=False,
+                              borderType=cv2.BORDER_REFLECT)
+        ring = (outer - inner) * np.float32(1.0 / (121.0 - 25.0))
+        return np.asarray(ring.reshape(channels.shape).transpose(2, 0, 1), dtype=np.float32)
 
     def peaks(self, patch: F32) -> Peaks:
         return self.analyse(patch)[0]
@@ -123,22 +143,55 @@ class SpectrumAnalyzer:
         frame) can be averaged: the net's peaks add up while the noise (std ~1.28 per bin for
         a speckle spectrum) averages down, which is how weak evidence from many ROIs is judged.
         """
+        return self.analyse_many(np.asarray(patch)[None])[0]
+
+    def analyse_many(self, patches: npt.NDArray[np.generic]) -> list[tuple[Peaks, F32, F32]]:
+        """`analyse` of every patch of a stack (n, size, size) at once.
+
+        One stacked FFT and one call of each local filter for all ROIs: numpy's and OpenCV's
+        cost per call, not the arithmetic, is what a ROI of 128 px costs one at a time.
+        """
+        out: list[tuple[Peaks, F32, F32]] = []
+        # OpenCV filters at most 512 channels per image.
+        for start in range(0, patches.shape[0], 256):
+            out.extend(self._analyse_chunk(patches[start : start + 256]))
+        return out
+
+    def _analyse_chunk(self, patches: npt.NDArray[np.generic]) -> list[tuple[Peaks, F32, F32]]:
         import cv2
 
-        logp = self.log_power(patch)
-        snr = logp - self.background(logp)
-        local_max = logp >= cv2.dilate(logp, self._kernel)
-        rows, cols = np.nonzero(local_max & self.valid & (snr > self.min_snr))
-        if rows.size == 0:
-            return Peaks(np.zeros((0, 2)), np.zeros(0)), snr, logp
-        strength = snr[rows, cols]
-        order = np.argsort(-strength)[: self.max_peaks]
-        rows, cols, strength = rows[order], cols[order], strength[order]
-        centre = logp[rows, cols].astype(np.float64)
-        dx = _parabolic(logp[rows, cols - 1], centre, logp[rows, cols + 1])
-        dy = _parabolic(logp[rows - 1, cols], centre, logp[rows + 1, cols])
+        n = patches.shape[0]
+        logp = self._log_power_many(np.asarray(patches, dtype=np.float32))
+        channels = np.ascontiguousarray(logp.transpose(1, 2, 0))
+        outer = cv2.boxFilter(channels, -1, (11, 11), normalize=False,
+                              borderType=cv2.BORDER_REFLECT)
+        inner = cv2.boxFilter(channels, -1, (5, 5), normalize=False,
+                              borderType=cv2.BORDER_REFLECT)
+        background = (outer - inner) * np.float32(1.0 / (121.0 - 25.0))
+        snr_cl = (channels - background.reshape(channels.shape)).reshape(channels.shape)
+        local_max = channels >= cv2.dilate(channels, self._kernel).reshape(channels.shape)
+        snr = np.ascontiguousarray(snr_cl.transpose(2, 0, 1))
+        mask = (local_max & (snr_cl > self.min_snr)).transpose(2, 0, 1) & self.valid
+        roi, rows, cols = np.nonzero(mask)
+        strength = snr[roi, rows, cols]
+        # Strongest first within each ROI, at most max_peaks each.
+        order = np.lexsort((-strength, roi))
+        roi, rows, cols, strength = roi[order], rows[order], cols[order], strength[order]
+        starts = np.searchsorted(roi, np.arange(n + 1))
+        rank = np.arange(roi.size) - starts[roi]
+        keep = rank < self.max_peaks
+        roi, rows, cols, strength = roi[keep], rows[keep], cols[keep], strength[keep]
+        centre = logp[roi, rows, cols].astype(np.float64)
+        dx = _parabolic(logp[roi, rows, cols - 1], centre, logp[roi, rows, cols + 1])
+        dy = _parabolic(logp[roi, rows - 1, cols], centre, logp[roi, rows + 1, cols])
         k = np.stack([cols + dx - self._col0, rows + dy - self._row0], axis=1)
-        return Peaks(k.astype(np.float64), strength.astype(np.float64)), snr, logp
+        strength64 = strength.astype(np.float64)
+        bounds = np.searchsorted(roi, np.arange(n + 1))
+        return [
+            (Peaks(k[bounds[i] : bounds[i + 1]], strength64[bounds[i] : bounds[i + 1]]),
+             snr[i], logp[i])
+            for i in range(n)
+        ]
 
     def peaks_near(self, snr: F32, k: npt.ArrayLike, min_snr: float) -> Peaks:
         """Peaks of the whitened spectrum `snr` where a lattice is expected: for each wave vector
@@ -149,38 +202,64 @@ class SpectrumAnalyzer:
         handful of predicted places it does not (a speckle bin exceeds 1.8 with probability
         ~3 %), so a faint mesh that the prediction points at is still seen.
         """
+        return self.peaks_near_many(snr[None], k, min_snr)[0]
+
+    def peaks_near_many(self, snrs: F32, k: npt.ArrayLike, min_snr: float) -> list[Peaks]:
+        """`peaks_near` at the same wave vectors in each whitened spectrum of a stack
+        (n, rows, cols): the ROIs of one rectified pass all expect the same lattice."""
+        near = self.maxima_near(snrs, k, min_snr)
+        if near is None:
+            return [Peaks(np.zeros((0, 2)), np.zeros(0)) for _ in range(snrs.shape[0])]
+        found, centre, keep, flat, _ = near
+        out = []
+        for i in range(snrs.shape[0]):
+            sel = keep[i]
+            if not sel.any():
+                out.append(Peaks(np.zeros((0, 2)), np.zeros(0)))
+                continue
+            # Two points may land on the same bin: keep each peak once.
+            _, first = np.unique(flat[i][sel], return_index=True)
+            out.append(Peaks(found[i][sel][first].astype(np.float64), centre[i][sel][first]))
+        return out
+
+    def maxima_near(
+        self, snrs: F32, k: npt.ArrayLike, min_snr: float
+    ) -> tuple[F64, F64, npt.NDArray[np.bool_], npt.NDArray[np.int64],
+               npt.NDArray[np.bool_]] | None:
+        """For each spectrum of a stack (n, rows, cols) and each wave vector k (m, 2) inside
+        the array: the largest bin within one bin of k, refined to sub-bin (n, m', 2), its value
+        (n, m'), whether it is a local maximum of at least `min_snr` inside the analysed band
+        (n, m'), its flat bin index (n, m'), and which of the m wave vectors these are (m,):
+        those too near the array's edge are left out (m' <= m, in their order). None when none
+        is left."""
         kk = np.asarray(k, dtype=np.float64).reshape(-1, 2).copy()
         flip = (kk[:, 0] < 0) | ((kk[:, 0] == 0) & (kk[:, 1] < 0))
         kk[flip] *= -1.0
-        rows_n, cols_n = snr.shape
+        n, rows_n, cols_n = snrs.shape
         r0 = np.rint(kk[:, 1]).astype(np.int64) + self._row0
         c0 = np.rint(kk[:, 0]).astype(np.int64) + self._col0
         ok = (r0 >= 2) & (r0 < rows_n - 2) & (c0 >= 2) & (c0 < cols_n - 2)
         r0, c0 = r0[ok], c0[ok]
         if r0.size == 0:
-            return Peaks(np.zeros((0, 2)), np.zeros(0))
+            return None
         # The largest of the 3x3 bins around each point, then whether it is a local maximum.
-        offsets = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
-        around = snr[r0[:, None] + offsets[None, :, 0], c0[:, None] + offsets[None, :, 1]]
-        best = np.argmax(around, axis=1)
-        r = r0 + offsets[best, 0]
-        c = c0 + offsets[best, 1]
-        centre = snr[r, c].astype(np.float64)
-        neighbours = snr[r[:, None] + offsets[None, :, 0], c[:, None] + offsets[None, :, 1]]
+        dr, dc = _OFFSETS[:, 0], _OFFSETS[:, 1]
+        roi = np.arange(n)[:, None]
+        around = snrs[roi[:, :, None], (r0[:, None] + dr)[None], (c0[:, None] + dc)[None]]
+        best = np.argmax(around, axis=2)
+        r = r0[None, :] + dr[best]
+        c = c0[None, :] + dc[best]
+        centre = snrs[roi, r, c].astype(np.float64)
+        neighbours = snrs[roi[:, :, None], r[:, :, None] + dr, c[:, :, None] + dc]
         # Inside the analysed band (the mirrored columns kx < 0 hold the conjugate half, so a
         # point near kx = 0 is found on either side).
         radius = np.hypot(c - self._col0, r - self._row0)
         band = (radius >= 2.0) & (radius <= 0.47 * self.size)
-        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=1))
-        if not keep.any():
-            return Peaks(np.zeros((0, 2)), np.zeros(0))
-        r, c, centre = r[keep], c[keep], centre[keep]
-        ddx = _parabolic(snr[r, c - 1], centre, snr[r, c + 1])
-        ddy = _parabolic(snr[r - 1, c], centre, snr[r + 1, c])
-        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=1)
-        # Two points may land on the same bin: keep each peak once.
-        _, first = np.unique(r * cols_n + c, return_index=True)
-        return Peaks(found[first].astype(np.float64), centre[first])
+        keep = band & (centre >= min_snr) & (centre >= neighbours.max(axis=2))
+        ddx = _parabolic(snrs[roi, r, c - 1], centre, snrs[roi, r, c + 1])
+        ddy = _parabolic(snrs[roi, r - 1, c], centre, snrs[roi, r + 1, c])
+        found = np.stack([c + ddx - self._col0, r + ddy - self._row0], axis=2)
+        return found, centre, keep, r * cols_n + c, ok
 
     def sample(self, snr: F32, k: npt.ArrayLike) -> F64:
         """The whitened spectrum at wave vectors k (m, 2) in bins: the largest value among the
@@ -201,6 +280,10 @@ class SpectrumAnalyzer:
             out[ok] = np.maximum(np.maximum(snr[r, c], snr[r, c + 1]),
                                  np.maximum(snr[r + 1, c], snr[r + 1, c + 1]))
         return out
+
+
+# The 3x3 neighbourhood of a bin, (row, column) offsets.
+_OFFSETS = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
 
 
 def _parabolic(left: npt.ArrayLike, centre: F64, right: npt.ArrayLike) -> F64:
