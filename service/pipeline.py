@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 
 AutopilotDistance = Literal["perpendicular", "optical_axis"]
 
+# Net inspection runs only at budget levels up to this: when the loop is behind the camera,
+# a fresh distance comes first.
+INSPECT_MAX_BUDGET = 1
+
 # Frames in a row the estimator must call "too close" before the autopilot is told so: one
 # frame of a blur filling the view (a fish passing the lens) must not replace a distance.
 TOO_CLOSE_FRAMES = 2
@@ -54,6 +58,7 @@ class PipelineResult:
     plane: NetPlane | None = None
     # Net inspection of this frame (None when the pipeline has no inspector).
     damage: DamageReport | None = None
+    budget: int = 0  # the estimator's work level asked for (service.core.budget)
 
     @property
     def error(self) -> str:
@@ -136,13 +141,14 @@ class Pipeline:
         self._last_quality = from_plain(float, state["last_quality"])
         self._too_close_frames = int(state.get("too_close_frames", 0))
 
-    def process(self, image: npt.NDArray[Any], t: float, index: int) -> PipelineResult:
-        """One frame captured at `t`."""
+    def process(self, image: npt.NDArray[Any], t: float, index: int,
+                budget: int = 0) -> PipelineResult:
+        """One frame captured at `t`, at the estimator's work level `budget` (0 = full)."""
         estimate: NetEstimate | None = None
         failure: Exception | None = None
         t0 = time.perf_counter()
         try:
-            estimate = self._estimator.estimate(image, prior=self._prior)
+            estimate = self._estimator.estimate(image, prior=self._prior, budget=budget)
         except NetposeError as exc:
             failure = exc
         except Exception as exc:  # a bug must cost one frame, not the service
@@ -154,7 +160,9 @@ class Pipeline:
         self._too_close_frames = self._too_close_frames + 1 if too_close else 0
         track = self._tracker.step(t, estimate)
         damage = None
-        if self._inspector is not None:
+        if self._inspector is not None and budget > INSPECT_MAX_BUDGET:
+            damage = DamageReport(False, f"skipped: budget level {budget}")
+        elif self._inspector is not None:
             # Only while the track is valid: holes are measured on a plane the filter believes.
             try:
                 damage = self._inspector.step(image, estimate, t, index, track.valid,
@@ -165,7 +173,7 @@ class Pipeline:
         return PipelineResult(
             t=t, index=index, estimate=estimate, track=track,
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
-            plane=net_plane_of(track, t), damage=damage,
+            plane=net_plane_of(track, t), damage=damage, budget=budget,
         )
 
     def tick(self, t: float) -> PipelineResult:

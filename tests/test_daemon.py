@@ -15,6 +15,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -312,3 +313,43 @@ def test_a_net_of_another_opening_angle_gives_no_distance_and_says_the_angle(
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1, warnings
     assert "mesh opening angle measured 45 deg, configured 90 deg" in warnings[0]
+
+
+class SlowCpu(RecordingObserver):
+    """Stands in for a busy CPU: each processed frame costs `seconds` of the loop's clock."""
+
+    def __init__(self, clock: Any, seconds: float) -> None:
+        super().__init__()
+        self._clock = clock
+        self.seconds = seconds
+
+    def observe(self, frame: Frame, result: Any, message: Any) -> None:
+        super().observe(frame, result, message)
+        self._clock.now += self.seconds
+
+
+def test_a_loop_slower_than_the_camera_lowers_the_estimators_work_and_says_so(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 13, item 2: frames taking 2.5 camera intervals push the budget level up, one step
+    per second at most, to the most the configuration allows; the estimates, the status and
+    the log say which level is in use; with room again, work comes back."""
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    seq = frames_at([*frames, *frames, *frames], FPS, 100.0)
+    slow = SlowCpu(None, 2.5 / FPS)
+    h = make_harness(demo_config("budget.max_level=2"), [Step(frame=f) for f in seq],
+                     observers=(slow,))
+    slow._clock = h.clock  # the harness makes the clock; frames are observed only from here
+    h.run_script()
+    levels = [m.budget_level for _, m in slow.frames]
+    assert levels[0] == 0 and max(levels) == 2 and levels[-1] == 2
+    changes = [k for k in range(1, len(levels)) if levels[k] != levels[k - 1]]
+    assert len(changes) == 2
+    # The estimator did the work it was asked for, and still measured the net.
+    assert all(m.detected for _, m in slow.frames[-10:])
+    assert h.daemon.budget.level == 2
+    status = [s for s in slow.statuses if s.estimator.frames]
+    assert status[-1].estimator.budget_level == 2
+    assert status[-1].estimator.frame_interval_ms == pytest.approx(1e3 / FPS)
+    logged = [r.getMessage() for r in caplog.records if "budget level" in r.getMessage()]
+    assert len(logged) == 2 and logged[0].startswith("budget level 0 -> 1")

@@ -152,7 +152,8 @@ class Daemon:
         else:
             h, w = frame.image.shape[:2]
             self.source_watch.frame(w, h, now)
-            result = self.pipeline.process(frame.image, frame.t_monotonic, frame.index)
+            result = self.pipeline.process(frame.image, frame.t_monotonic, frame.index,
+                                           budget=self.budget.level)
         sent = self.outputs.to_autopilot(result)
         self.stats.record(result, self.clock())
         if frame is not None:

@@ -90,7 +90,7 @@ def estimate_message(
         rois_used=est.rois_used if est is not None else 0,
         reason=est.reason if est is not None else (result.error or "estimator error"),
         filtered=filtered_view(result.track, sent or result.reading), latency_ms=latency,
-        truth=truth_view(frame.truth),
+        truth=truth_view(frame.truth), budget_level=result.budget,
     )
 
 
