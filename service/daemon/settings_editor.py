@@ -1,6 +1,6 @@
 """Changing the configuration from the web page: the same validation as the file, then a reload.
 
-`SettingsEditor` is what the page's driver calls (drivers.web.SettingsBackend, structurally).
+`SettingsEditor` is what the page's driver calls (drivers.web.page.SettingsBackend, structurally).
 A change `{"mesh.bar_length_m": 0.03}` is written into the TOML text with tomlkit (comments and
 layout kept), the whole new file is validated exactly as `netpose run` validates it (the same
 loader, the calibration file loaded too), and only then replaces the old file (atomic rename).

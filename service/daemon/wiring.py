@@ -22,7 +22,7 @@ from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
 from drivers.sources import SourceOptions, create_source
 from drivers.telemetry import TelemetrySettings, make_publisher
-from drivers.web import WebPage, WebSettings
+from drivers.web import WebSettings
 from service.config import Config, load_config
 from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError, ConfigError
@@ -112,6 +112,8 @@ def build_observers(config: Config, camera: CameraModel,
         now = controls.current_config()
         return RecordingSetup(camera, tuning_toml(now), now.mesh.bar_length_m,
                               now.mesh.opening_angle_deg)
+
+    from drivers.web.page import WebPage  # aiohttp's weight only when the page is on
 
     recorder = Recorder(recordings_root(config, web), vehicle, setup,
                         web.max_recording_mb * 1024 * 1024, controls.pipeline_state)
@@ -246,6 +248,8 @@ def _validated(config_path: str | None, overrides: tuple[str, ...]) -> Config:
 def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
             editor: SettingsEditor, config_path: str | None, overrides: tuple[str, ...],
             deadline: float | None) -> Config | None:
+    from drivers.web.page import WebPage  # aiohttp's weight only when the page is on
+
     web = config.section("web", WebSettings)
     vehicle = config.section("telemetry", TelemetrySettings).vehicle
     page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
