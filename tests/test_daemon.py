@@ -189,8 +189,10 @@ def test_replay_reproduces_the_daemons_filtered_distances(
     writer.release()
     calibration = tmp_path / "camera.yaml"
     save_camera(builtin_camera(640, 360), calibration)
+    # The real clock measures the loop here: a fixed budget level, so a busy machine cannot
+    # change the work (a recording carries its levels: the test below).
     cfg = demo_config(f"camera.url=file:{video}", f"camera.calibration={calibration}",
-                      "mesh.bar_length_m=0.025")
+                      "mesh.bar_length_m=0.025", "budget.mode=fixed")
     source = create_source(cfg.camera.url)
     link, telemetry = RecordingAutopilotLink(), RecordingPublisher()
     daemon = Daemon(cfg, DaemonParts(source=source, link=link, telemetry=telemetry,
@@ -353,3 +355,48 @@ def test_a_loop_slower_than_the_camera_lowers_the_estimators_work_and_says_so(
     assert status[-1].estimator.frame_interval_ms == pytest.approx(1e3 / FPS)
     logged = [r.getMessage() for r in caplog.records if "budget level" in r.getMessage()]
     assert len(logged) == 2 and logged[0].startswith("budget level 0 -> 1")
+
+
+def test_a_recording_made_under_budget_replays_at_the_same_levels(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """A slow loop's recording (the web page's recorder) keeps each frame's budget level, and
+    `netpose replay` of it gives every frame the same work: the daemon's filtered distances
+    again, to the 6 decimals of its messages."""
+    from drivers.recorder import Recorder, RecordingSetup
+    from service.daemon.settings_editor import tuning_toml
+
+    slow = SlowCpu(None, 2.5 / FPS)
+    holder: list[Any] = []
+    cfg = demo_config("budget.max_level=3")
+    recorder = Recorder(tmp_path / "rec", "test",
+                        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
+                                               90.0),
+                        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    seq = frames_at([*frames, *frames], FPS, 100.0)
+    h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(slow, recorder))
+    holder.append(h)
+    slow._clock = h.clock
+    recorder.begin()
+    h.run_script()
+    status = recorder.stop()
+    levels = [m.budget_level for _, m in slow.frames]
+    assert max(levels) == 3 and status.frames >= len(seq) - 2
+    out = tmp_path / "replay"
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
+         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with (out / "estimates.csv").open() as fh:
+        rows = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    live = {m.seq - 1: m for _, m in slow.frames}
+    compared = 0
+    for index, row in rows.items():
+        message = live[index]
+        assert row["filter_state"] == message.filtered.state
+        if message.filtered.distance_m is not None:
+            assert float(row["filtered_distance_m"]) == pytest.approx(
+                message.filtered.distance_m, abs=1e-6 + 1e-12)
+            compared += 1
+    assert compared >= len(rows) // 2

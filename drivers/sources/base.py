@@ -44,6 +44,9 @@ class Frame:
     t_wall: float
     color: ColorImage | None = None
     truth: object | None = None
+    # The estimator's work level this frame got on the vehicle, when a recording says so
+    # (service.core.budget): a replay gives it the same work. None: not recorded.
+    budget: int | None = None
 
 
 class SourceState(Enum):

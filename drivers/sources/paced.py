@@ -48,6 +48,7 @@ class MediaFrame:
     number: int  # position in the medium, 0-based
     media_time_s: float
     truth: object | None = None
+    budget: int | None = None  # a recording's budget level for this frame
     skipped_before: int = 0  # unreadable frames passed over just before this one
 
 
@@ -281,5 +282,6 @@ class PacedSource(FrameSource):
                 t_wall=self._t0_wall + offset,
                 color=converted[1],
                 truth=media.truth,
+                budget=media.budget,
             )
             return media, frame

@@ -209,6 +209,7 @@ def replay_frames(
             t_capture=frame.t_monotonic,
             color=frame.color,
             truth=truth_from_object(frame.truth),
+            budget=frame.budget or 0,
         )
 
 

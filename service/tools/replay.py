@@ -182,6 +182,7 @@ class ReplayFrame:
     t_capture: float
     color: npt.NDArray[np.uint8] | None = None
     truth: Truth | None = None
+    budget: int = 0  # the estimator's work level (a recording's, so a replay matches it)
 
 
 # -- results ----------------------------------------------------------------------------------
@@ -274,7 +275,8 @@ class ReplayRunner:
 
     def process(self, frame: ReplayFrame) -> FrameResult:
         t0 = time.perf_counter()
-        result = self._pipeline.process(frame.image, frame.t_capture, frame.index)
+        result = self._pipeline.process(frame.image, frame.t_capture, frame.index,
+                                        budget=frame.budget)
         if result.failure is not None and not result.crashed:
             if self._processed == 0:
                 # Not even the first frame fits: the whole recording is unusable.
