@@ -33,6 +33,8 @@ def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None
         # and below the link's freshness ceiling (0.8 s), or the link would not have sent it.
         assert 0.0 < report.latency_ms_median < 800.0
         assert math.isfinite(report.latency_ms_p99) and math.isfinite(report.rss_mb)
+        # Start-up: the first distance comes after the first frame, which comes after launch.
+        assert 0.0 < report.startup_s < report.launch_s
     assert held.how  # cgroup quota or pinned competitors, named in the report
     # The limit holds: a quarter of a core (and the scheduler's slack), far below free.
     assert held.cpu_percent <= 25.0 + 7.0

@@ -51,6 +51,8 @@ TARGET_CPU_PERCENT = 35.0
 TARGET_P99_MS = 50.0
 TARGET_RATE_HZ = 10.0
 TARGET_GAP_MS = 150.0
+TARGET_STARTUP_S = 3.0  # first DISTANCE_SENSOR after the first frame
+TARGET_RSS_MB = 120.0
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,9 @@ class CaseReport:
     cpu_percent: float
     rss_mb: float
     budget_levels: dict[str, int] = field(default_factory=dict)
+    # First DISTANCE_SENSOR after the first frame's capture, and after the process was started.
+    startup_s: float = math.nan
+    launch_s: float = math.nan
     notes: list[str] = field(default_factory=list)
 
     def lines(self, constrained: bool) -> list[str]:
@@ -93,7 +98,12 @@ class CaseReport:
             f"{self.latency_ms_p99:.1f} ms",
             f"  CPU {self.cpu_percent:.0f} % of one core, RSS {self.rss_mb:.0f} MB, budget "
             f"levels {self.budget_levels or 'n/a'}",
+            f"  first DISTANCE_SENSOR {self.startup_s:.2f} s after the first frame "
+            f"({self.launch_s:.2f} s after the process started)",
         ]
+        out.append(f"  target: start-up <= {TARGET_STARTUP_S:g} s "
+                   f"[{mark(self.startup_s <= TARGET_STARTUP_S)}], RSS <= {TARGET_RSS_MB:g} MB "
+                   f"[{mark(self.rss_mb <= TARGET_RSS_MB)}]")
         if constrained:
             out.append(f"  target: DISTANCE_SENSOR >= {TARGET_RATE_HZ:g} Hz "
                        f"[{mark(self.distance_rate_hz >= TARGET_RATE_HZ)}], no gap over "
@@ -178,6 +188,7 @@ def run_case(case: SoakCase, video: Path, calibration: Path, duration_s: float,
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("NOTIFY_SOCKET", None)
     limit = CpuLimit(case.cpu_share) if case.cpu_share is not None else None
+    launched = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     tail: list[str] = []
@@ -214,6 +225,13 @@ def run_case(case: SoakCase, video: Path, calibration: Path, duration_s: float,
         observer.close()
     report = _report(case, how, duration_s, status, estimates, statuses, arrivals, observer,
                      samples)
+    if arrivals:
+        first_arrival = min(a.t_received for a in arrivals)
+        report.launch_s = first_arrival - launched
+        frame_times = [float(e["frame_time_mono"]) for e in estimates
+                       if e.get("frame_time_mono") is not None]
+        if frame_times:
+            report.startup_s = first_arrival - min(frame_times)
     if status != 0:
         report.notes.append("daemon stderr tail: " + " | ".join(tail[-5:]))
     return report

@@ -14,9 +14,10 @@ frame. The level is recorded in every estimate message, so a replay can tell whi
 frame got. Under a test's fake clock the measured time is zero and the level stays put.
 
 Hysteresis keeps the level from hunting: up only when the current level has been measured on
-several frames and is over budget for a second; down only after a longer hold, and only when
-the cheaper-to-richer step is predicted to fit with a margin (from that level's own measured
-cost when it is recent, else from the current cost times a typical step ratio).
+a few frames and is over budget for a second, and then straight to the first level predicted
+to fit; down one level at a time, only after a longer hold, and only when the richer level is
+predicted to fit with a margin. A prediction is the level's own measured cost when recent,
+else the current cost scaled by a typical step ratio per level.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from service.core.errors import ConfigError
 
 # The estimator's levels: 0 = full work ... LEVELS - 1 = least work.
 LEVELS = 4
-FRAMES_TO_JUDGE = 5  # frames measured at a level before it is judged
+FRAMES_TO_JUDGE = 3  # frames measured at a level before it is judged
 UP_HOLD_S = 1.0  # a level is kept at least this long before more is cut
 DOWN_HOLD_S = 5.0  # ... and this long before work is added back
 DOWN_MARGIN = 0.7  # a richer level must be predicted to use at most this share of the budget
@@ -140,15 +141,25 @@ class BudgetController:
         held = t - (self._changed_at if self._changed_at is not None else t)
         if cost.seconds > budget and self.level < self.settings.max_level:
             if held >= UP_HOLD_S:
-                self._set(self.level + 1, t)
+                # Far behind (a Pi core at a quarter of its time): straight to the first level
+                # predicted to fit, not one step per second while the distance goes stale.
+                target = self.level + 1
+                while (target < self.settings.max_level
+                       and self._predicted(target, t, cost.seconds) > budget):
+                    target += 1
+                self._set(target, t)
             return
-        if self.level > 0 and held >= DOWN_HOLD_S:
-            richer = self._costs.get(self.level - 1)
-            predicted = (richer.seconds if richer is not None
-                         and t - richer.last_t <= COST_MEMORY_S
-                         else cost.seconds * STEP_RATIO)
-            if predicted <= DOWN_MARGIN * budget:
-                self._set(self.level - 1, t)
+        if self.level > 0 and held >= DOWN_HOLD_S and (
+            self._predicted(self.level - 1, t, cost.seconds) <= DOWN_MARGIN * budget
+        ):
+            self._set(self.level - 1, t)
+
+    def _predicted(self, level: int, t: float, current_s: float) -> float:
+        """A level's cost per frame: measured, when recently; else scaled from the current."""
+        known = self._costs.get(level)
+        if known is not None and t - known.last_t <= COST_MEMORY_S:
+            return known.seconds
+        return current_s * STEP_RATIO ** (self.level - level)
 
     def _set(self, level: int, t: float) -> None:
         if level != self.level:
