@@ -25,7 +25,7 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.core.image_file import DamagedImageError, decode_image
+from service.core.grey import DamagedImageError, decode_gray
 
 log = logging.getLogger(__name__)
 
@@ -198,9 +198,11 @@ class ImageFolderSource(PacedSource):
         try:
             # Decoded in colour and converted like every other frame (one grey conversion), and
             # refused when truncated: a half-written JPEG would otherwise decode with a grey band.
-            image = decode_image(path.read_bytes(), path.name)
-        except (OSError, DamagedImageError) as exc:
-            self._note_damage(str(exc))
+            image = decode_gray(path.read_bytes())[1]
+        except OSError as exc:
+            self._note_damage(f"{path.name}: {exc.strerror or exc}")
+        except DamagedImageError as exc:
+            self._note_damage(f"{path.name}: {exc}")
         return MediaFrame(image=image, number=number, media_time_s=number / self._fps)
 
     def _skip_to(self, number: int) -> int:
