@@ -153,6 +153,10 @@ class _Layout:
     max_footprint: float  # half the frame's smaller side: rows and columns keep a baseline
     # By (footprint in px, FFT size, ROI budget or 0).
     rect: dict[tuple[int, int, int], list[_Geometry]] = field(default_factory=dict)
+    # The frame's corners, edge midpoints and centre: where a plane's mesh period is sampled.
+    corners: list[_Geometry] = field(default_factory=list)
+    # Rectified ROI geometries by centre: a tracked frame's prior ROIs sit at these centres.
+    by_centre: dict[tuple[float, float], _Geometry] = field(default_factory=dict)
 
 
 @dataclass
@@ -200,6 +204,10 @@ class _Pass:
     plane: PlaneFit | None
     level: int
     note: str = ""
+    # Computed once per pass for the proofs: the agreeing ROIs' mean whitened spectrum and
+    # mean log power (by `power`), and the whitened mean's noise level and spread.
+    means: dict[bool, tuple[F32, int] | None] = field(default_factory=dict)
+    null: tuple[float, float] | None = None
 
 
 # A pass's convergence: new normal, new distance, the plane before it, and the step taken.
@@ -331,7 +339,9 @@ class NetEstimator:
             probes[level] = self._geometries(cam, probe, n, level)
             levels.append(level)
         foot = max(min(w, h) / 2.0, min(64.0, min(w, h)))
-        return _Layout(cam, tuple(levels), grids, probes, foot)
+        samples = self._centre_geometries(cam, np.array(
+            [(x, y) for x in (0.0, w / 2, w - 1.0) for y in (0.0, h / 2, h - 1.0)]))
+        return _Layout(cam, tuple(levels), grids, probes, foot, corners=samples)
 
     def _rect_grid(
         self, layout: _Layout, footprint: float, size: int, max_rois: int | None = None
@@ -372,6 +382,7 @@ class NetEstimator:
         centres = np.array([(x - 0.5, y - 0.5) for y in ys for x in xs])
         grid = self._centre_geometries(cam, centres)
         layout.rect[key] = grid
+        layout.by_centre.update((g.center_full, g) for g in grid)
         return grid
 
     @staticmethod
@@ -636,7 +647,11 @@ class NetEstimator:
         used = [r for r in prior.rois if r.used_in_fit and r.reciprocal is not None]
         if not used:
             return []
-        geoms = self._centre_geometries(layout.camera, np.array([r.center_px for r in used]))
+        # Normally cached; a prior from elsewhere (a restored state) is computed, not cached.
+        missing = [r.center_px for r in used if r.center_px not in layout.by_centre]
+        extra = {g.center_full: g for g in self._centre_geometries(
+            layout.camera, np.array(missing))} if missing else {}
+        geoms = [layout.by_centre.get(r.center_px) or extra[r.center_px] for r in used]
         out = []
         for r, g in zip(used, geoms, strict=True):
             assert r.reciprocal is not None
@@ -939,11 +954,8 @@ class NetEstimator:
         # The footprint: the preferred number of mesh cycles where the mesh looks coarsest,
         # but at most half the frame's smaller side (so the grid keeps a baseline both ways);
         # at least 5 cycles (a very coarse mesh: fewer, larger ROIs).
-        corners = self._centre_geometries(layout.camera, np.array(
-            [(x, y) for x in (0.0, layout.camera.width / 2, layout.camera.width - 1.0)
-             for y in (0.0, layout.camera.height / 2, layout.camera.height - 1.0)]))
         periods = []
-        for g in corners:
+        for g in layout.corners:
             a = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / distance**2
             periods.append(math.sqrt(a / abs(float(np.linalg.det(g.jacobian)))))
         p_max = max(periods)
@@ -1170,11 +1182,19 @@ class NetEstimator:
     # -- proofs --------------------------------------------------------------------------------
     def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
         """Mean whitened spectrum (or, with `power`, mean log power) of the agreeing ROIs."""
-        maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
-        arrays = [a for a in maps if a is not None]
-        if not arrays:
-            return None
-        return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
+        if power not in p.means:
+            maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
+            arrays = [a for a in maps if a is not None]
+            p.means[power] = (np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
+                              ) if arrays else None
+        return p.means[power]
+
+    def _pass_null(self, p: _Pass, snr: F32) -> tuple[float, float]:
+        """`_null` of the pass's mean whitened spectrum `snr`, computed once."""
+        if p.null is None:
+            assert p.consensus is not None
+            p.null = self._null(self._spectra[p.size], snr, p.consensus)
+        return p.null
 
     def _scale_check(self, p: _Pass) -> int | None:
         """The index (2, 3, 4, 9 or 16) of a coarser mesh whose extra lattice points carry power in
@@ -1192,7 +1212,7 @@ class NetEstimator:
         snr, count = stacked
         spectrum = self._spectra[p.size]
         k = p.consensus
-        null_level, null_spread = self._null(spectrum, snr, k)
+        null_level, null_spread = self._pass_null(p, snr)
         fundamentals = _lattice_points(k, order=1)
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
@@ -1287,7 +1307,7 @@ class NetEstimator:
         if stacked is None or power is None:
             return ""
         return _twine_profile(self._spectra[p.size], stacked[0], power[0], p.consensus,
-                              stacked[1])
+                              stacked[1], self._pass_null(p, stacked[0]))
 
     # -- the verdict ---------------------------------------------------------------------------
     def _verdict(
@@ -1375,11 +1395,13 @@ class NetEstimator:
 
 
 def _twine_profile(
-    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int
+    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int,
+    null: tuple[float, float] | None = None,
 ) -> str:
     """The twine-profile test of `NetEstimator._profile_check` on a (possibly averaged over
-    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins)."""
-    null_level, null_spread = NetEstimator._null(spectrum, snr, basis)
+    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins);
+    `null`: `NetEstimator._null` of `snr` when already known."""
+    null_level, null_spread = null or NetEstimator._null(spectrum, snr, basis)
     significant = null_level + max(2.0 * null_spread, 1.5)
     edges = np.asarray(np.linalg.inv(basis).T, dtype=np.float64)
     dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
