@@ -252,6 +252,7 @@ class _Frame:
         self.budget = budget
         self.timings: dict[str, float] = {}
         self.ffts: dict[int, int] = {}
+        self.whole: dict[bool, tuple[int, LatticeFit] | None] = {}  # by `twine`
         self._pyramid: list[Image] = [gray]
 
     def image(self, level: int) -> Image:
@@ -621,6 +622,12 @@ class NetEstimator:
         """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
         None when there is none (or, with `twine`, when its harmonics are not those of twine:
         a brick wall or a checkerboard filling the view is not a net too close)."""
+        # Asked for by the tracked plane's blind check and again by "too close": once a frame.
+        if twine not in frame.whole:
+            frame.whole[twine] = self._measure_whole(frame, twine)
+        return frame.whole[twine]
+
+    def _measure_whole(self, frame: _Frame, twine: bool) -> tuple[int, LatticeFit] | None:
         import cv2
 
         gray = frame.image(0)
