@@ -146,3 +146,9 @@ def test_pairwise_agreement_of_lattices_is_the_scalar_rule_for_every_pair() -> N
                              for b in bases])
         np.testing.assert_array_equal(matrix, expected)
         assert 0 < matrix.sum() < matrix.size
+
+
+def test_a_numpy_integer_budget_is_a_level() -> None:
+    estimator = NetEstimator(CAMERA, MESH)
+    est = estimator.estimate(np.full((720, 1280), 90, np.uint8), budget=np.int64(2))  # type: ignore[arg-type]
+    assert est.budget_level == 2 and type(est.budget_level) is int and not est.detected

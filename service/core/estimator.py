@@ -247,8 +247,7 @@ class _Frame:
     """One frame being estimated: its pyramid (built as far as it is needed), the work level,
     and the work done so far (stage times, spectra computed)."""
 
-    def __init__(self, gray: Image, layout: _Layout, budget: _Budget) -> None:
-        self.layout = layout
+    def __init__(self, gray: Image, budget: _Budget) -> None:
         self.budget = budget
         self.timings: dict[str, float] = {}
         self.ffts: dict[int, int] = {}
@@ -479,15 +478,16 @@ class NetEstimator:
         may detect less often or less precisely, never with a sigma that no longer covers its
         error.
         """
-        if isinstance(budget, bool) or not isinstance(budget, int) or not (
+        if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or not (
             0 <= budget < BUDGET_LEVELS
         ):
             raise ValueError(f"budget must be an int in 0..{BUDGET_LEVELS - 1}, got {budget!r}")
+        budget = int(budget)
         t0 = time.perf_counter()
         gray = _as_gray(frame)
         h, w = gray.shape
         layout = self._layout(w, h)  # fails early on a resolution the calibration cannot serve
-        current = _Frame(gray, layout, _BUDGETS[budget])
+        current = _Frame(gray, _BUDGETS[budget])
         current.lap("grey", t0)
         if not layout.levels:
             raise EstimatorInputError(
