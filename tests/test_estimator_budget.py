@@ -146,3 +146,36 @@ def test_pairwise_agreement_of_lattices_is_the_scalar_rule_for_every_pair() -> N
                              for b in bases])
         np.testing.assert_array_equal(matrix, expected)
         assert 0 < matrix.sum() < matrix.size
+
+
+def test_a_numpy_integer_budget_is_a_level() -> None:
+    estimator = NetEstimator(CAMERA, MESH)
+    est = estimator.estimate(np.full((720, 1280), 90, np.uint8), budget=np.int64(2))  # type: ignore[arg-type]
+    assert est.budget_level == 2 and type(est.budget_level) is int and not est.detected
+
+
+@pytest.mark.parametrize("level", range(BUDGET_LEVELS))
+@pytest.mark.parametrize("size", [(1280, 720), (640, 360)])
+def test_no_level_tracks_a_net_that_jumped_much_closer_at_the_old_scale(
+    level: int, size: tuple[int, int]
+) -> None:
+    """Under load frames are skipped, so a net can be much nearer than the prior says: the
+    tracked pass then sees the mesh's 2nd or 4th harmonic where the old mesh was. At every level
+    that must not come out as a distance (the integrity test of the full work, at each level)."""
+    from service.benchmarks.scenes import bench_camera
+
+    camera = bench_camera(*size)
+    mesh = MeshGeometry(0.025)
+    renderer = NetRenderer(camera, mesh)
+    estimator = NetEstimator(camera, mesh)
+    style = SceneStyle(focus_m=1.5, aperture_m=0.003)
+    first, _ = renderer.render(NetPose(0.4, 15.0, 30.0, 10.0), np.random.default_rng(1), style)
+    prior = estimator.estimate(first, budget=level)
+    assert prior.detected
+    for z in (0.2, 0.16, 0.12, 0.1, 0.08):
+        frame, truth = renderer.render(NetPose(z, 15.0, 30.0, 10.0), np.random.default_rng(1),
+                                       style)
+        est = estimator.estimate(frame, prior=prior, budget=level)
+        if est.detected:
+            assert est.range_m is not None
+            assert abs(est.range_m / truth.range_m - 1.0) < 0.05, (level, z, est.range_m)

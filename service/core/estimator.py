@@ -160,6 +160,10 @@ class _Layout:
     max_footprint: float  # half the frame's smaller side: rows and columns keep a baseline
     # By (footprint in px, FFT size, ROI budget or 0).
     rect: dict[tuple[int, int, int], list[_Geometry]] = field(default_factory=dict)
+    # The frame's corners, edge midpoints and centre: where a plane's mesh period is sampled.
+    corners: list[_Geometry] = field(default_factory=list)
+    # Rectified ROI geometries by centre: a tracked frame's prior ROIs sit at these centres.
+    by_centre: dict[tuple[float, float], _Geometry] = field(default_factory=dict)
 
 
 @dataclass
@@ -207,6 +211,10 @@ class _Pass:
     plane: PlaneFit | None
     level: int
     note: str = ""
+    # Computed once per pass for the proofs: the agreeing ROIs' mean whitened spectrum and
+    # mean log power (by `power`), and the whitened mean's noise level and spread.
+    means: dict[bool, tuple[F32, int] | None] = field(default_factory=dict)
+    null: tuple[float, float] | None = None
 
 
 # A pass's convergence: new normal, new distance, the plane before it, and the step taken.
@@ -246,11 +254,11 @@ class _Frame:
     """One frame being estimated: its pyramid (built as far as it is needed), the work level,
     and the work done so far (stage times, spectra computed)."""
 
-    def __init__(self, gray: Image, layout: _Layout, budget: _Budget) -> None:
-        self.layout = layout
+    def __init__(self, gray: Image, budget: _Budget) -> None:
         self.budget = budget
         self.timings: dict[str, float] = {}
         self.ffts: dict[int, int] = {}
+        self.whole: dict[bool, tuple[int, LatticeFit] | None] = {}  # by `twine`
         self._pyramid: list[Image] = [gray]
 
     def image(self, level: int) -> Image:
@@ -338,7 +346,9 @@ class NetEstimator:
             probes[level] = self._geometries(cam, probe, n, level)
             levels.append(level)
         foot = max(min(w, h) / 2.0, min(64.0, min(w, h)))
-        return _Layout(cam, tuple(levels), grids, probes, foot)
+        samples = self._centre_geometries(cam, np.array(
+            [(x, y) for x in (0.0, w / 2, w - 1.0) for y in (0.0, h / 2, h - 1.0)]))
+        return _Layout(cam, tuple(levels), grids, probes, foot, corners=samples)
 
     def _rect_grid(
         self, layout: _Layout, footprint: float, size: int, max_rois: int | None = None
@@ -379,6 +389,7 @@ class NetEstimator:
         centres = np.array([(x - 0.5, y - 0.5) for y in ys for x in xs])
         grid = self._centre_geometries(cam, centres)
         layout.rect[key] = grid
+        layout.by_centre.update((g.center_full, g) for g in grid)
         return grid
 
     @staticmethod
@@ -474,15 +485,16 @@ class NetEstimator:
         may detect less often or less precisely, never with a sigma that no longer covers its
         error.
         """
-        if isinstance(budget, bool) or not isinstance(budget, int) or not (
+        if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or not (
             0 <= budget < BUDGET_LEVELS
         ):
             raise ValueError(f"budget must be an int in 0..{BUDGET_LEVELS - 1}, got {budget!r}")
+        budget = int(budget)
         t0 = time.perf_counter()
         gray = _as_gray(frame)
         h, w = gray.shape
         layout = self._layout(w, h)  # fails early on a resolution the calibration cannot serve
-        current = _Frame(gray, layout, _BUDGETS[budget])
+        current = _Frame(gray, _BUDGETS[budget])
         current.lap("grey", t0)
         if not layout.levels:
             raise EstimatorInputError(
@@ -617,6 +629,12 @@ class NetEstimator:
         """The lattice of the frame's central square shrunk to 64 px (side in pixels, fit);
         None when there is none (or, with `twine`, when its harmonics are not those of twine:
         a brick wall or a checkerboard filling the view is not a net too close)."""
+        # Asked for by the tracked plane's blind check and again by "too close": once a frame.
+        if twine not in frame.whole:
+            frame.whole[twine] = self._measure_whole(frame, twine)
+        return frame.whole[twine]
+
+    def _measure_whole(self, frame: _Frame, twine: bool) -> tuple[int, LatticeFit] | None:
         import cv2
 
         gray = frame.image(0)
@@ -643,7 +661,11 @@ class NetEstimator:
         used = [r for r in prior.rois if r.used_in_fit and r.reciprocal is not None]
         if not used:
             return []
-        geoms = self._centre_geometries(layout.camera, np.array([r.center_px for r in used]))
+        # Normally cached; a prior from elsewhere (a restored state) is computed, not cached.
+        missing = [r.center_px for r in used if r.center_px not in layout.by_centre]
+        extra = {g.center_full: g for g in self._centre_geometries(
+            layout.camera, np.array(missing))} if missing else {}
+        geoms = [layout.by_centre.get(r.center_px) or extra[r.center_px] for r in used]
         out = []
         for r, g in zip(used, geoms, strict=True):
             assert r.reciprocal is not None
@@ -946,11 +968,8 @@ class NetEstimator:
         # The footprint: the preferred number of mesh cycles where the mesh looks coarsest,
         # but at most half the frame's smaller side (so the grid keeps a baseline both ways);
         # at least 5 cycles (a very coarse mesh: fewer, larger ROIs).
-        corners = self._centre_geometries(layout.camera, np.array(
-            [(x, y) for x in (0.0, layout.camera.width / 2, layout.camera.width - 1.0)
-             for y in (0.0, layout.camera.height / 2, layout.camera.height - 1.0)]))
         periods = []
-        for g in corners:
+        for g in layout.corners:
             a = self.mesh.cell_area_m2 * max(float(n_away @ g.ray), 1e-6) ** 3 / distance**2
             periods.append(math.sqrt(a / abs(float(np.linalg.det(g.jacobian)))))
         p_max = max(periods)
@@ -1177,11 +1196,19 @@ class NetEstimator:
     # -- proofs --------------------------------------------------------------------------------
     def _stack(self, p: _Pass, power: bool = False) -> tuple[F32, int] | None:
         """Mean whitened spectrum (or, with `power`, mean log power) of the agreeing ROIs."""
-        maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
-        arrays = [a for a in maps if a is not None]
-        if not arrays:
-            return None
-        return np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
+        if power not in p.means:
+            maps = [m.logp if power else m.snr for m in p.rois if m.agrees]
+            arrays = [a for a in maps if a is not None]
+            p.means[power] = (np.mean(np.stack(arrays), axis=0, dtype=np.float32), len(arrays)
+                              ) if arrays else None
+        return p.means[power]
+
+    def _pass_null(self, p: _Pass, snr: F32) -> tuple[float, float]:
+        """`_null` of the pass's mean whitened spectrum `snr`, computed once."""
+        if p.null is None:
+            assert p.consensus is not None
+            p.null = self._null(self._spectra[p.size], snr, p.consensus)
+        return p.null
 
     def _scale_check(self, p: _Pass) -> int | None:
         """The index (2, 3, 4, 9 or 16) of a coarser mesh whose extra lattice points carry power in
@@ -1199,7 +1226,7 @@ class NetEstimator:
         snr, count = stacked
         spectrum = self._spectra[p.size]
         k = p.consensus
-        null_level, null_spread = self._null(spectrum, snr, k)
+        null_level, null_spread = self._pass_null(p, snr)
         fundamentals = _lattice_points(k, order=1)
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
@@ -1294,7 +1321,7 @@ class NetEstimator:
         if stacked is None or power is None:
             return ""
         return _twine_profile(self._spectra[p.size], stacked[0], power[0], p.consensus,
-                              stacked[1])
+                              stacked[1], self._pass_null(p, stacked[0]))
 
     # -- the verdict ---------------------------------------------------------------------------
     def _verdict(
@@ -1382,11 +1409,13 @@ class NetEstimator:
 
 
 def _twine_profile(
-    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int
+    spectrum: SpectrumAnalyzer, snr: F32, logp: F32, basis: F64, count: int,
+    null: tuple[float, float] | None = None,
 ) -> str:
     """The twine-profile test of `NetEstimator._profile_check` on a (possibly averaged over
-    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins)."""
-    null_level, null_spread = NetEstimator._null(spectrum, snr, basis)
+    `count` ROIs) whitened spectrum `snr` and log power `logp` with lattice `basis` (bins);
+    `null`: `NetEstimator._null` of `snr` when already known."""
+    null_level, null_spread = null or NetEstimator._null(spectrum, snr, basis)
     significant = null_level + max(2.0 * null_spread, 1.5)
     edges = np.asarray(np.linalg.inv(basis).T, dtype=np.float64)
     dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
@@ -1480,7 +1509,10 @@ def _normalise_contrast_many(patches: Image, period: float) -> F32:
     mean = cv2.blur(stack, (k1, k1), borderType=cv2.BORDER_REFLECT).reshape(shape)
     detail = stack - mean
     var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
-    median = np.median(var.reshape(-1, shape[2]), axis=0)
+    # The floor is a regulariser: the median of every fourth row and column of the (box-
+    # smoothed, so slowly varying) variance is as good, and a full median of every ROI's
+    # pixels was the costliest step of the rectified pass.
+    median = np.median(np.ascontiguousarray(var[::4, ::4]).reshape(-1, shape[2]), axis=0)
     floor = (1e-3 + 0.1 * median.astype(np.float64)).astype(np.float32)
     out = detail / np.sqrt(var + floor)
     return np.ascontiguousarray(out.transpose(2, 0, 1), dtype=np.float32)
