@@ -360,7 +360,9 @@ def run_passes(spec: BenchSpec, jobs: int,
             if progress:
                 progress(len(part))
     else:
-        ctx = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
+        # Not "fork": a process that already ran OpenCV (or pytest's timeout thread) holds
+        # locks that a forked child inherits locked, and the pool then deadlocks.
+        ctx = multiprocessing.get_context("forkserver" if sys.platform == "linux" else "spawn")
         with ctx.Pool(jobs) as pool:
             for part in pool.imap_unordered(_run_chunk, chunks, chunksize=1):
                 results.extend(part)

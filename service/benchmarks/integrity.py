@@ -251,7 +251,9 @@ def run_rows(frames: int, seed: int, jobs: int,
             if progress:
                 progress(g[2])
     else:
-        ctx = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
+        # Not "fork": a process that already ran OpenCV (or pytest's timeout thread) holds
+        # locks that a forked child inherits locked, and the pool then deadlocks.
+        ctx = multiprocessing.get_context("forkserver" if sys.platform == "linux" else "spawn")
         with ctx.Pool(jobs) as pool:
             for part in pool.imap_unordered(run_group, groups, chunksize=1):
                 rows.extend(part)
