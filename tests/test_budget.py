@@ -107,3 +107,47 @@ def test_bad_settings_name_their_key(key: str, value: object) -> None:
     with pytest.raises(ConfigError) as err:
         BudgetSettings(**{key: value})  # type: ignore[arg-type]
     assert err.value.key == f"budget.{key}"
+
+
+def test_a_source_that_never_drops_a_frame_is_not_behind() -> None:
+    """A renderer or a file read on demand waits for the loop: a slow loop only runs slower,
+    no frame goes stale, and less work would buy nothing."""
+    ctrl = BudgetController(BudgetSettings())
+    t = 0.0
+    for index in range(100):
+        ctrl.frame(t, index, 0.2)  # each frame 0.2 s, stamped when the loop asks for it
+        t += 0.25
+    assert ctrl.level == 0 and ctrl.changes == 0
+
+
+def test_a_level_that_loses_the_net_is_left_and_not_used_for_a_while() -> None:
+    ctrl = BudgetController(BudgetSettings())
+    t, index = 0.0, 0
+
+    def frames(seconds: float, work: float, seen: dict[int, bool]) -> list[int]:
+        nonlocal t, index
+        out = []
+        end = t + seconds
+        while t < end:
+            out.append(ctrl.frame(t, index, work, seen[ctrl.level]))
+            index += 3  # behind: two of every three camera frames dropped
+            t += 3 / FPS
+        return out
+
+    # Level 0 sees the net but is far too slow; every leaner level loses it.
+    seen = {0: True, 1: False, 2: False, 3: False}
+    levels = frames(1.5, 0.09, seen)
+    assert max(levels) == 3  # the jump came first: only the estimates can tell
+    assert ctrl.level == 0 and "level 3 loses the net" in ctrl.why
+    levels = frames(20.0, 0.09, seen)
+    # Each leaner level is tried once, a second after the last change, and left for level 0
+    # after the few frames it takes to see it lose the net; then full work stays, though
+    # behind, until the block ends.
+    visited = [lv for k, lv in enumerate(levels) if k == 0 or lv != levels[k - 1]]
+    assert visited == [0, 2, 0, 1, 0]
+    assert ctrl.level == 0 and ctrl.changes == 6
+    levels = frames(90.0, 0.09, seen)
+    # After the blocks end, only the richest blocked level is tried again, and each loss
+    # doubles its block: two more trials in 90 s, not a hunt.
+    visited = [lv for k, lv in enumerate(levels) if k == 0 or lv != levels[k - 1]]
+    assert visited == [0, 1, 0, 1, 0]

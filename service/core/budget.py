@@ -8,6 +8,12 @@ readings matter more than processing every frame at full precision, so when the 
 behind the camera the estimator is asked for less (`NetEstimator.estimate(budget=...)`: skipped
 second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
 
+"Behind" means both: a frame takes more than `load` of the camera's interval, and the source
+drops frames for it (a source that renders or reads on demand never drops one; it only runs
+slower, and less work would buy nothing). A leaner level must keep seeing the net: one whose
+share of frames with a net falls well below a richer level's is left for that level at once,
+and it and the leaner levels are blocked for a while (doubling each time it happens again).
+
 The controller is pure: the daemon hands it each processed frame's capture time, frame number
 and the loop time that frame took (a measurement), and uses the level it returns for the next
 frame. The level is recorded in every estimate message, so a replay can tell which work each
@@ -73,6 +79,17 @@ class _Cost:
     seconds: float
     frames: int
     last_t: float
+    detected: float  # running share of this level's frames with a net
+
+
+# A level whose running detection share falls this far below a richer level's, while that
+# one saw the net at least MIN_DETECTED of the time, loses the net: it and the leaner levels
+# are not used for BLOCK_S, doubled each time the same level loses it again up to MAX_BLOCK_S
+# (a leaner estimate that finds nothing keeps no distance fresh; retrying it costs frames).
+DETECTION_LOSS = 0.4
+MIN_DETECTED = 0.5
+BLOCK_S = 30.0
+MAX_BLOCK_S = 600.0
 
 
 class BudgetController:
@@ -84,8 +101,11 @@ class BudgetController:
         self._costs: dict[int, _Cost] = {}
         self._intervals: collections.deque[float] = collections.deque(maxlen=INTERVAL_WINDOW)
         self._last: tuple[float, int] | None = None
+        self._drops: collections.deque[int] = collections.deque(maxlen=2 * FRAMES_TO_JUDGE)
         self._changed_at: float | None = None
+        self._blocked: dict[int, tuple[float, float]] = {}  # level: (until, block length)
         self.changes = 0
+        self.why = ""  # the reason for the last change, for the log
 
     @property
     def frame_interval_s(self) -> float | None:
@@ -100,16 +120,18 @@ class BudgetController:
         cost = self._costs.get(level)
         return None if cost is None else cost.seconds
 
-    def frame(self, t_capture: float, index: int, work_s: float) -> int:
+    def frame(self, t_capture: float, index: int, work_s: float, detected: bool = True) -> int:
         """One processed frame at the current level: its capture time, the source's frame
-        number and the loop time it took. Returns the level for the next frame."""
+        number, the loop time it took and whether the estimator saw the net. Returns the level
+        for the next frame."""
         self._note_interval(t_capture, index)
         if math.isfinite(work_s) and work_s >= 0.0:
             cost = self._costs.get(self.level)
             if cost is None or t_capture - cost.last_t > COST_MEMORY_S:
-                self._costs[self.level] = _Cost(work_s, 1, t_capture)
+                self._costs[self.level] = _Cost(work_s, 1, t_capture, float(detected))
             else:
                 cost.seconds += COST_SMOOTHING * (work_s - cost.seconds)
+                cost.detected += COST_SMOOTHING * (float(detected) - cost.detected)
                 cost.frames += 1
                 cost.last_t = t_capture
         if self._changed_at is None:
@@ -130,6 +152,7 @@ class BudgetController:
             if index > i0 and t > t0:
                 # Frames dropped while the loop was busy still count: index - i0 camera frames.
                 self._intervals.append((t - t0) / (index - i0))
+                self._drops.append(index - i0 - 1)
         self._last = (t, index)
 
     def _decide(self, t: float) -> None:
@@ -139,20 +162,48 @@ class BudgetController:
             return
         budget = self.settings.load * interval
         held = t - (self._changed_at if self._changed_at is not None else t)
-        if cost.seconds > budget and self.level < self.settings.max_level:
+        # The nearest richer level measured lately: back to it if this one loses the net.
+        richer_level = next((k for k in range(self.level - 1, -1, -1)
+                             if k in self._costs and t - self._costs[k].last_t <= COST_MEMORY_S),
+                            None)
+        if richer_level is not None:
+            richer = self._costs[richer_level]
+            if (richer.detected >= MIN_DETECTED
+                    and cost.detected < richer.detected - DETECTION_LOSS):
+                block = self._block_from(self.level, t)
+                self._set(richer_level, t,
+                          f"level {self.level} loses the net (detected {cost.detected:.0%} of "
+                          f"frames, {richer.detected:.0%} at level {richer_level}); not used "
+                          f"for {block:.0f} s")
+                return
+        highest = min([self.settings.max_level]
+                      + [k - 1 for k, (until, _) in self._blocked.items() if t < until])
+        # Behind the camera: over budget, and the source is dropping frames for it. A source
+        # that renders or reads frames on demand never drops one: the loop only runs slower.
+        behind = cost.seconds > budget and sum(self._drops) > 0
+        if behind and self.level < highest:
             if held >= UP_HOLD_S:
                 # Far behind (a Pi core at a quarter of its time): straight to the first level
                 # predicted to fit, not one step per second while the distance goes stale.
                 target = self.level + 1
-                while (target < self.settings.max_level
-                       and self._predicted(target, t, cost.seconds) > budget):
+                while target < highest and self._predicted(target, t, cost.seconds) > budget:
                     target += 1
-                self._set(target, t)
+                self._set(target, t, f"a frame takes {cost.seconds * 1e3:.0f} ms at level "
+                          f"{self.level}, the camera gives one every {interval * 1e3:.0f} ms")
             return
         if self.level > 0 and held >= DOWN_HOLD_S and (
             self._predicted(self.level - 1, t, cost.seconds) <= DOWN_MARGIN * budget
         ):
-            self._set(self.level - 1, t)
+            self._set(self.level - 1, t, f"room again: a frame takes {cost.seconds * 1e3:.0f} "
+                      f"ms at level {self.level} of the camera's {interval * 1e3:.0f} ms")
+
+    def _block_from(self, level: int, t: float) -> float:
+        """Block `level` and every leaner one; returns how long `level` is blocked."""
+        for k in range(level, LEVELS):
+            previous = self._blocked.get(k)
+            length = BLOCK_S if previous is None else min(2.0 * previous[1], MAX_BLOCK_S)
+            self._blocked[k] = (t + length, length)
+        return self._blocked[level][1]
 
     def _predicted(self, level: int, t: float, current_s: float) -> float:
         """A level's cost per frame: measured, when recently; else scaled from the current."""
@@ -161,9 +212,10 @@ class BudgetController:
             return known.seconds
         return current_s * STEP_RATIO ** (self.level - level)
 
-    def _set(self, level: int, t: float) -> None:
+    def _set(self, level: int, t: float, why: str = "") -> None:
         if level != self.level:
             self.changes += 1
+            self.why = why
             # The new level is judged on its own frames only.
             stale = self._costs.get(level)
             if stale is not None:

@@ -159,7 +159,7 @@ class Daemon:
         if frame is not None:
             self._note_errors(result)
             self.outputs.publish(frame, result, sent, self.clock())
-            self._account(frame.t_monotonic, frame.index, self.clock() - now)
+            self._account(result, self.clock() - now)
         self.track_log.update(result.track, now)
         self.view_notices.update(result, now)
         self.last = result.track
@@ -223,15 +223,13 @@ class Daemon:
             except Exception:
                 log.exception("closing the %s failed", name)
 
-    def _account(self, t_capture: float, index: int, work_s: float) -> None:
-        """The frame's loop time decides the next frame's budget level."""
+    def _account(self, result: PipelineResult, work_s: float) -> None:
+        """The frame's loop time (and whether the net was seen) decides the next frame's budget
+        level; a change is logged with its reason (changes are a second apart at least)."""
         before = self.budget.level
-        after = self.budget.frame(t_capture, index, work_s)
+        after = self.budget.frame(result.t, result.index or 0, work_s, result.detected)
         if after != before:
-            interval = self.budget.frame_interval_s or 0.0
-            log.info("budget level %d -> %d: a frame takes %.0f ms at level %d, the camera "
-                     "gives one every %.0f ms", before, after,
-                     (self.budget.cost_s(before) or 0.0) * 1e3, before, interval * 1e3)
+            log.info("budget level %d -> %d: %s", before, after, self.budget.why)
 
     # -- problems ----------------------------------------------------------------------------
     def _note_errors(self, result: PipelineResult) -> None:
