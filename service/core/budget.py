@@ -9,8 +9,8 @@ behind the camera the estimator is asked for less (`NetEstimator.estimate(budget
 second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
 
 "Behind" means both: a frame takes more than `load` of the camera's interval, and the source
-drops frames for it (a source that renders or reads on demand never drops one; it only runs
-slower, and less work would buy nothing). A leaner level must keep seeing the net: one whose
+drops frames for it (a source that renders or reads on demand, such as `sim:`, never drops
+one; it only runs slower, and less work would buy nothing). A leaner level must keep seeing the net: one whose
 share of frames with a net falls well below a richer level's is left for that level at once,
 and it and the leaner levels are blocked for a while (doubling each time it happens again).
 
