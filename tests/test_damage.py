@@ -254,3 +254,34 @@ def test_inspection_runs_only_while_tracking_and_within_its_budget(
     assert 0 < len(inspected) < 60
     spent = sum(r.inspect_ms for r in reports)
     assert spent <= 0.3 * 2.0 * 60 + max(r.inspect_ms for r in inspected)
+
+
+def test_a_large_view_is_inspected_a_strip_at_a_time(renderer: NetRenderer,
+                                                     estimator: NetEstimator) -> None:
+    """A view of more cells than `max_cells_inspected` is cut into overlapping strips, one per
+    inspected frame in turn: each scan says which strip it inspected, the strips together
+    inspect at least the whole view, and a hole is found only in a strip that holds it."""
+    import cv2
+
+    pose = NetPose(1.0, 10.0, 40.0, 15.0, (0.2, 0.6))
+    cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
+    assert cell is not None
+    hole = missing_knot(cell, np.random.default_rng(6))
+    whole, (truth,), est = _scene_with(renderer, estimator, pose, [hole], 12)
+    assert whole.strip == (0, 1) and len(whole.candidates) == 1
+    image = _render(renderer, pose, 12, NetDamage([hole]))
+    cap = 1500
+    detector = DamageDetector(CAMERA, MESH, DamageSettings(max_cells_inspected=cap))
+    scans = [detector.inspect(image, est, part=k) for k in range(7)]
+    count = scans[0].strip[1]
+    assert count > 1
+    assert [s.strip for s in scans] == [(k % count, count) for k in range(7)]
+    assert all(0 < s.inspected_cells <= cap for s in scans)
+    assert sum(s.inspected_cells for s in scans[:count]) >= whole.inspected_cells
+    holding = []
+    for k, s in enumerate(scans[:count]):
+        outline = np.array(s.outline_px, dtype=np.float32).reshape(-1, 1, 2)
+        if cv2.pointPolygonTest(outline, truth.centre_px, False) >= 0:
+            holding.append(k)
+    found_in = [k for k, s in enumerate(scans[:count]) if s.candidates]
+    assert found_in and set(found_in) <= set(holding) and len(holding) < count

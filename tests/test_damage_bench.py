@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from service.benchmarks import damage
@@ -73,3 +74,22 @@ def test_no_candidate_on_the_real_frames() -> None:
     inspected = [r for r in rows if r.inspected_cells > 0]
     assert inspected and all(r.detected for r in inspected)
     assert [(r.name, r.candidates) for r in rows if r.candidates] == []
+
+
+def test_a_hole_outside_this_frames_strip_is_missed_for_that_reason() -> None:
+    """The account of misses tells a hole the frame's strip did not cover (the view is
+    inspected a strip at a time) from one outside the inspectable view."""
+    from types import SimpleNamespace
+
+    from drivers.synthetic_damage import HoleTruth, cut_bar
+    from service.core.damage import DamageScan
+    from service.core.damage_track import DamageReport
+
+    truth = HoleTruth(cut_bar((0, 0), 1, np.random.default_rng(0)), 0.04, 0.02, (800.0, 400.0),
+                      (790.0, 395.0, 810.0, 405.0), 1.0)
+    left_half = ((0.0, 0.0), (400.0, 0.0), (400.0, 719.0), (0.0, 719.0))
+    for strip, expected in (((1, 3), "outside this frame's strip (2 of 3)"),
+                            ((0, 1), "outside the inspected region")):
+        scan = DamageScan(inspected_cells=900, outline_px=left_half, strip=strip)
+        res = SimpleNamespace(damage=DamageReport(True, "", scan), estimate=None)
+        assert damage._why_missed(res, truth, 5.0).startswith(expected)

@@ -186,6 +186,9 @@ class DamageScan:
     # pixels (its outline), and the net geometry of this frame.
     outline_px: tuple[Vec2, ...] = ()
     geometry: NetFrame | None = None
+    # A view of more than `max_cells_inspected` cells is inspected a strip at a time: this
+    # frame's strip (from 0) and how many the view was cut into (1: all of it).
+    strip: tuple[int, int] = (0, 1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,7 +279,7 @@ class DamageDetector:
         region = self._region(cam, lattice)
         if region is None:
             return DamageScan(reason="no part of the view shows the mesh resolved")
-        i0, j0, n1, n2 = self._part(region, part)
+        i0, j0, n1, n2, strip = self._part(region, part)
         timings["geometry"] = (time.perf_counter() - t0) * 1e3
         t1 = time.perf_counter()
         s = self.settings.samples_per_cell
@@ -291,7 +294,7 @@ class DamageDetector:
         timings["phase"] = (time.perf_counter() - t1) * 1e3
         if polarity == 0:
             return DamageScan(reason="no twine contrast in the inspected region", levels=used,
-                              timings_ms=timings)
+                              timings_ms=timings, strip=strip)
         t1 = time.perf_counter()
         coarse = self._coarse_pixels(cam, lattice, i0, j0, n1, n2, shift, s)
         lat, valid = _sample(pyramid, coarse, s, levels)
@@ -314,26 +317,28 @@ class DamageDetector:
             if len(cells) <= 4 * self.settings.max_cells)
         return DamageScan(candidates=candidates, inspected_cells=int(bars.inspected),
                           levels=used, timings_ms=timings, outline_px=_outline(coarse, w, h),
-                          geometry=net, rejected=why)
+                          geometry=net, rejected=why, strip=strip)
 
-    def _part(self, region: tuple[int, int, int, int], part: int) -> tuple[int, int, int, int]:
-        """The strip of the region inspected this time (the whole region when small)."""
+    def _part(self, region: tuple[int, int, int, int], part: int
+              ) -> tuple[int, int, int, int, tuple[int, int]]:
+        """The strip of the region inspected this time (the whole region when small), and
+        (which strip, how many)."""
         i0, j0, n1, n2 = region
         cap = self.settings.max_cells_inspected
         if n1 * n2 <= cap:
-            return region
+            return i0, j0, n1, n2, (0, 1)
         overlap = 2 * 3 + self.settings.max_extent_cells  # a hole and its surroundings
         along_i = n1 >= n2
         length, width = (n1, n2) if along_i else (n2, n1)
         size = max(cap // width, overlap + 4)
         if size >= length:
-            return region
+            return i0, j0, n1, n2, (0, 1)
         count = math.ceil((length - overlap) / (size - overlap))
         k = part % count
         start = min(k * (size - overlap), length - size)
         if along_i:
-            return i0 + start, j0, size, n2
-        return i0, j0 + start, n1, size
+            return i0 + start, j0, size, n2, (k, count)
+        return i0, j0 + start, n1, size, (k, count)
 
     # -- geometry ----------------------------------------------------------------------------
     def _lattice(self, cam: CameraModel, est: NetEstimate) -> _Lattice | None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import inspect
 import json
 import math
 import types
@@ -448,7 +449,11 @@ def schema_markdown() -> str:
     out: list[str] = [f"Schema version {SCHEMA_VERSION}. Every message starts with `schema` (int) "
                       "and `kind` (string); the keys of each kind follow.", ""]
     for cls in MESSAGES:
-        out += [f"### `{cls.KIND}`", "", (cls.__doc__ or "").strip(), "", *_table(cls), ""]
+        # cleandoc: a docstring's second and later lines lose their source indentation (four
+        # spaces in front of a Markdown line are a code block or a stray indent).
+        out += [f"### `{cls.KIND}`", "", inspect.cleandoc(cls.__doc__ or ""), "",
+                *_table(cls), ""]
         for path, inner in _nested(cls, cls.KIND):
-            out += [f"#### `{path}`", "", (inner.__doc__ or "").strip(), "", *_table(inner), ""]
+            out += [f"#### `{path}`", "", inspect.cleandoc(inner.__doc__ or ""), "",
+                    *_table(inner), ""]
     return "\n".join(out).rstrip() + "\n"
