@@ -10,9 +10,10 @@ second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
 
 "Behind" means both: a frame takes more than `load` of the camera's interval, and the source
 drops frames for it (a source that renders or reads on demand, such as `sim:`, never drops
-one; it only runs slower, and less work would buy nothing). A leaner level must keep seeing the net: one whose
-share of frames with a net falls well below a richer level's is left for that level at once,
-and it and the leaner levels are blocked for a while (doubling each time it happens again).
+one; it only runs slower, and less work would buy nothing). A leaner level must keep seeing
+the net: one whose share of frames with a net falls well below a richer level's is left for
+that level at once, and it and the leaner levels are blocked for a while (doubling each time
+it happens again).
 
 The controller is pure: the daemon hands it each processed frame's capture time, frame number
 and the loop time that frame took (a measurement), and uses the level it returns for the next
