@@ -21,10 +21,12 @@ Pipeline per frame (pure: arrays in, a NetEstimate out):
    harmonic of the real mesh (a distance off by sqrt 2 or sqrt 3) and is corrected or refused.
    The rectified cell must be the configured mesh (equal bars, the configured opening angle),
    and its harmonics must look like twine (thin lines crossing), not a checkerboard or bricks.
-5. **Uncertainty from the data.** The plane's covariance comes from the ROI-to-ROI scatter
-   (reduced chi-square), inflated for few degrees of freedom and for overlapping ROIs, plus the
-   change between the last two rectified passes. A plane the ROIs cannot pin down (bunched on
-   one side of a blocked view) gives a large sigma and then no distance.
+5. **Uncertainty from the data.** The plane's covariance comes from the ROIs' noise model
+   pooled with their scatter (plane.py), inflated for its degrees of freedom and for
+   overlapping ROIs, plus the net's deformation carried over the lever from the ROIs to the
+   optical axis and half the change between the last two rectified passes. A plane the ROIs
+   cannot pin down (bunched on one side of a blocked view) gives a large sigma and then no
+   distance.
 
 Everything that depends only on frame size, camera and settings (layouts, windows, ROI rays and
 lens Jacobians) is computed once and cached. ROIs are measured independently of each other
