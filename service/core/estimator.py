@@ -70,14 +70,6 @@ _REFINEMENTS = tuple(
 )
 
 
-# The uncertainty model (see `_verdict`, `_deformation`): the share of the last pass-to-pass
-# change that is the last pass's own error, the net's deformation that the ROIs cannot see (a
-# share of the distance over the ROIs' spread), and the floor for resampling and interpolation.
-_CHANGE_SHARE = 0.5
-_UNSEEN_DEFORMATION = 0.005
-_MODEL_FLOOR = 0.001
-
-
 # How a refusal begins when the view was recognised as a grid that is not the configured net.
 _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
               "mesh opening angle measured")
@@ -1432,6 +1424,14 @@ def _bar_pair(edges: F64) -> F64:
     best = min(candidates, key=lambda uv: abs(math.log(
         float(np.linalg.norm(uv[0])) / float(np.linalg.norm(uv[1])))))
     return np.stack(best, axis=1)
+
+
+# The uncertainty model (see `_verdict`, `_deformation`): the share of the last pass-to-pass
+# change that is the last pass's own error, the net's deformation that the ROIs cannot see (a
+# share of the distance over the ROIs' spread), and the floor for resampling and interpolation.
+_CHANGE_SHARE = 0.5
+_UNSEEN_DEFORMATION = 0.005
+_MODEL_FLOOR = 0.001
 
 
 def _inflation(p: _Pass) -> float:
