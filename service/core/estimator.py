@@ -1461,8 +1461,8 @@ def _t_factor(dof: float) -> float:
     geometric mean of the Student-t over normal quantiles at 1 sigma (84.13 %) and at 3 sigma
     (99.865 %), so both the spread of error/sigma and its 3-sigma tail stay honest. The pooled
     variance (plane.py) has at least PRIOR_DOF = 4 degrees of freedom, so this stays finite
-    (2.09 at 4, 1.57 at 6, 1.14 at 20); the quantiles come from the Cornish-Fisher expansion,
-    within 0.7 % of the exact ones from 4 degrees of freedom on."""
+    (1.43 for four ROIs, 1.28 for six, 1.08 for twenty); the quantiles come from the
+    Cornish-Fisher expansion, within 0.7 % of the exact ones from 4 degrees of freedom on."""
     if dof < 1.0:
         return math.inf
     ratio = 1.0
