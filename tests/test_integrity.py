@@ -182,21 +182,68 @@ def test_never_too_close_without_a_net(seed: int) -> None:
     assert not est.detected and not est.too_close
 
 
+# -- gross errors found by the integrity benchmark, as regression tests --------------------------
+
+
+# (seed, group, index) of `netpose bench integrity` frames that once gave a valid distance more
+# than 5 % off. Each was a plane fitted to a few ROIs on one side of the image and carried to
+# the optical axis: a billowing net (11, 13, 1: 7 ROIs at 5-7 px periods on the near side, +5.6 %
+# at sigma 1 %), or a steep view whose far side is unresolved (5, 60, 11: -9.9 %; 5, 72, 5:
+# -5.8 %; 5, 34, 10: -5.7 %, with the pooled variance before the lever term).
+GROSS_CASES = [(11, 13, 1), (5, 60, 11), (5, 72, 5), (5, 34, 10), (11, 13, 4)]
+
+
+@pytest.mark.parametrize(("seed", "group", "index"), GROSS_CASES)
+def test_former_gross_errors_give_no_distance_or_an_honest_one(
+    seed: int, group: int, index: int
+) -> None:
+    case = integrity.build_case(seed, group, index)
+    frame, truth = integrity.render_case(case)
+    est = NetEstimator(case.camera, case.mesh).estimate(frame)
+    if not est.detected:
+        assert est.distance_m is None and est.reason
+        return
+    assert est.sigma_range_m is not None and est.normal is not None
+    error = _range_error(est, truth)
+    normal_error = math.degrees(math.acos(min(1.0, float(np.dot(est.normal, truth.normal)))))
+    assert abs(error) <= GROSS and normal_error <= integrity.GROSS_NORMAL_DEG
+    assert abs(error) * truth.range_m <= 3.0 * est.sigma_range_m
+
+
+def test_the_t_factor_is_the_student_t_quantile_ratio() -> None:
+    """The sigma's widening for a variance known to `dof` degrees of freedom: the geometric mean
+    of the Student-t over normal quantiles at 1 and 3 sigma, finite from the pooled variance's
+    least (4 prior degrees of freedom + 1)."""
+    from scipy import stats
+
+    from service.core.estimator import _t_factor
+
+    p1, p3 = stats.norm.cdf(1.0), stats.norm.cdf(3.0)
+    for dof in (4, 5, 6, 8, 12, 20, 50):
+        exact = math.sqrt(stats.t.ppf(p1, dof) * stats.t.ppf(p3, dof) / 3.0)
+        assert _t_factor(dof) == pytest.approx(exact, rel=0.01), dof
+    assert _t_factor(1e6) == pytest.approx(1.0, abs=1e-4)
+
+
 # -- the integrity benchmark, short ---------------------------------------------------------------
 
 
-@pytest.mark.timeout(900)  # ~100 s on two idle cores; far longer while the machine is shared
+@pytest.mark.timeout(1800)  # ~5 min on two idle cores; far longer while the machine is shared
 def test_short_integrity_run() -> None:
     """A short seeded run of `netpose bench integrity` over the whole envelope (frames 384x180
     to 1920x1080, 60-110 deg with distortion, square and rhombic meshes of 1-4 cm, 0.3-3 m,
     tilts to 60 deg, fouling, boards, billowing, JPEG, ...). The targets of issue 11: no gross
     error among the valid outputs, 3-sigma coverage of at least 99 %, error/sigma with a
-    standard deviation within 0.7-1.5, no net-free frame taken for a net or "too close"."""
-    rows = integrity.run_rows(frames=400, seed=11, jobs=2)
+    standard deviation within 0.7-1.5, no net-free frame taken for a net or "too close".
+
+    1,000 frames, as the issue asks: ~450 valid outputs, so that 99 % coverage allows four
+    outside 3 sigma. With 400 frames (~175 valid) one frame decides it (measured: 2 outside,
+    98.9 %, where 2,000-frame runs of seeds 5 and 11 give 99.5 %)."""
+    rows = integrity.run_rows(frames=1000, seed=11, jobs=2)
     summary = integrity.summarise(rows)
     gross = [integrity.describe_row(r) for r in rows if r.gross]
     assert not gross, "\n".join(gross)
-    assert summary.valid >= 150  # detection is measured by the benchmark; enough to judge sigma
+    assert summary.valid >= 350  # detection is measured by the benchmark; enough to judge sigma
     assert summary.coverage_3sigma >= integrity.TARGET_COVERAGE
     assert integrity.TARGET_Z_STD[0] <= summary.z_std <= integrity.TARGET_Z_STD[1]
     assert summary.false_nets == 0 and summary.false_too_close == 0

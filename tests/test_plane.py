@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.core.plane import fit_plane
+from service.core.plane import PRIOR_DOF, axis_leverage, fit_plane
 
 F64 = npt.NDArray[np.float64]
 CELL_M2 = 0.015**2
@@ -172,3 +172,43 @@ def test_reported_sigmas_match_the_spread_of_repeated_noisy_fits(
         assert 0.5 < reported / empirical < 2.0, (reported, empirical)
     # Unbiased to well within the spread.
     assert abs(float(np.mean(distances)) - distance) < 3 * empirical_d / math.sqrt(300) + 0.002
+
+
+def test_four_rois_give_a_finite_sigma_that_grows_with_their_disagreement() -> None:
+    """One degree of freedom: the residual alone cannot tell the scatter, so the ROIs' noise
+    model counts as PRIOR_DOF degrees of freedom (a finite sigma, never below the model's), and
+    a disagreement far beyond the model still shows in the sigma."""
+    normal, distance = POSES[1]
+    rays = _rays(2, 2)
+    exact = _areas(rays, normal, distance)
+    noise = np.full(4, 0.01)
+    agree = fit_plane(rays, exact, noise, CELL_M2, min_rois=4)
+    assert agree is not None and agree.sigma_dof == PRIOR_DOF + 1
+    assert math.isfinite(agree.sigma_range_m) and agree.sigma_range_m > 0
+    # 6 % off in one ROI's area (2 % in c, five times its model sigma):
+    bent = exact * np.array([1.0, 1.0, 1.0, 1.06])
+    disagree = fit_plane(rays, bent, noise, CELL_M2, min_rois=4,
+                         outlier_sigma=1e6, min_relative_tolerance=1.0, consensus_tolerance=1.0)
+    assert disagree is not None
+    # The pooled variance factor: (PRIOR_DOF + chi^2) / (PRIOR_DOF + 1), chi^2 from the
+    # residuals over the model sigma of c (a third of the area's, with the 0.2 % floor).
+    sigma_c = math.hypot(0.01 / 3.0, 0.002)
+    chi2 = 4 * disagree.relative_rms**2 / sigma_c**2
+    assert chi2 > 5.0
+    factor = math.sqrt((PRIOR_DOF + chi2) / (PRIOR_DOF + 1))
+    assert disagree.sigma_range_m / agree.sigma_range_m == pytest.approx(factor, rel=0.1)
+
+
+def test_axis_leverage_is_small_inside_the_rois_and_grows_on_one_side() -> None:
+    axis = np.array([0.0, 0.0, 1.0])
+    around = _rays()
+    assert axis_leverage(around, axis, 0.2) < 0.1
+    # The same grid shifted so that all of it lies right of the axis, at twice its half-width:
+    # the axis is then ~2.5 spreads from the centroid along x (spread sqrt(0.18 + 0.2^2 / 12)).
+    side = around + np.array([1.2, 0.0, 0.0])
+    lever = axis_leverage(side, axis, 0.2)
+    expected = 1.2**2 / (float(np.var(around[:, 0])) + 0.2**2 / 12)
+    assert lever == pytest.approx(expected, rel=1e-6)
+    assert lever > 4.0
+    # Depth does not matter: rays are compared where they cross z = 1.
+    assert axis_leverage(side * 2.0, axis * 3.0, 0.2) == pytest.approx(lever)

@@ -21,10 +21,12 @@ Pipeline per frame (pure: arrays in, a NetEstimate out):
    harmonic of the real mesh (a distance off by sqrt 2 or sqrt 3) and is corrected or refused.
    The rectified cell must be the configured mesh (equal bars, the configured opening angle),
    and its harmonics must look like twine (thin lines crossing), not a checkerboard or bricks.
-5. **Uncertainty from the data.** The plane's covariance comes from the ROI-to-ROI scatter
-   (reduced chi-square), inflated for few degrees of freedom and for overlapping ROIs, plus the
-   change between the last two rectified passes. A plane the ROIs cannot pin down (bunched on
-   one side of a blocked view) gives a large sigma and then no distance.
+5. **Uncertainty from the data.** The plane's covariance comes from the ROIs' noise model
+   pooled with their scatter (plane.py), inflated for its degrees of freedom and for
+   overlapping ROIs, plus the net's deformation carried over the lever from the ROIs to the
+   optical axis and half the change between the last two rectified passes. A plane the ROIs
+   cannot pin down (bunched on one side of a blocked view) gives a large sigma and then no
+   distance.
 
 Everything that depends only on frame size, camera and settings (layouts, windows, ROI rays and
 lens Jacobians) is computed once and cached. ROIs are measured independently of each other
@@ -46,7 +48,7 @@ from service.core.errors import ConfigError, EstimatorInputError
 from service.core.grey import to_gray
 from service.core.lattice import LatticeFinder, LatticeFit, reduce_basis
 from service.core.mesh import MeshGeometry
-from service.core.plane import PlaneFit, fit_plane
+from service.core.plane import PlaneFit, axis_leverage, fit_plane
 from service.core.results import Mat2, NetEstimate, RoiResult
 from service.core.spectrum import Peaks, SpectrumAnalyzer
 
@@ -1359,26 +1361,23 @@ class NetEstimator:
         n_new, d_new, previous, step = converged
         plane = p.plane
         range_m = d_new / float(-n_new[2])
-        # Uncertainty from the data: the plane fit's covariance (scaled by the ROI-to-ROI
-        # scatter) inflated for few degrees of freedom and for overlapping ROIs, plus the last
-        # pass-to-pass change, the net's deformation and a 0.1 % floor for the model (resampling,
-        # interpolation).
+        # Uncertainty from the data: the plane fit's covariance (the ROIs' noise model pooled
+        # with their scatter, plane.py) inflated for its degrees of freedom and for overlapping
+        # ROIs, plus half the last pass-to-pass change, the net's deformation carried to the
+        # optical axis, and a 0.1 % floor for the model (resampling, interpolation).
         inflation = _inflation(p)
         # The pass-to-pass change counts only between passes over this frame: the first pass
         # of a tracked frame moved from the previous frame's plane, which is the net's motion.
-        change = step if previous is not None else (0.0, 0.0)
-        # A net that is not a plane (billowing) leaves residuals that are smooth over the view,
-        # not independent: the fitted plane's distance is uncertain by about the rms relative
-        # residual of the cell areas' cube roots beyond what the ROIs' own measurement noise
-        # explains (that is, of the local distances over 1.5), whatever the number of ROIs.
-        expected = [(m.fit.relative_area_sigma / 3.0) ** 2 + 0.002**2
-                    for m in agreeing if m.fit is not None]
-        noise_rms2 = float(np.mean(expected)) if expected else 0.0
-        deformation = math.sqrt(max(0.0, plane.relative_rms**2 - noise_rms2))
+        # Of the change, half is this pass's own: both passes measured the same ROIs with
+        # errors of about the same size, and the last one was rectified with the better plane
+        # (a scale error does not alter the rectified view, a tilt error only at second order).
+        change = (_CHANGE_SHARE * step[0], _CHANGE_SHARE * step[1]) if previous is not None \
+            else (0.0, 0.0)
+        deformation = _deformation(p, agreeing, self.mesh.cell_area_m2)
         sigma_d = math.hypot(plane.sigma_distance_m * inflation, change[0] * d_new,
-                             deformation * d_new, 0.001 * d_new)
+                             deformation * d_new, _MODEL_FLOOR * d_new)
         sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
-                             change[0] * range_m, deformation * range_m, 0.001 * range_m)
+                             change[0] * range_m, deformation * range_m, _MODEL_FLOOR * range_m)
         sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
         if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
             return NetEstimate(
@@ -1656,36 +1655,89 @@ def _bar_pair(edges: F64) -> F64:
     return np.stack(best, axis=1)
 
 
+# The uncertainty model (see `_verdict`, `_deformation`): the share of the last pass-to-pass
+# change that is the last pass's own error, the net's deformation that the ROIs cannot see (a
+# share of the distance over the ROIs' spread), and the floor for resampling and interpolation.
+_CHANGE_SHARE = 0.5
+_UNSEEN_DEFORMATION = 0.005
+_MODEL_FLOOR = 0.001
+
+
 def _inflation(p: _Pass) -> float:
-    """Factor on the plane fit's sigmas: Student t for few degrees of freedom (a scatter
-    estimated from few residuals is itself uncertain), and the fourth root of how many times
-    over the agreeing ROIs cover their pixels: overlapping ROIs share pixels, so their errors
-    are partly correlated (half-overlapping windows share about a quarter of their Hann-weighted
-    energy; the fourth root was calibrated on `netpose bench integrity`)."""
+    """Factor on the plane fit's sigmas: Student t for the pooled variance's degrees of freedom
+    (a scatter estimated from few residuals is itself uncertain), and the square root of how
+    many times over the agreeing ROIs cover their pixels: ROIs that share pixels share their
+    noise, so n ROIs that cover each pixel k times carry about n / k independent measurements
+    (the least-squares covariance assumed n)."""
     assert p.plane is not None
-    dof = max(1, int(p.plane.used.sum()) - 3)
-    return _t_factor(dof) * _overlap([m for m in p.rois if m.agrees]) ** 0.25
+    return _t_factor(p.plane.sigma_dof) * math.sqrt(_overlap([m for m in p.rois if m.agrees]))
 
 
 def _plane_sigmas(p: _Pass) -> tuple[float, float]:
-    """Relative distance sigma and normal sigma (deg) of a pass's plane, inflated."""
+    """Relative distance sigma and normal sigma (deg) of a pass's plane, for judging whether a
+    pass has converged: the fit's sigmas with the overlap correction, without the Student-t
+    factor. A step is compared with the scatter's estimate itself; the t factor widens the
+    reported error's tails, and a weak fit (few ROIs) whose tails are wide must not be taken as
+    converged after a large step for that reason (it would stop at a pass still rectified with
+    a plane degrees off)."""
     assert p.plane is not None
-    f = _inflation(p)
+    f = math.sqrt(_overlap([m for m in p.rois if m.agrees]))
     return (p.plane.sigma_distance_m / p.plane.distance_m * f, p.plane.sigma_normal_deg * f)
 
 
-def _t_factor(dof: int) -> float:
-    """How much a sigma estimated from `dof` residuals must grow: the geometric mean of the
-    Student-t over normal quantiles at 1 sigma (84.13 %) and at 3 sigma (99.865 %), so both the
-    spread of error/sigma and its 3-sigma tail stay honest for a scatter estimated from few
-    residuals. With a single degree of freedom the scatter is all but unknown (t has no
-    variance): infinite, no distance."""
-    if dof <= 1:
+def _t_factor(dof: float) -> float:
+    """How much a sigma whose variance rests on `dof` degrees of freedom must grow: the
+    geometric mean of the Student-t over normal quantiles at 1 sigma (84.13 %) and at 3 sigma
+    (99.865 %), so both the spread of error/sigma and its 3-sigma tail stay honest. The pooled
+    variance (plane.py) has at least PRIOR_DOF = 4 degrees of freedom, so this stays finite
+    (1.43 for four ROIs, 1.28 for six, 1.08 for twenty); the quantiles come from the
+    Cornish-Fisher expansion, within 0.7 % of the exact ones from 4 degrees of freedom on."""
+    if dof < 1.0:
         return math.inf
-    one = {2: 1.32, 3: 1.20, 4: 1.14, 5: 1.11, 6: 1.09, 7: 1.08, 8: 1.07}
-    tail = {2: 6.40, 3: 3.07, 4: 2.21, 5: 1.84, 6: 1.63, 7: 1.51, 8: 1.43, 9: 1.36, 10: 1.32,
-            11: 1.28, 12: 1.25, 13: 1.23, 14: 1.21, 15: 1.20}
-    return math.sqrt(one.get(dof, 1.0 + 0.5 / dof) * tail.get(dof, 1.0 + 2.6 / dof))
+    ratio = 1.0
+    for z in (1.0, 3.0):
+        t = (z + (z**3 + z) / (4 * dof) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * dof**2)
+             + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * dof**3)
+             + (79 * z**9 + 776 * z**7 + 1482 * z**5 - 1920 * z**3 - 945 * z)
+             / (92160 * dof**4))
+        ratio *= t / z
+    return math.sqrt(ratio)
+
+
+def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float) -> float:
+    """Relative sigma of the range on the optical axis from a net that is not a plane.
+
+    A billowing net's departure from its mean plane is smooth over the view, so it does not
+    average out over ROIs as their noise does. Two parts:
+    - what the ROIs show: the rms residual of the cell-area cube roots c beyond what their own
+      noise explains. The plane absorbs the deformation's mean and tilt over the ROIs, so this
+      measures the deformation rather than the error it leaves (a relative change of the local
+      distance is 1.5 times that of c, since c ~ d^(-2/3), but the fitted plane sits between
+      the bumps); it is taken as it is, which `netpose bench integrity` confirms (99.5 % within
+      3 sigma on 2,000 frames);
+    - what they cannot show: the tilt of the net between the ROIs and the optical axis. A plane
+      is known best at its ROIs' centroid; the range on the axis is that plane carried across
+      the lever from the centroid to the axis (`axis_leverage`, in units of the ROIs' own
+      spread). The deformation seen over the ROIs' spread grows over the lever in proportion,
+      and a net is never assumed flatter than `_UNSEEN_DEFORMATION` of its distance over that
+      spread, even where the few ROIs of one side happen to agree perfectly.
+    ROIs that surround the axis (lever ~0-1) keep the first part; a fit from one side of the
+    image (a marker board over the rest, a steep view whose far side is unresolved) grows with
+    the lever, which is issue 11's "use what is left without trusting a fit from one side".
+    """
+    assert p.plane is not None
+    if not agreeing:
+        return 0.0
+    expected = [(m.fit.relative_area_sigma / 3.0) ** 2 + 0.002**2
+                for m in agreeing if m.fit is not None]
+    noise_rms2 = float(np.mean(expected)) if expected else 0.0
+    seen = math.sqrt(max(0.0, p.plane.relative_rms**2 - noise_rms2))
+    # Each ROI covers a square of `size` rectified pixels; `period_out` of them are one mesh
+    # period, sqrt(cell area) / distance in the virtual camera's normalised units.
+    extent = p.size / p.period_out * math.sqrt(cell_area_m2) / p.plane.distance_m
+    lever = axis_leverage(np.array([m.ray for m in agreeing]),
+                          p.rotation @ np.array([0.0, 0.0, 1.0]), extent)
+    return math.sqrt(seen**2 * (1.0 + lever) + _UNSEEN_DEFORMATION**2 * lever)
 
 
 def _overlap(rois: list[_Roi]) -> float:

@@ -5,6 +5,16 @@ normalised coordinates, a cell of area A on the plane covers a = A (n.r)^3 / d^2
 normalised image. With c = (a / A)^(1/3) that is linear: c = r . m with m = n / d^(2/3).
 Several ROIs spread over the image give m by weighted least squares; n = m/|m|, d = |m|^-3/2,
 and the range along the optical axis is d / n_z.
+
+How well the fit knows m: each ROI's lattice fit gives its own measurement noise (a
+Cramer-Rao-like model of the peak positions), and the ROI-to-ROI residuals measure the scatter
+actually present. With few ROIs the residuals alone say little (with one degree of freedom the
+scatter is one squared number), so the two are pooled as a scaled-inverse-chi-square posterior:
+the noise model counts as `PRIOR_DOF` prior degrees of freedom at a variance factor of one, the
+residuals as `n - 3` more, s^2 = (nu0 + chi^2) / (nu0 + nu). The factor never drops below one:
+residuals smaller than the model mean ROIs that share pixels (overlapping windows), not ROIs
+better than their own spectra. `PlaneFit.sigma_dof` (nu0 + nu) is what a Student-t quantile of
+the result must use.
 """
 
 from __future__ import annotations
@@ -19,6 +29,11 @@ import numpy.typing as npt
 F64 = npt.NDArray[np.float64]
 Bools = npt.NDArray[np.bool_]
 
+# Prior degrees of freedom of the per-ROI noise model in the pooled variance (see the module
+# docstring): about what a fit with four residuals says about its own scatter. Larger trusts the
+# model more; zero is the residual-only scatter, which is undefined without residuals.
+PRIOR_DOF = 4.0
+
 
 @dataclass(frozen=True)
 class PlaneFit:
@@ -30,6 +45,8 @@ class PlaneFit:
     sigma_normal_deg: float
     used: Bools  # which ROIs survived the robust fit
     relative_rms: float  # rms of (c_fit - c) / c over used ROIs
+    # Degrees of freedom of the pooled variance behind the sigmas: PRIOR_DOF + used ROIs - 3.
+    sigma_dof: float = PRIOR_DOF
 
 
 def fit_plane(
@@ -56,13 +73,14 @@ def fit_plane(
         return None
     m = np.zeros(3)
     cov = np.eye(3)
+    dof = 0
     # Backward elimination: drop the worst ROI while it is an outlier against the robust spread
     # of the rest (a fish, a wrong lattice), then re-admit any ROI the final plane explains.
     for _ in range(rays.shape[0]):
         fitted = _solve(rays[used], c[used], rel_sigma_c[used])
         if fitted is None:
             return None
-        m, cov = fitted
+        m, cov, dof = fitted
         rel = (rays @ m - c) / c
         spread = 1.4826 * float(np.median(np.abs(rel[used] - np.median(rel[used]))))
         limit = max(outlier_sigma * spread, min_relative_tolerance)
@@ -100,11 +118,14 @@ def fit_plane(
         sigma_normal_deg=math.degrees(math.sqrt(max(0.0, ang_var))),
         used=used,
         relative_rms=float(np.sqrt(np.mean(rel**2))),
+        sigma_dof=PRIOR_DOF + dof,
     )
 
 
-def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64] | None:
-    """Weighted least squares for c = r . m; covariance scaled by the reduced chi-square."""
+def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64, int] | None:
+    """Weighted least squares for c = r . m; the covariance scaled by the pooled variance
+    factor (the noise model as PRIOR_DOF prior degrees of freedom, the residuals' chi-square as
+    the rest; never below the model), and the residual degrees of freedom."""
     # Rows scaled so each residual is (r.m - c) / (sigma_rel * c).
     a = rays / (rel_sigma_c * c)[:, None]
     b = 1.0 / rel_sigma_c
@@ -112,10 +133,33 @@ def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64] | None:
     if np.linalg.cond(ata) > 1e9:
         return None
     m = np.linalg.solve(ata, a.T @ b)
-    dof = rays.shape[0] - 3
+    dof = max(0, rays.shape[0] - 3)
     chi2 = float(((a @ m - b) ** 2).sum())
-    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
-    return np.asarray(m, dtype=np.float64), np.asarray(np.linalg.inv(ata) * scale, dtype=np.float64)
+    scale = max(1.0, (PRIOR_DOF + chi2) / (PRIOR_DOF + dof))
+    return (np.asarray(m, dtype=np.float64),
+            np.asarray(np.linalg.inv(ata) * scale, dtype=np.float64), dof)
+
+
+def axis_leverage(rays: F64, axis: F64, extent: float) -> float:
+    """How far the fit extrapolates to `axis`: the squared Mahalanobis distance of the axis's
+    image point from the cloud of ROI centres (rays and axis as (x, y, z) in one camera frame,
+    compared at z = 1), each ROI counted as a square of side `extent` (same units), not a point.
+
+    About 0 to 1 when the ROIs surround the axis; large when they sit on one side of it, which
+    a marker board or a steep view can leave. A plane is known best at its ROIs' centroid, and
+    the range on the optical axis is then the plane carried across that distance: any tilt the
+    ROIs did not see (a net that billows) enters in proportion to the lever, so the variance it
+    adds grows with this number.
+    """
+    xy = rays[:, :2] / rays[:, 2:3]
+    target = axis[:2] / axis[2]
+    centre = xy.mean(axis=0)
+    spread = np.cov(xy.T, bias=True) + np.eye(2) * extent * extent / 12.0
+    offset = target - centre
+    try:
+        return float(offset @ np.linalg.solve(spread, offset))
+    except np.linalg.LinAlgError:
+        return math.inf
 
 
 def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Bools | None:
