@@ -118,11 +118,14 @@ class RtspServer:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._playing: list[socket.socket] = []
-        self._threads = [
+        own = [
             threading.Thread(target=self._accept, name="test-rtsp-accept", daemon=True),
             threading.Thread(target=self._relay, name="test-rtsp-relay", daemon=True),
         ]
-        for thread in self._threads:
+        # A client connecting at once makes _accept append its thread to _threads (started
+        # there): start only these two, from a list nobody else appends to.
+        self._threads = list(own)
+        for thread in own:
             thread.start()
 
     def _accept(self) -> None:
