@@ -111,7 +111,7 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             url = (f"sim:tcp:127.0.0.1:{sitl.port(2)}?origin={origin[0]},{origin[1]}"
                    f"&facing={math.degrees(net.facing)}&net_north={net.point_ne[0]}"
                    f"&net_east={net.point_ne[1]}&cam_forward={MOUNT.forward_m}"
-                   f"&fps=10&width=640&height=360&blind={blind}")
+                   f"&fps=10&width=960&height=540&blind={blind}")
             with daemon_log.open("w") as log:
                 daemon = subprocess.Popen(
                     [sys.executable, "-m", "service.cli", "run", "--config",
