@@ -28,13 +28,15 @@ def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None
     for report in (free, held):
         assert report.exit_status == 0, report.notes
         assert report.frames_per_s > 0 and report.detected_fraction > 0.8
-        assert report.distance_rate_hz > 5.0  # the link repeats readings at 10 Hz
-        # Latency from the frames' own capture stamps, read on the autopilot's clock: positive
-        # and below the link's freshness ceiling (0.8 s), or the link would not have sent it.
-        assert 0.0 < report.latency_ms_median < 800.0
-        assert math.isfinite(report.latency_ms_p99) and math.isfinite(report.rss_mb)
-        # Start-up: the first distance comes after the first frame, which comes after launch.
-        assert 0.0 < report.startup_s < report.launch_s
+        assert math.isfinite(report.rss_mb) and report.budget_levels
+    # What the autopilot got is measured where there is something to measure (whether a
+    # quarter of a core keeps the distance fresh is the benchmark's figure, not this test's).
+    assert free.distance_rate_hz > 5.0  # the link repeats readings at 10 Hz
+    # Latency from the frames' own capture stamps, read on the autopilot's clock: positive and
+    # below the link's freshness ceiling (0.8 s), or the link would not have sent it.
+    assert 0.0 < free.latency_ms_median < 800.0 and math.isfinite(free.latency_ms_p99)
+    # Start-up: the first distance comes after the first frame, which comes after launch.
+    assert 0.0 < free.startup_s < free.launch_s
     assert held.how  # cgroup quota or pinned competitors, named in the report
     # The limit holds: a quarter of a core (and the scheduler's slack), far below free.
     assert held.cpu_percent <= 25.0 + 7.0
