@@ -33,6 +33,7 @@ import numpy.typing as npt
 from drivers.synthetic_net import NetPose
 from service.core.camera import CameraModel
 from service.core.mesh import MeshGeometry
+from service.core.plane_frame import plane_axes
 
 FloatMap = npt.NDArray[np.float64]
 BoolMap = npt.NDArray[np.bool_]
@@ -210,21 +211,6 @@ class NetDamage:
 
 
 # -- where things are ---------------------------------------------------------------------------
-def plane_axes(normal_towards_camera: npt.ArrayLike) -> tuple[FloatMap, FloatMap]:
-    """The net plane's horizontal and vertical: the camera's x (right) and y (down) axes laid
-    onto the plane (y made perpendicular to x within it). Hole sizes are measured along these."""
-    n = np.asarray(normal_towards_camera, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    h = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    if np.linalg.norm(h) < 1e-6:  # looking along the plane's horizontal: cannot happen in view
-        h = np.array([0.0, 0.0, 1.0]) - n[2] * n
-    h = h / np.linalg.norm(h)
-    v = np.cross(n, h)
-    if v[1] < 0:
-        v = -v
-    return h, v
-
-
 def knot_points(pose: NetPose, mesh: MeshGeometry, knots: npt.ArrayLike) -> FloatMap:
     """Camera-frame 3D points (metres) of knots (i, j) of the rendered net (flat: billowing
     moves them along the normal by millimetres, which no size here depends on)."""

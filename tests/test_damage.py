@@ -25,10 +25,11 @@ from drivers.synthetic_damage import (
 )
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from service.benchmarks.scenes import bench_camera
-from service.core.damage import DamageDetector, DamageScan, DamageSettings, plane_axes
+from service.core.damage import DamageDetector, DamageScan, DamageSettings
 from service.core.damage_track import ConfirmedHole, HoleTracker, NetInspector
 from service.core.estimator import NetEstimator
 from service.core.mesh import MeshGeometry
+from service.core.plane_frame import plane_axes
 from service.core.results import NetEstimate
 
 CAMERA = bench_camera(960, 540)

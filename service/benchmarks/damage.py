@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import math
-import multiprocessing
 import os
 import sys
 import time
@@ -45,6 +44,7 @@ from drivers.synthetic_damage import (
 )
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from service.benchmarks.scenes import bench_camera
+from service.benchmarks.workers import run_chunks
 from service.core.camera import CameraModel
 from service.core.damage import DamageSettings
 from service.core.damage_track import NetInspector
@@ -356,22 +356,7 @@ def _run_chunk(args: tuple[BenchSpec, list[int]]) -> list[PassResult]:
 def run_passes(spec: BenchSpec, jobs: int,
                progress: Callable[[int], None] | None = None) -> list[PassResult]:
     chunks = [(spec, list(range(i, min(i + 4, spec.passes)))) for i in range(0, spec.passes, 4)]
-    results: list[PassResult] = []
-    if jobs <= 1:
-        for chunk in chunks:
-            part = _run_chunk(chunk)
-            results.extend(part)
-            if progress:
-                progress(len(part))
-    else:
-        # Not "fork": a process that already ran OpenCV (or pytest's timeout thread) holds
-        # locks that a forked child inherits locked, and the pool then deadlocks.
-        ctx = multiprocessing.get_context("forkserver" if sys.platform == "linux" else "spawn")
-        with ctx.Pool(jobs) as pool:
-            for part in pool.imap_unordered(_run_chunk, chunks, chunksize=1):
-                results.extend(part)
-                if progress:
-                    progress(len(part))
+    results = run_chunks(_run_chunk, chunks, jobs, progress)
     results.sort(key=lambda r: r.case_index)
     return results
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import multiprocessing
 import os
 import sys
 import time
@@ -34,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.synthetic_net import GroundTruth, NetPose, NetRenderer, SceneStyle
+from service.benchmarks.workers import run_chunks
 from service.core.camera import CameraModel
 from service.core.estimator import NetEstimator
 from service.core.mesh import MeshGeometry
@@ -244,21 +244,7 @@ def run_rows(frames: int, seed: int, jobs: int,
              progress: Callable[[int], None] | None = None) -> list[Row]:
     groups = [(seed, g, min(GROUP_SIZE, frames - g * GROUP_SIZE))
               for g in range(math.ceil(frames / GROUP_SIZE))]
-    rows: list[Row] = []
-    if jobs <= 1:
-        for g in groups:
-            rows.extend(run_group(g))
-            if progress:
-                progress(g[2])
-    else:
-        # Not "fork": a process that already ran OpenCV (or pytest's timeout thread) holds
-        # locks that a forked child inherits locked, and the pool then deadlocks.
-        ctx = multiprocessing.get_context("forkserver" if sys.platform == "linux" else "spawn")
-        with ctx.Pool(jobs) as pool:
-            for part in pool.imap_unordered(run_group, groups, chunksize=1):
-                rows.extend(part)
-                if progress:
-                    progress(len(part))
+    rows = run_chunks(run_group, groups, jobs, progress)
     rows.sort(key=lambda r: (r.group, r.index))
     return rows
 

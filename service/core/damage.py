@@ -57,6 +57,7 @@ from service.core.camera import CameraModel
 from service.core.errors import ConfigError
 from service.core.grey import to_gray
 from service.core.mesh import MeshGeometry
+from service.core.plane_frame import plane_axes, rotation_to_z
 from service.core.results import NetEstimate
 
 F64 = npt.NDArray[np.float64]
@@ -217,21 +218,6 @@ class NetFrame:
         return float(rel @ self.horizontal), float(rel @ self.vertical)
 
 
-def plane_axes(normal: npt.ArrayLike) -> tuple[F64, F64]:
-    """The net plane's horizontal and vertical: the camera's x (right) and y (down) laid onto
-    the plane, y made perpendicular to x within it."""
-    n = np.asarray(normal, dtype=np.float64)
-    n = n / np.linalg.norm(n)
-    h = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    if np.linalg.norm(h) < 1e-6:
-        h = np.array([0.0, 0.0, 1.0]) - n[2] * n
-    h = h / np.linalg.norm(h)
-    v = np.cross(n, h)
-    if v[1] < 0:
-        v = -v
-    return h, v
-
-
 @dataclass(frozen=True)
 class _Lattice:
     """The net's lattice on the plane, in the virtual camera that faces it."""
@@ -346,7 +332,7 @@ class DamageDetector:
         camera facing the plane."""
         assert est.normal is not None and est.distance_m is not None
         away = -np.asarray(est.normal, dtype=np.float64)
-        rotation = _rotation_to_z(away)
+        rotation = rotation_to_z(away)
         d = float(est.distance_m)
         rois = [r for r in est.rois if r.used_in_fit and r.reciprocal is not None]
         if not rois:
@@ -1015,16 +1001,3 @@ def _aligned(basis: F64, ref: F64, tol: float = 0.12) -> F64 | None:
         return None
     return np.asarray(cands[pick].T, dtype=np.float64)
 
-
-def _rotation_to_z(direction: F64) -> F64:
-    """The smallest rotation taking the unit vector `direction` onto +z."""
-    v = direction / np.linalg.norm(direction)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(v, z)
-    sin = float(np.linalg.norm(axis))
-    cos = float(v @ z)
-    if sin < 1e-12:
-        return np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
-    k = axis / sin
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.asarray(np.eye(3) + sin * kx + (1 - cos) * (kx @ kx), dtype=np.float64)

@@ -49,6 +49,7 @@ from service.core.grey import to_gray
 from service.core.lattice import LatticeFinder, LatticeFit, reduce_basis
 from service.core.mesh import MeshGeometry
 from service.core.plane import PlaneFit, axis_leverage, fit_plane
+from service.core.plane_frame import rotation_to_z
 from service.core.results import Mat2, NetEstimate, RoiResult
 from service.core.spectrum import Peaks, SpectrumAnalyzer
 
@@ -963,7 +964,7 @@ class NetEstimator:
         """Measure the ROIs in a virtual camera facing the plane, then fit the plane to the ROIs
         whose lattice agrees with the consensus."""
         s = self.settings
-        rotation = _rotation_to_z(-normal)
+        rotation = rotation_to_z(-normal)
         n_away = -normal
         # Mesh period at each ROI centre (source pixels) predicted by the plane: the cell area
         # in normalised units, A (n . r)^3 / d^2, through the lens Jacobian.
@@ -1814,20 +1815,6 @@ def _roi_result(m: _Roi, used: bool) -> RoiResult:
 def _no_net(rois: list[_Roi], level: int, reason: str) -> NetEstimate:
     return NetEstimate(detected=False, confidence=0.0, level=level, reason=reason,
                        rois=tuple(_roi_result(m, False) for m in rois))
-
-
-def _rotation_to_z(direction: F64) -> F64:
-    """The smallest rotation taking the unit vector `direction` onto +z."""
-    v = direction / np.linalg.norm(direction)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(v, z)
-    sin = float(np.linalg.norm(axis))
-    cos = float(v @ z)
-    if sin < 1e-12:
-        return np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
-    k = axis / sin
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.asarray(np.eye(3) + sin * kx + (1 - cos) * (kx @ kx), dtype=np.float64)
 
 
 def _agrees(result: NetEstimate, seed: NetEstimate, rel: float = 0.08,
