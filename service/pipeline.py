@@ -98,6 +98,7 @@ class Pipeline:
         self._inspector = inspector
         self._autopilot_distance: AutopilotDistance = autopilot_distance
         self._prior: NetEstimate | None = None
+        self._prior_t = math.nan  # capture time of the prior's frame
         # Confidence of the last accepted measurement: what a coasting reading is worth.
         self._last_quality = math.nan
         self._too_close_frames = 0
@@ -122,6 +123,7 @@ class Pipeline:
         """A new estimator (mesh or tuning changed); the old prior does not carry over."""
         self._estimator = estimator
         self._prior = None
+        self._prior_t = math.nan
 
     def set_autopilot_distance(self, which: AutopilotDistance) -> None:
         self._autopilot_distance = which
@@ -130,6 +132,7 @@ class Pipeline:
         """What the next frame's result depends on besides the frame: the filter's state, the
         prior (the last detection) and the last accepted quality, as exact JSON values."""
         return {"tracker": self._tracker.snapshot(), "prior": to_plain(self._prior),
+                "prior_t": to_plain(self._prior_t),
                 "last_quality": to_plain(self._last_quality),
                 "too_close_frames": self._too_close_frames}
 
@@ -138,6 +141,8 @@ class Pipeline:
         self._tracker.restore(state["tracker"])
         prior = state.get("prior")
         self._prior = None if prior is None else from_plain(NetEstimate, prior)
+        # A snapshot from before prior times were kept: the prior's age is unknown.
+        self._prior_t = from_plain(float, state.get("prior_t", to_plain(math.nan)))
         self._last_quality = from_plain(float, state["last_quality"])
         self._too_close_frames = int(state.get("too_close_frames", 0))
 
@@ -148,7 +153,9 @@ class Pipeline:
         failure: Exception | None = None
         t0 = time.perf_counter()
         try:
-            estimate = self._estimator.estimate(image, prior=self._prior, budget=budget)
+            age = t - self._prior_t if math.isfinite(self._prior_t) else None
+            estimate = self._estimator.estimate(image, prior=self._prior, budget=budget,
+                                                prior_age_s=age)
         except NetposeError as exc:
             failure = exc
         except Exception as exc:  # a bug must cost one frame, not the service
@@ -156,6 +163,7 @@ class Pipeline:
             failure = exc
         estimate_ms = (time.perf_counter() - t0) * 1e3
         self._prior = estimate if estimate is not None and estimate.detected else None
+        self._prior_t = t if self._prior is not None else math.nan
         too_close = estimate is not None and estimate.too_close
         self._too_close_frames = self._too_close_frames + 1 if too_close else 0
         track = self._tracker.step(t, estimate)

@@ -56,13 +56,14 @@ def test_a_seed_at_a_harmonic_scale_does_not_give_its_distance() -> None:
             assert abs(_range_error(est, truth)) < 0.01, factor
 
 
+@pytest.mark.parametrize("prior_age_s", [None, 0.5])
 @pytest.mark.parametrize("size", [(640, 360), (1280, 720), (384, 216)])
 def test_a_net_that_jumped_much_closer_is_not_tracked_at_the_old_scale(
-    size: tuple[int, int]
+    size: tuple[int, int], prior_age_s: float | None
 ) -> None:
-    """The previous frame saw the net at 0.4 m; this one (frames were lost) at 0.1-0.2 m. The
-    tracked plane's rectification shows the mesh's 2nd or 4th harmonic where the old mesh
-    was: that must not come out as the old distance."""
+    """The previous frame saw the net at 0.4 m; this one (frames were lost: half a second, or
+    an unknown time) at 0.1-0.2 m. The tracked plane's rectification shows the mesh's 2nd or
+    4th harmonic where the old mesh was: that must not come out as the old distance."""
     camera = bench_camera(*size)
     mesh = MeshGeometry(0.025)
     renderer = NetRenderer(camera, mesh)
@@ -74,9 +75,64 @@ def test_a_net_that_jumped_much_closer_is_not_tracked_at_the_old_scale(
     for z in (0.2, 0.16, 0.12, 0.1, 0.08):
         frame, truth = renderer.render(NetPose(z, 15.0, 30.0, 10.0), np.random.default_rng(1),
                                        style)
-        est = estimator.estimate(frame, prior=prior)
+        est = estimator.estimate(frame, prior=prior, prior_age_s=prior_age_s)
         if est.detected:
             assert abs(_range_error(est, truth)) < GROSS, z
+
+
+def _approach(z0: float, z1: float, frames: int) -> tuple[list[NetEstimate], list[GroundTruth]]:
+    """A 640x360 camera closing in from z0 to z1 over `frames` frames at 30 frames/s, each
+    frame estimated with the previous detection as prior (as `Pipeline` feeds it)."""
+    camera = bench_camera(640, 360)
+    renderer = NetRenderer(camera, PAPER_MESH, seed=2)
+    estimator = NetEstimator(camera, PAPER_MESH)
+    rng = np.random.default_rng(2)
+    prior: NetEstimate | None = None
+    estimates, truths = [], []
+    for i in range(frames):
+        z = z0 + (z1 - z0) * i / (frames - 1)
+        frame, truth = renderer.render(NetPose(z, 20.0, 30.0, 10.0), rng)
+        est = estimator.estimate(frame, prior=prior, prior_age_s=1.0 / 30.0)
+        prior = est if est.detected else None
+        estimates.append(est)
+        truths.append(truth)
+    return estimates, truths
+
+
+def test_tracking_renews_its_proof_of_scale_on_schedule() -> None:
+    """At 0.15 m/s the net cannot change scale by a harmonic factor between frames 33 ms
+    apart, so a tracked frame keeps the last proof of scale, and the blind check (a full
+    search) runs once every `scale_proof_frames` frames instead of on every frame."""
+    every = NetEstimator(bench_camera(640, 360), PAPER_MESH).settings.scale_proof_frames
+    estimates, truths = _approach(1.10, 1.00, 2 * every + 5)
+    assert all(e.detected for e in estimates)
+    ages = [e.frames_since_scale_proof for e in estimates]
+    proved = [i for i, a in enumerate(ages) if a == 0]
+    assert proved == [0, every, 2 * every], ages
+    for est in estimates:
+        # Only a proving frame spends time on the blind check.
+        assert ("blind_check" in est.timings_ms) == (est.frames_since_scale_proof == 0 and
+                                                     est is not estimates[0])
+    # Skipping the check changed no answer: every range within 3 of its sigmas (Table 1: 1 %).
+    for est, truth in zip(estimates, truths, strict=True):
+        assert est.range_m is not None and est.sigma_range_m is not None
+        assert abs(est.range_m - truth.range_m) < 3.0 * est.sigma_range_m + 1e-3
+
+
+def test_a_range_that_drifted_from_the_proved_one_is_proved_again() -> None:
+    """Closing from 1.2 to 0.6 m in a second: the scale is proved again each time the range
+    has left the last proved one by the largest step a tracked frame may take unchecked."""
+    from service.core.estimator import MAX_TRACKED_SCALE_STEP
+
+    estimates, _ = _approach(1.2, 0.6, 30)
+    proved_at: float | None = None
+    for est in estimates:
+        assert est.detected and est.range_m is not None, est.reason
+        if est.frames_since_scale_proof == 0:
+            proved_at = est.range_m
+        assert proved_at is not None and est.scale_proved_range_m == pytest.approx(proved_at)
+        assert abs(math.log(est.range_m / proved_at)) < math.log(MAX_TRACKED_SCALE_STEP)
+    assert sum(e.frames_since_scale_proof == 0 for e in estimates) >= 3
 
 
 # -- grids that are not nets ----------------------------------------------------------------------

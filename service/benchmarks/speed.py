@@ -166,7 +166,8 @@ class _TrackingAt:
         self.prior: NetEstimate | None = None
 
     def step(self, image: npt.NDArray[np.uint8]) -> NetEstimate:
-        est = self.estimator.estimate(image, prior=self.prior, budget=self.budget)
+        est = self.estimator.estimate(image, prior=self.prior, budget=self.budget,
+                                      prior_age_s=1.0 / 30.0)
         self.prior = est if est.detected else None
         return est
 

@@ -35,6 +35,7 @@ lens Jacobians) is computed once and cached. ROIs are measured independently of 
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -72,6 +73,10 @@ _REFINEMENTS = tuple(
 
 # Work levels of `NetEstimator.estimate(budget=...)`: 0 is the full work.
 BUDGET_LEVELS = 4
+# The largest change of scale a tracked frame may have gone through unseen by its blind check:
+# below sqrt(2), the smallest harmonic factor of a lattice, and below the 1.35 at which a
+# rectified ROI's lattice is judged off target.
+MAX_TRACKED_SCALE_STEP = 1.25
 # Coarse rectified ROIs (the leanest level) only where the mesh keeps this period in them: its
 # second harmonic then still lies inside the analysed band.
 _COARSE_MIN_PERIOD_PX = 4.4
@@ -123,6 +128,14 @@ class EstimatorSettings:
     # No distance is reported less certain than this (1 sigma).
     max_sigma_range_fraction: float = 0.02
     max_sigma_normal_deg: float = 8.0
+    # A tracked frame's blind scale check (a full search that proves the tracked scale is not a
+    # harmonic) may be skipped while the net cannot have changed scale by a harmonic factor
+    # since the prior's frame: at this closing speed (a BlueROV2's top speed is ~1.5 m/s) it
+    # moves at most MAX_TRACKED_SCALE_STEP of the range between frames. Re-proved at least
+    # every `scale_proof_frames` tracked frames, and whenever the range left the proved one by
+    # that step.
+    max_closing_speed_m_s: float = 1.5
+    scale_proof_frames: int = 15
 
     def validate(self) -> None:
         if self.roi_size not in (64, 128, 256, 512):
@@ -137,6 +150,10 @@ class EstimatorSettings:
             raise ConfigError("estimator.min_rois", "exceeds the number of ROIs in the grid")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError("estimator.min_confidence", "must be in 0..1")
+        if not self.max_closing_speed_m_s > 0.0:
+            raise ConfigError("estimator.max_closing_speed_m_s", "must be > 0")
+        if not 1 <= self.scale_proof_frames <= 300:
+            raise ConfigError("estimator.scale_proof_frames", "must be 1..300")
 
 
 @dataclass(frozen=True)
@@ -475,13 +492,18 @@ class NetEstimator:
 
     # -- per frame -----------------------------------------------------------------------------
     def estimate(
-        self, frame: Image, prior: NetEstimate | None = None, budget: int = 0
+        self, frame: Image, prior: NetEstimate | None = None, budget: int = 0,
+        prior_age_s: float | None = None,
     ) -> NetEstimate:
         """Estimate the net plane in one frame (grey, or BGR/BGRA which is converted).
 
         `prior` (the previous frame's estimate, while tracking) lets the estimator skip the
         scale search: the ROIs are rectified with the prior plane straight away. Without a
         detection that way it falls back to the full search.
+
+        `prior_age_s` (the time from the prior's frame to this one, None when unknown) says
+        whether the net can have changed scale by a harmonic factor since: while it cannot, and
+        the scale was proved recently, the tracked frame skips the blind scale check.
 
         `budget` (0 .. BUDGET_LEVELS - 1) lowers the work per frame for a CPU that cannot keep
         up: 0 is the full work; each higher level measures less (see `_Budget`). A higher level
@@ -513,12 +535,17 @@ class NetEstimator:
                                    self._prior_rois(prior, layout),
                                    passes=current.budget.tracking_passes)
             if tracked.detected and _agrees(tracked, prior):
-                t1 = time.perf_counter()
-                if self._blind_scale_agrees(tracked, current, layout):
-                    result = tracked
-                current.lap("blind_check", t1)
+                if self._scale_still_proved(tracked, prior, prior_age_s):
+                    result = replace(
+                        tracked, frames_since_scale_proof=prior.frames_since_scale_proof + 1,
+                        scale_proved_range_m=prior.scale_proved_range_m)
+                else:
+                    t1 = time.perf_counter()
+                    if self._blind_scale_agrees(tracked, current, layout):
+                        result = _scale_proved(tracked)
+                    current.lap("blind_check", t1)
         if result is None:
-            result = self._cold(current, layout)
+            result = _scale_proved(self._cold(current, layout))
         if not result.detected and not result.reason.startswith(_NOT_A_NET):
             # Not when the view was positively recognised as something else (a brick wall, a
             # checkerboard, cells of another shape): "too close" must never fire without a net.
@@ -582,6 +609,31 @@ class NetEstimator:
             return None
         period = side / math.sqrt(fit.det)
         return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
+
+    def _scale_still_proved(
+        self, tracked: NetEstimate, prior: NetEstimate, prior_age_s: float | None
+    ) -> bool:
+        """May `tracked` keep the prior's proof of scale? Only if the net cannot have come
+        nearer or gone further by a harmonic factor since the prior's frame: the smallest such
+        factor is sqrt(2) (a diagonal sub-lattice), and a change of MAX_TRACKED_SCALE_STEP or
+        more is refused by the rectified pass itself (found / intended period). A tracked frame
+        also follows a net that changes scale gradually; the proof is renewed every
+        `scale_proof_frames` frames and once the range has drifted that step from the proved
+        one, so the blind check still runs a few times a second."""
+        s = self.settings
+        proved = prior.scale_proved_range_m
+        if prior_age_s is None or proved is None or prior.range_m is None or (
+            tracked.range_m is None
+        ):
+            return False
+        if not (math.isfinite(prior_age_s) and prior_age_s >= 0.0) or (
+            prior.frames_since_scale_proof + 1 >= s.scale_proof_frames
+        ):
+            return False
+        reach = s.max_closing_speed_m_s * prior_age_s
+        if reach > (1.0 - 1.0 / MAX_TRACKED_SCALE_STEP) * min(prior.range_m, tracked.range_m):
+            return False
+        return abs(math.log(tracked.range_m / proved)) < math.log(MAX_TRACKED_SCALE_STEP)
 
     def _blind_scale_agrees(
         self, result: NetEstimate, frame: _Frame, layout: _Layout
@@ -1234,15 +1286,9 @@ class NetEstimator:
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
         # The extra points of every refinement, looked up in one go.
-        groups: list[tuple[int, F64]] = []
-        for inv_s, index in zip(_REFINEMENTS, _REFINEMENT_INDEX, strict=True):
-            extra = _extra_points(k @ inv_s, k, spectrum.size)
-            if extra.shape[0] >= 2:
-                groups.append((index, extra))
-        if not groups:
+        points, group_of = _extra_points(k, spectrum.size)
+        if points.shape[0] == 0:
             return None
-        points = np.concatenate([extra for _, extra in groups])
-        group_of = np.repeat(np.arange(len(groups)), [extra.shape[0] for _, extra in groups])
         # A real peak there is a local maximum of its own: the skirt of a strong neighbour
         # (a harmonic two bins away, smeared by what is left of the perspective) is not.
         near = spectrum.maxima_near(snr[None], points, null_level)
@@ -1254,7 +1300,8 @@ class NetEstimator:
         # a neighbouring lattice peak).
         real = keep[0] & ~_near_lattice(found[0], k, 1.5)
         best: tuple[float, int] | None = None
-        for g, (index, _) in enumerate(groups):
+        for g in np.unique(group_of).tolist():
+            index = _REFINEMENT_INDEX[g]
             values = centre[0][real & (group_of == g)]
             # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
             # of them (the others are weak cross terms, or outside the band).
@@ -1623,26 +1670,48 @@ def _near_lattice(points: F64, basis: F64, radius: float) -> npt.NDArray[np.bool
     return np.asarray(np.linalg.norm(points.T - nearest, axis=0) < radius, dtype=bool)
 
 
-def _extra_points(fine: F64, coarse: F64, size: int) -> F64:
-    """Low-order points of the finer lattice `fine` that are not points of `coarse`, inside
-    the analysed band."""
-    pts = []
-    inv = np.linalg.inv(coarse)
-    for h in range(0, 3):
-        for j in range(-2, 3):
-            if (h, j) == (0, 0) or (h == 0 and j < 0):
-                continue
-            v = h * fine[:, 0] + j * fine[:, 1]
-            c = inv @ v
-            if np.abs(c - np.rint(c)).max() < 1e-6:
-                continue
-            # Too near a point of the coarse lattice to be told from its skirt.
-            if float(np.hypot(*(v - coarse @ np.rint(c)))) < 2.5:
-                continue
-            r = float(np.hypot(*v))
-            if 2.6 <= r <= 0.45 * size:
-                pts.append(v)
-    return np.array(pts).reshape(-1, 2)
+def _extra_points(k: F64, size: int) -> tuple[F64, npt.NDArray[np.int64]]:
+    """The low-order points (m, 2) of each refinement of the lattice `k` that are not points
+    of `k`, inside the analysed band, and the refinement each belongs to (m,): those of a
+    refinement with fewer than two such points are left out.
+
+    In `k`'s own coordinates the points of refinement S are S^-1 (h, j): which of them are not
+    lattice points, and their offsets from the nearest ones, depend on S alone and are
+    tabulated once (`_extra_coords`); only their lengths in bins depend on `k`."""
+    coords, offsets, group = _extra_coords()
+    points = coords @ k.T
+    off = offsets @ k.T  # (corners, m, 2): to the four points of `k` around each
+    nearest = np.hypot(off[..., 0], off[..., 1]).min(axis=0)
+    radius = np.hypot(points[:, 0], points[:, 1])
+    # Too near a point of `k` to be told from its skirt, or outside the band.
+    keep = (nearest >= 2.5) & (radius >= 2.6) & (radius <= 0.45 * size)
+    counts = np.bincount(group[keep], minlength=len(_REFINEMENTS))
+    keep &= counts[group] >= 2
+    return points[keep], group[keep]
+
+
+@functools.cache
+def _extra_coords() -> tuple[F64, F64, npt.NDArray[np.int64]]:
+    """`_extra_points`' table: for each refinement S^-1 and each low-order (h, j), the point's
+    coordinates in the coarse lattice when they are not integers, their offsets from the four
+    integer points around them (a point halfway between two is near both), and the
+    refinement's number."""
+    coords: list[F64] = []
+    group: list[int] = []
+    for g, inv_s in enumerate(_REFINEMENTS):
+        for h in range(0, 3):
+            for j in range(-2, 3):
+                if (h, j) == (0, 0) or (h == 0 and j < 0):
+                    continue
+                c = inv_s @ np.array([h, j], dtype=np.float64)
+                if np.abs(c - np.rint(c)).max() < 1e-6:
+                    continue
+                coords.append(c)
+                group.append(g)
+    table = np.array(coords)
+    corners = np.array([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
+    offsets = (table - np.floor(table))[None] - corners[:, None, :]
+    return table, offsets, np.array(group, dtype=np.int64)
 
 
 def _bar_pair(edges: F64) -> F64:
@@ -1810,6 +1879,13 @@ def _roi_result(m: _Roi, used: bool) -> RoiResult:
         peaks=m.peaks,
         used_in_fit=used,
     )
+
+
+def _scale_proved(result: NetEstimate) -> NetEstimate:
+    """`result` with its scale marked as proved on this frame (a detection only)."""
+    if not result.detected or result.range_m is None:
+        return result
+    return replace(result, frames_since_scale_proof=0, scale_proved_range_m=result.range_m)
 
 
 def _no_net(rois: list[_Roi], level: int, reason: str) -> NetEstimate:

@@ -72,6 +72,11 @@ class NetEstimate:
     budget_level: int = 0
     # ROI spectra computed for this frame, by FFT size: the work done, whatever the clock says.
     fft_counts: dict[int, int] = field(default_factory=dict)
+    # When the mesh scale was last proved without a prior (a cold search, or a tracked frame's
+    # blind check): this many frames ago, at this range. A tracked frame skips the blind check
+    # only while the proof is recent and the net cannot have moved a harmonic factor since.
+    frames_since_scale_proof: int = 0
+    scale_proved_range_m: float | None = None
 
     @property
     def tilt_deg(self) -> float | None:
