@@ -241,3 +241,36 @@ def test_reduce_basis_gives_the_shortest_basis_of_the_same_lattice() -> None:
         assert k1[0] * k2[1] - k1[1] * k2[0] > 0
         canonical = reduce_basis(basis)
         assert np.allclose(reduced, canonical) or np.allclose(reduced, -canonical)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_guided_fit_of_many_rois_at_once_is_each_rois_own_fit(name: str) -> None:
+    """The ROIs of a rectified pass are fitted together (`fit_many`): each must get what
+    fitting it alone with the same guess gives. The guess is the true lattice perturbed by 3 %
+    (a previous pass) for some ROIs' peak sets and a wrong one (half the period: the guided
+    attempt must fail and the search take over) for others; some ROIs have almost no peaks."""
+    rng = np.random.default_rng(7)
+    truth = CASES[name]
+    guess = truth @ np.array([[1.03, 0.01], [-0.02, 0.98]])
+    peak_sets = [_peak_set(truth, rng, outliers=int(rng.integers(0, 6)), drop=0.4)
+                 for _ in range(9)]
+    peak_sets += [_peak_set(truth * 0.5, rng), Peaks(np.zeros((1, 2)) + 5.0, np.ones(1)),
+                  Peaks(np.zeros((0, 2)), np.zeros(0))]
+    finder = LatticeFinder()
+    for expected in (guess, 2.0 * truth):
+        together = finder.fit_many(peak_sets, expected, expected_share=0.3)
+        for peaks, fit in zip(peak_sets, together, strict=True):
+            alone = finder.fit(peaks, expected, expected_share=0.3)
+            assert (fit is None) == (alone is None)
+            if fit is not None and alone is not None:
+                assert fit.inliers == alone.inliers
+                np.testing.assert_allclose(fit.basis, alone.basis, rtol=0, atol=1e-9)
+                assert fit.relative_area_sigma == pytest.approx(alone.relative_area_sigma,
+                                                                rel=1e-9)
+        # The guess near the truth is taken and refined to it (unless a set is too thin).
+        if expected is guess:
+            fitted = [f for f in together[:9] if f is not None]
+            assert len(fitted) == 9
+            for fit in fitted:
+                same, area_error = _same_lattice(fit.basis, truth)
+                assert same and area_error < 0.01

@@ -1208,15 +1208,13 @@ class NetEstimator:
             weak_peaks = list(spectrum.peaks_near_many(
                 np.stack([snr for _, snr, _ in spectra]), _lattice_points(expected, order=2),
                 s.guided_snr))
+        found_peaks = [peaks if weak is None else _merge_peaks(peaks, weak)
+                       for (peaks, _, _), weak in zip(spectra, weak_peaks, strict=True)]
+        fits = self._lattice.fit_many(found_peaks, expected, expected_share=0.3)
         out: list[_Roi] = []
-        for geom, (_, jm, step, virt, t), level, (peaks, snr, logp), weak in zip(
-            grid, maps, levels, spectra, weak_peaks, strict=True
+        for geom, (_, jm, step, virt, t), level, (_, snr, logp), peaks, fit in zip(
+            grid, maps, levels, spectra, found_peaks, fits, strict=True
         ):
-            if expected is not None and weak is not None:
-                peaks = _merge_peaks(peaks, weak)
-                fit = self._lattice.fit(peaks, expected, expected_share=0.3)
-            else:
-                fit = self._lattice.fit(peaks)
             meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
                         logp=logp, footprint_px=n * step)
             meas.ray = virt

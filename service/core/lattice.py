@@ -149,6 +149,45 @@ def _basis_observed(basis: F64, k: F64, tol: F64) -> bool:
     return seen_odd(b1) and (seen_odd(b2) or seen_odd(b2 + b1) or seen_odd(b2 - b1))
 
 
+def _sums(roi: I64, n: int, a: F64, b: F64) -> F64:
+    """Per ROI, the 2x2 sum over its rows of outer(a_row, b_row): (n, 2, 2)."""
+    out = np.empty((n, 2, 2))
+    for r in range(2):
+        for c in range(2):
+            out[:, r, c] = np.bincount(roi, a[:, r] * b[:, c], n)
+    return out
+
+
+def _spans_unimodular_many(idx: I64, inl: npt.NDArray[np.bool_], roi: I64, n: int
+                           ) -> npt.NDArray[np.bool_]:
+    """`_spans_unimodular` of each ROI's inlier indices (its first 12, in peak order)."""
+    sel = np.nonzero(inl)[0]
+    r = roi[sel]
+    starts = np.searchsorted(r, np.arange(n))
+    rank = np.arange(sel.size) - starts[r]
+    keep = rank < 12
+    head = np.zeros((n, 12, 2), dtype=np.int64)
+    head[r[keep], rank[keep]] = idx[sel[keep]]
+    dets = np.abs(head[:, :, None, 0] * head[:, None, :, 1]
+                  - head[:, :, None, 1] * head[:, None, :, 0])
+    return np.asarray((dets == 1).any(axis=(1, 2)), dtype=bool)
+
+
+def _basis_observed_many(basis: F64, k: F64, tol: F64, roi: I64, n: int
+                         ) -> npt.NDArray[np.bool_]:
+    """`_basis_observed` of one basis among each ROI's peaks."""
+    b1, b2 = basis[:, 0], basis[:, 1]
+    vectors = np.array([b1, 3.0 * b1, b2, 3.0 * b2, b2 + b1, 3.0 * (b2 + b1), b2 - b1,
+                        3.0 * (b2 - b1)])  # (8, 2)
+    d_plus = np.hypot(k[:, None, 0] - vectors[None, :, 0], k[:, None, 1] - vectors[None, :, 1])
+    d_minus = np.hypot(k[:, None, 0] + vectors[None, :, 0], k[:, None, 1] + vectors[None, :, 1])
+    near = (d_plus < tol[:, None]) | (d_minus < tol[:, None])  # (m, 8)
+    seen = np.zeros((n, 8), dtype=bool)
+    np.logical_or.at(seen, roi, near)
+    odd = seen[:, 0::2] | seen[:, 1::2]  # each vector or its third harmonic: b1, b2, b2+b1, b2-b1
+    return np.asarray(odd[:, 0] & (odd[:, 1] | odd[:, 2] | odd[:, 3]), dtype=bool)
+
+
 def _assign(basis: F64, k: F64, tol: F64) -> tuple[npt.NDArray[np.bool_], I64]:
     coords = k @ _inv2(basis).T
     idx = np.rint(coords).astype(np.int64)
@@ -184,24 +223,104 @@ class LatticeFinder:
         hypothesis search runs."""
         if len(peaks) < 2:
             return None
+        if expected is not None:
+            fitted = self.fit_guided_many([peaks], expected, expected_share)[0]
+            if fitted is not None:
+                return fitted
+        return self._search(peaks)
+
+    def fit_many(
+        self, peaks: list[Peaks], expected: F64 | None = None, expected_share: float = 0.6
+    ) -> list[LatticeFit | None]:
+        """`fit` of each ROI's peaks; the guided attempt (`expected`) of all ROIs at once."""
+        if expected is None:
+            return [self.fit(p) for p in peaks]
+        guided = self.fit_guided_many(peaks, expected, expected_share)
+        return [g if g is not None else self._search(p) if len(p) >= 2 else None
+                for g, p in zip(guided, peaks, strict=True)]
+
+    def fit_guided_many(
+        self, peaks: list[Peaks], expected: F64, expected_share: float
+    ) -> list[LatticeFit | None]:
+        """`fit`'s guided attempt for the peaks of several ROIs that expect the same lattice
+        (the ROIs of one rectified pass), vectorised over all their peaks: per ROI, the fit of
+        `expected` when it explains `expected_share` of the peak weight, two of its inliers
+        form a basis and its basis vectors are seen; None where it does not (the caller then
+        searches without it). numpy's cost per call, not the arithmetic, is what a ROI's
+        handful of peaks costs one at a time."""
+        n_rois = len(peaks)
+        out: list[LatticeFit | None] = [None] * n_rois
+        e = np.asarray(expected, dtype=np.float64)
+        if abs(float(e[0, 0]) * float(e[1, 1]) - float(e[0, 1]) * float(e[1, 0])) <= 1e-9:
+            return out
+        usable = [i for i, p in enumerate(peaks) if len(p) >= 2]
+        if not usable:
+            return out
+        k = np.concatenate([peaks[i].k for i in usable])
+        w = np.concatenate([peaks[i].snr for i in usable])
+        roi = np.repeat(np.arange(len(usable)), [len(peaks[i]) for i in usable])
+        n = len(usable)
+        radius = np.sqrt(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1])
+        tol = np.maximum(self.tolerance_bins, self.tolerance_relative * radius)
+        total = np.bincount(roi, w, n)
+        basis = reduce_basis(e)
+        inl, idx = _assign(basis, k, tol)
+        ok = np.bincount(roi, w * inl, n) >= expected_share * total
+        ok &= _spans_unimodular_many(idx, inl, roi, n)
+        ok &= _basis_observed_many(basis, k, tol, roi, n)
+        if not ok.any():
+            return out
+        # One weighted least-squares step from `basis`: B^T = (N^T W N)^-1 N^T W K per ROI.
+        nf = idx.astype(np.float64) * inl[:, None]
+        wn = nf * w[:, None]
+        normal = _sums(roi, n, wn, nf)  # (n, 2, 2)
+        moment = _sums(roi, n, wn, k)
+        det = normal[:, 0, 0] * normal[:, 1, 1] - normal[:, 0, 1] * normal[:, 1, 0]
+        ok &= np.abs(det) >= 1e-9
+        bases = np.zeros((n, 2, 2))
+        for j in np.nonzero(ok)[0].tolist():
+            bases[j] = reduce_basis((_inv2(normal[j]) @ moment[j]).T)
+        # Inliers of each ROI's own fitted basis, and the fit's statistics.
+        safe = np.where(ok[:, None, None], bases, np.eye(2))
+        inv = np.linalg.inv(safe)
+        coords = np.einsum("mij,mj->mi", inv[roi], k)
+        idx2 = np.rint(coords)
+        diff = k - np.einsum("mij,mj->mi", safe[roi], idx2)
+        resid2 = diff[:, 0] ** 2 + diff[:, 1] ** 2
+        inl2 = (resid2 < tol * tol) & ((idx2[:, 0] != 0) | (idx2[:, 1] != 0))
+        n2 = idx2 * inl2[:, None]
+        gram = _sums(roi, n, n2, n2)
+        count = np.bincount(roi, inl2.astype(np.float64), n)
+        gdet = gram[:, 0, 0] * gram[:, 1, 1] - gram[:, 0, 1] * gram[:, 1, 0]
+        ok &= (count >= 2) & (np.abs(gdet) >= 1e-9)
+        sq = np.bincount(roi, resid2 * inl2, n)
+        inlier_w = np.bincount(roi, w * inl2, n)
+        for j in np.nonzero(ok)[0].tolist():
+            m = int(count[j])
+            dof = max(1, 2 * m - 4)
+            rms = math.sqrt(float(sq[j]) / dof) if m > 2 else 0.0
+            mean_snr = float(inlier_w[j]) / m
+            sigma_bins = max(rms, 0.6 * math.exp(-0.5 * mean_snr), 0.05)
+            cov = _inv2(gram[j]) * sigma_bins**2
+            binv = _inv2(bases[j])
+            var = float(sum(binv[:, r] @ cov @ binv[:, r] for r in range(2)))
+            out[usable[j]] = LatticeFit(
+                basis=bases[j],
+                inliers=m,
+                inlier_weight_fraction=float(inlier_w[j]) / float(total[j])
+                if total[j] > 0 else 0.0,
+                mean_snr=mean_snr,
+                rms_residual_bins=rms,
+                relative_area_sigma=math.sqrt(var),
+            )
+        return out
+
+    def _search(self, peaks: Peaks) -> LatticeFit | None:
+        """The lattice of the peaks without a guess: hypotheses from pairs of strong peaks."""
         k, w = peaks.k, peaks.snr
         radius = np.sqrt(k[:, 0] * k[:, 0] + k[:, 1] * k[:, 1])
         tol = np.maximum(self.tolerance_bins, self.tolerance_relative * radius)
         total = float(w.sum())
-        if expected is not None and abs(
-            float(expected[0, 0]) * float(expected[1, 1])
-            - float(expected[0, 1]) * float(expected[1, 0])
-        ) > 1e-9:
-            basis = reduce_basis(np.asarray(expected, dtype=np.float64))
-            inl, idx = _assign(basis, k, tol)
-            if (
-                float(w[inl].sum()) >= expected_share * total
-                and _spans_unimodular(idx[inl])
-                and _basis_observed(basis, k, tol)
-            ):
-                fitted = self._refine(basis, k, w, tol, total)
-                if fitted is not None:
-                    return fitted
         candidates = self._hypotheses(k, w, tol, radius)
         best: tuple[float, int, F64, npt.NDArray[np.bool_]] | None = None
         for basis in candidates:
