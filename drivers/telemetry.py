@@ -358,6 +358,8 @@ class _Outgoing:
 
 
 _STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX, DAMAGE_SUFFIX)
+# Confirmed holes kept while no session is open (a pass along a whole pen finds a few).
+DAMAGE_BACKLOG = 256
 
 
 def zenoh_error_text(exc: BaseException) -> str:
@@ -374,7 +376,10 @@ class ZenohPublisher(TelemetryPublisher):
     States: "idle" (before start), "connecting" (opening; retried with backoff while it fails),
     "online" (session open; a client session re-connects to a returning router by itself),
     "closed". Messages handed over while not online are counted as `skipped_offline` and not
-    kept: an estimate that waited for a router is no longer news.
+    kept: an estimate that waited for a router is no longer news. A confirmed hole is: it is
+    reported once, so it waits (up to DAMAGE_BACKLOG of them) in its own queue, which neither
+    going offline nor a flood of estimates empties, and leaves once a subscriber to the damage
+    key can hear it (no session, no router or nobody listening: it waits).
     """
 
     def __init__(
@@ -386,6 +391,7 @@ class ZenohPublisher(TelemetryPublisher):
         super().__init__(settings)
         self._clock = clock
         self._queue: collections.deque[_Outgoing] = collections.deque(maxlen=settings.queue_size)
+        self._damage: collections.deque[DamageMessage] = collections.deque()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # counters and query state, shared with zenoh's threads
@@ -442,7 +448,13 @@ class ZenohPublisher(TelemetryPublisher):
         self._enqueue(_Outgoing(PREVIEW_SUFFIX, jpeg=bytes(jpeg), meta=meta))
 
     def publish_damage(self, message: DamageMessage) -> None:
-        self._enqueue(_Outgoing(DAMAGE_SUFFIX, message))
+        with self._lock:
+            if len(self._damage) >= DAMAGE_BACKLOG:
+                # Only after hundreds of holes with no session: the newest are kept.
+                self._damage.popleft()
+                self._queue_dropped += 1
+            self._damage.append(message)
+        self._wake.set()
 
     def set_state(self, message: StateMessage) -> None:
         with self._lock:
@@ -452,14 +464,7 @@ class ZenohPublisher(TelemetryPublisher):
         """Whether a subscriber matches the preview key (Zenoh tracks this, also through a
         router): about a microsecond, checked once per preview period."""
         publisher = self._preview_publisher
-        if publisher is None:
-            return False
-        try:
-            status: Any = publisher.matching_status
-        except Exception:  # unknown: err on the side of sending
-            return True
-        # Typed as bool in the stubs; zenoh 1.10 returns a MatchingStatus with `.matching`.
-        return bool(getattr(status, "matching", status))
+        return publisher is not None and _has_audience(publisher)
 
     def status(self) -> TelemetryHealth:
         routers = peers = links = None
@@ -485,6 +490,7 @@ class ZenohPublisher(TelemetryPublisher):
                 sent=dict(self._sent),
                 queue_dropped=self._queue_dropped,
                 skipped_offline=self._skipped_offline,
+                damage_waiting=len(self._damage),
                 errors=self._errors,
                 queries=self._queries,
                 open_attempts=self._open_attempts,
@@ -603,30 +609,40 @@ class ZenohPublisher(TelemetryPublisher):
         while not self._stop.is_set():
             self._wake.wait(0.5)
             self._wake.clear()
-            while self._queue and not self._stop.is_set():
-                item = self._queue.popleft()
-                try:
-                    if item.message is None:
-                        attachment = None if item.meta is None else encode(item.meta)
-                        publishers[item.suffix].put(item.jpeg, attachment=attachment)
-                    else:
-                        publishers[item.suffix].put(encode(item.message))
-                except (ValueError, TypeError, zenoh.ZError) as exc:
-                    # A message that cannot be encoded, or a put refused: count it, say it once
-                    # per kind of failure, keep going with the next one.
-                    with self._lock:
-                        self._errors += 1
-                        self._last_error = f"{item.suffix}: {exc}"
-                    key = f"{item.suffix}:{type(exc).__name__}"
-                    if key not in failures_logged:
-                        failures_logged.add(key)
-                        log.warning("telemetry: cannot publish %s: %s", item.suffix, exc)
-                    continue
+            # Holes wait until a subscriber can hear them (checked again every half second).
+            while self._damage and not self._stop.is_set() and _has_audience(
+                publishers[DAMAGE_SUFFIX]
+            ):
                 with self._lock:
-                    self._sent[item.suffix] += 1
+                    message = self._damage.popleft()
+                self._put(publishers, _Outgoing(DAMAGE_SUFFIX, message), failures_logged)
+            while self._queue and not self._stop.is_set():
+                self._put(publishers, self._queue.popleft(), failures_logged)
         queryable.undeclare()
         for publisher in publishers.values():
             publisher.undeclare()
+
+    def _put(self, publishers: dict[str, zenoh.Publisher], item: _Outgoing,
+             failures_logged: set[str]) -> None:
+        try:
+            if item.message is None:
+                attachment = None if item.meta is None else encode(item.meta)
+                publishers[item.suffix].put(item.jpeg, attachment=attachment)
+            else:
+                publishers[item.suffix].put(encode(item.message))
+        except (ValueError, TypeError, zenoh.ZError) as exc:
+            # A message that cannot be encoded, or a put refused: count it, say it once per
+            # kind of failure, keep going with the next one.
+            with self._lock:
+                self._errors += 1
+                self._last_error = f"{item.suffix}: {exc}"
+            key = f"{item.suffix}:{type(exc).__name__}"
+            if key not in failures_logged:
+                failures_logged.add(key)
+                log.warning("telemetry: cannot publish %s: %s", item.suffix, exc)
+            return
+        with self._lock:
+            self._sent[item.suffix] += 1
 
     def _answer_query(self, query: zenoh.Query) -> None:
         """Runs on a Zenoh thread: reply with the latest state, never raise into Zenoh."""
@@ -642,6 +658,17 @@ class ZenohPublisher(TelemetryPublisher):
             log.warning("telemetry: cannot answer query %s: %s", query.selector, exc)
             with self._lock:
                 self._errors += 1
+
+
+def _has_audience(publisher: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches the publisher's key (Zenoh tracks this, also through a
+    router); when Zenoh cannot say, assume one."""
+    try:
+        status: Any = publisher.matching_status
+    except Exception:  # unknown: err on the side of sending
+        return True
+    # Typed as bool in the stubs; zenoh 1.10 returns a MatchingStatus with `.matching`.
+    return bool(getattr(status, "matching", status))
 
 
 def make_publisher(settings: TelemetrySettings) -> TelemetryPublisher:

@@ -38,6 +38,7 @@ from service.core.messages import (
     SCHEMA_VERSION,
     AutopilotHealth,
     CpuHealth,
+    DamageMessage,
     EstimateLatency,
     EstimateMessage,
     EstimatorHealth,
@@ -493,6 +494,72 @@ def test_client_without_router_runs_then_recovers_when_the_router_appears(
         lines = feed_until_exit(publisher, subscriber)
         assert sum(1 for line in lines if line.get("key", "").endswith("/estimate")) >= 10
         assert any("reply" in line for line in lines)  # queryable reachable through the router
+    finally:
+        router.kill()
+        router.communicate(timeout=10)
+
+
+DAMAGE_SUBSCRIBER = textwrap.dedent(
+    """
+    import json, sys, time, zenoh
+    connect, key, want = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([connect]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    holes = []
+    sub = session.declare_subscriber(key, lambda s: holes.append(json.loads(s.payload.to_bytes())))
+    print(json.dumps({"ready": True}), flush=True)
+    deadline = time.monotonic() + 20
+    while len(holes) < want and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.3)  # anything beyond `want` would show here
+    print(json.dumps([h["hole_id"] for h in holes]), flush=True)
+    session.close()
+    """
+)
+
+
+def _hole(hole_id: int) -> DamageMessage:
+    return DamageMessage(
+        vehicle="rov9", time_unix=time.time(), time_mono=time.monotonic(), hole_id=hole_id,
+        width_m=0.04, height_m=0.02, cells=2, missing_bars=1, image_x_px=320.0,
+        image_y_px=180.0, plane_x_m=0.1, plane_y_m=-0.05, position_m=(0.1, -0.05, 1.0),
+        range_m=1.0, bearing="ahead", confidence=0.8, detections=3, looks=4)
+
+
+def test_holes_confirmed_before_anyone_listens_are_delivered_once_someone_does(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    """A hole is reported once, so it must not be lost to a link that is not there yet: one
+    confirmed before the session could open (no router) and one confirmed while the session is
+    open but nobody subscribes both reach the topside subscriber when it joins, once each,
+    in order; estimates of that time are not kept."""
+    router_endpoint = endpoint()
+    publisher = publisher_factory(mode="client", connect=(router_endpoint,))
+    publisher.start()
+    wait_for(lambda: publisher.status().open_attempts >= 2, 10, "retries")
+    publisher.publish_damage(_hole(1))
+    publisher.publish_estimate(estimate_at(0))
+    assert publisher.status().damage_waiting == 1
+    router = start_router(router_endpoint)
+    try:
+        wait_for(lambda: publisher.online, 15, "the publisher to find the router")
+        publisher.publish_damage(_hole(2))
+        time.sleep(1.2)  # two and more looks for a subscriber find none: the holes wait
+        assert publisher.status().damage_waiting == 2
+        proc = subprocess.Popen(
+            [sys.executable, "-c", DAMAGE_SUBSCRIBER, router_endpoint, "netpose/rov9/damage", "2"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        lines = out.splitlines()
+        assert json.loads(lines[0]) == {"ready": True}
+        assert json.loads(lines[-1]) == [1, 2]
+        status = publisher.status()
+        assert status.damage_waiting == 0 and status.sent["damage"] == 2
+        assert status.skipped_offline == 1  # the estimate
     finally:
         router.kill()
         router.communicate(timeout=10)

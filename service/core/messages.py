@@ -237,6 +237,8 @@ class TelemetryHealth:
     sent: dict[str, int] = doc("messages put per stream", {})
     queue_dropped: int = doc("oldest messages dropped because the link could not keep up", 0)
     skipped_offline: int = doc("messages handed over while no session was open", 0)
+    damage_waiting: int = doc("confirmed holes kept until a subscriber to `damage` can hear "
+                              "them", 0)
     errors: int = doc("payloads that could not be put, failed queries", 0)
     queries: int = doc("queries answered", 0)
     open_attempts: int = doc("session open attempts", 0)
