@@ -1499,34 +1499,24 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
     cands = [m for m in rois if m.valid and m.fit is not None]
     if len(cands) < 2:
         return None
-    weights = [m.weight for m in cands]
+    weights = np.array([m.weight for m in cands])
     bases = np.array([m.fit.basis for m in cands if m.fit is not None])
     agree = _agreement(bases, bases, tolerance)  # [i, j]: ROI i agrees with ROI j's lattice
-    best: tuple[float, int] | None = None
-    for i in range(len(cands)):
-        total = sum(w for w, ok in zip(weights, agree[:, i].tolist(), strict=True) if ok)
-        if best is None or total > best[0]:
-            best = (total, i)
-    assert best is not None
-    ref_basis = bases[best[1]]
-    members = [m for m, ok in zip(cands, agree[:, best[1]].tolist(), strict=True) if ok]
-    if len(members) < 2:
+    # The lattice with the most evidence behind it (the first of equals).
+    best = int(np.argmax(weights @ agree))
+    chosen = agree[:, best]
+    if int(chosen.sum()) < 2:
         return None
-    acc = np.zeros((2, 2))
-    wsum = 0.0
-    log_scale = 0.0
-    for m in members:
-        assert m.fit is not None
-        mapped = _aligned(m.fit.basis, ref_basis)
-        scale = math.sqrt(abs(float(np.linalg.det(mapped))))
-        acc += m.weight * mapped / scale
-        log_scale += m.weight * math.log(scale)
-        wsum += m.weight
-    shape = acc / wsum
+    members = [m for m, ok in zip(cands, chosen.tolist(), strict=True) if ok]
+    # Each member's basis as the same lattice vectors as the chosen one's (a unimodular change
+    # of basis), split into shape and scale; the weighted means of both are the consensus.
+    w = weights[chosen]
+    mapped = _aligned_many(bases[chosen], bases[best])
+    scale = np.sqrt(np.abs(np.linalg.det(mapped)))
+    shape = np.einsum("k,kij->ij", w / scale, mapped) / w.sum()
     consensus = reduce_basis(shape / math.sqrt(abs(float(np.linalg.det(shape))))
-                             * math.exp(log_scale / wsum))
-    final = _agreement(np.array([m.fit.basis for m in members if m.fit is not None]),
-                       consensus[None], tolerance)[:, 0].tolist()
+                             * math.exp(float(w @ np.log(scale)) / float(w.sum())))
+    final = _agreement(bases[chosen], consensus[None], tolerance)[:, 0].tolist()
     agreeing = {id(m) for m, ok in zip(members, final, strict=True) if ok}
     for m in rois:
         m.agrees = id(m) in agreeing
@@ -1579,10 +1569,11 @@ def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
                  np.concatenate([strong.snr, weak.snr[new]]))
 
 
-def _aligned(basis: F64, ref: F64) -> F64:
-    """`basis` expressed as the same lattice vectors as `ref` (unimodular change of basis)."""
-    m = np.rint(np.linalg.solve(ref, basis))
-    return np.asarray(basis @ np.linalg.inv(m), dtype=np.float64)
+def _aligned_many(bases: F64, ref: F64) -> F64:
+    """Each of `bases` (k, 2, 2) expressed as the same lattice vectors as `ref` (unimodular
+    change of basis)."""
+    m = np.rint(np.linalg.solve(ref, bases))
+    return np.asarray(bases @ np.linalg.inv(m), dtype=np.float64)
 
 
 def _lattices_agree(
