@@ -207,7 +207,7 @@ def test_a_hole_is_confirmed_once_while_the_camera_moves(renderer: NetRenderer,
     confirmed, truths, inspector = _pass(renderer, estimator, 8, 0.4, [hole], settings)
     assert len(confirmed) == 1
     hole_seen = confirmed[0]
-    assert hole_seen.detections >= settings.confirm_frames
+    assert hole_seen.detections >= settings.confirm_hits
     truth = truths[-1][0]
     assert hole_seen.width_m == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
     assert hole_seen.height_m == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
@@ -234,6 +234,78 @@ def test_candidates_that_do_not_stay_put_are_not_confirmed() -> None:
         confirmed += tracker.update(DamageScan(candidates=(cand,), outline_px=outline,
                                                geometry=net), 0.1 * k, k)
     assert confirmed == []
+
+
+def _still_scan(place: tuple[float, float], found: bool, judged_left: float
+                ) -> DamageScan:
+    """A scan of a net 1 m straight ahead whose judged region is the frame left of
+    `judged_left` px, with (or without) a candidate at `place` on the plane."""
+    from service.core.damage import HoleCandidate, NetFrame
+
+    net = NetFrame(np.array([0.0, 0.0, -1.0]), 1.0, np.array([1.0, 0.0, 0.0]),
+                   np.array([0.0, 1.0, 0.0]))
+    x, y = place
+    px = CAMERA.project_normalized(np.array([[x, y]]))[0]
+    box = (px[0] - 8.0, px[1] - 8.0, px[0] + 8.0, px[1] + 8.0)
+    cand = HoleCandidate((float(px[0]), float(px[1])), box, 2, 1, 0.04, 0.02, (x, y),
+                         (x, y, 1.0), 1.0, 6.0, 1.0)
+    frame = ((0.0, 0.0), (959.0, 0.0), (959.0, 539.0), (0.0, 539.0))
+    judged = ((0.0, 0.0), (judged_left, 0.0), (judged_left, 539.0), (0.0, 539.0))
+    return DamageScan(candidates=(cand,) if found else (), outline_px=frame, geometry=net,
+                      judged_px=judged)
+
+
+def test_confirmation_counts_the_inspections_that_judged_the_place() -> None:
+    """Found in 2 of 3 looks: confirmed. Frames whose judged region did not hold the place
+    (the view is inspected a window at a time) are not looks: found in both of the two
+    inspections that judged it, among four frames, is enough."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)  # left of the middle of the frame
+    left_px = float(CAMERA.project_normalized(np.array([[place[0], 0.0]]))[0, 0])
+    covering, elsewhere = left_px + 100.0, left_px - 100.0
+    tracker = HoleTracker(CAMERA, settings)
+    pattern = [(True, covering), (False, covering), (True, covering)]
+    out = [tracker.update(_still_scan(place, f, edge), 0.1 * k, k)
+           for k, (f, edge) in enumerate(pattern)]
+    assert [len(c) for c in out] == [0, 0, 1]
+    assert (out[2][0].detections, out[2][0].looks) == (2, 3)
+    tracker = HoleTracker(CAMERA, settings)
+    pattern = [(True, covering), (False, elsewhere), (False, elsewhere), (True, covering)]
+    out = [tracker.update(_still_scan(place, f, edge), 0.1 * k, k)
+           for k, (f, edge) in enumerate(pattern)]
+    assert [len(c) for c in out] == [0, 0, 0, 1]
+    assert (out[3][0].detections, out[3][0].looks) == (2, 2)
+    # Once confirmed, further sightings of the same hole are not reported again.
+    more = [tracker.update(_still_scan(place, True, covering), 0.4 + 0.1 * k, 4 + k)
+            for k in range(5)]
+    assert all(c == [] for c in more)
+
+
+def test_a_candidate_is_dropped_when_the_looks_at_its_place_stop_finding_it() -> None:
+    """Two looks in a row without it (of 2-of-3) and it can no longer be confirmed: the
+    track is dropped, and a later sighting at the same place starts afresh."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)
+    left_px = float(CAMERA.project_normalized(np.array([[place[0], 0.0]]))[0, 0])
+    tracker = HoleTracker(CAMERA, settings)
+    for k, found in enumerate([True, False, False]):
+        assert tracker.update(_still_scan(place, found, left_px + 100.0), 0.1 * k, k) == []
+    assert tracker.tracks == [] and tracker.open_places(0.3) == []
+    assert tracker.update(_still_scan(place, True, left_px + 100.0), 0.3, 3) == []
+    (view,) = tracker.tracks
+    assert view.detections == 1 and not view.confirmed
+    (open_place,) = tracker.open_places(0.3)
+    assert open_place == pytest.approx(place)
+
+
+@pytest.mark.parametrize(("hits", "looks", "key"), [(0, 3, "damage.confirm_hits"),
+                                                    (3, 2, "damage.confirm_looks")])
+def test_confirmation_settings_are_checked(hits: int, looks: int, key: str) -> None:
+    from service.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        DamageSettings(confirm_hits=hits, confirm_looks=looks)
+    assert info.value.key == key
 
 
 def test_inspection_runs_only_while_tracking_and_within_its_budget(

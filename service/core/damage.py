@@ -107,11 +107,15 @@ class DamageSettings:
     # skipped to stay within it), or every n-th tracked frame when `every_n_frames` > 0.
     max_cost_fraction: float = 0.3
     every_n_frames: int = 0
-    # Confirmation (damage_track.py): a hole is reported when seen in this many inspected
-    # frames, in at least this share of those whose view held its place, and never again by the
-    # same track.
-    confirm_frames: int = 3
-    confirm_ratio: float = 0.5
+    # Confirmation (damage_track.py), counted in *looks*: inspections whose judged region held
+    # the candidate's place on the net. A hole is reported (once) when it was found in
+    # `confirm_hits` of the last `confirm_looks` looks; a candidate is dropped when the looks
+    # since its last sighting leave it no way to reach that. Three sightings, not two: before a
+    # track's velocity is known its gate must allow for the net moving up to 0.6 m/s, wide
+    # enough for two unrelated candidates on a patchily fouled net to meet in it; the third
+    # must also agree with the velocity the first two give.
+    confirm_hits: int = 3
+    confirm_looks: int = 5
     # A candidate belongs to a track when within this distance on the net (plus the track's own
     # motion); a track not seen for this long ends.
     gate_m: float = 0.06
@@ -137,10 +141,10 @@ class DamageSettings:
             raise bad("every_n_frames", "must be >= 0 (0: by max_cost_fraction)")
         if not 2 <= self.max_cells <= 64:
             raise bad("max_cells", "must be 2..64")
-        if self.confirm_frames < 1:
-            raise bad("confirm_frames", "must be >= 1")
-        if not 0.0 < self.confirm_ratio <= 1.0:
-            raise bad("confirm_ratio", "must be in (0, 1]")
+        if not 1 <= self.confirm_hits <= 20:
+            raise bad("confirm_hits", "must be 1..20")
+        if not self.confirm_hits <= self.confirm_looks <= 50:
+            raise bad("confirm_looks", f"must be confirm_hits ({self.confirm_hits})..50")
         for key in ("gate_m", "track_timeout_s", "notify_interval_s", "crop_scale"):
             if not getattr(self, key) > 0:
                 raise bad(key, "must be > 0")
@@ -187,6 +191,10 @@ class DamageScan:
     # pixels (its outline), and the net geometry of this frame.
     outline_px: tuple[Vec2, ...] = ()
     geometry: NetFrame | None = None
+    # Where a hole could be judged: cells with three inspected cells around them every way
+    # (the ring a hole is judged by), as a polygon of pixels. A place outside it was not looked
+    # at in this frame, whatever the outline says.
+    judged_px: tuple[Vec2, ...] = ()
     # A view of more than `max_cells_inspected` cells is inspected a strip at a time: this
     # frame's strip (from 0) and how many the view was cut into (1: all of it).
     strip: tuple[int, int] = (0, 1)
@@ -303,7 +311,8 @@ class DamageDetector:
             if len(cells) <= 4 * self.settings.max_cells)
         return DamageScan(candidates=candidates, inspected_cells=int(bars.inspected),
                           levels=used, timings_ms=timings, outline_px=_outline(coarse, w, h),
-                          geometry=net, rejected=why, strip=strip)
+                          geometry=net, rejected=why, strip=strip,
+                          judged_px=_outline(coarse, w, h, _judgeable(bars.cell_ok)))
 
     def _part(self, region: tuple[int, int, int, int], part: int
               ) -> tuple[int, int, int, int, tuple[int, int]]:
@@ -921,11 +930,24 @@ def _sample(pyramid: _Pyramid, coarse: F64, s: int, levels: npt.NDArray[np.int64
     return lat, valid
 
 
-def _outline(coarse: F64, w: int, h: int) -> tuple[Vec2, ...]:
-    """Outline (convex hull, frame pixels) of the inspected cells inside the frame."""
+def _judgeable(cell_ok: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """Cells with inspected cells three deep around them every way (a hole there and its ring
+    are wholly judged)."""
     import cv2
 
-    pts = coarse[1:-1, 1:-1].reshape(-1, 2)
+    ok = cv2.erode(cell_ok.astype(np.uint8), np.ones((7, 7), np.uint8),
+                   borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return np.asarray(ok > 0, dtype=bool)
+
+
+def _outline(coarse: F64, w: int, h: int, cells: npt.NDArray[np.bool_] | None = None
+             ) -> tuple[Vec2, ...]:
+    """Outline (convex hull, frame pixels) of the inspected cells (or of `cells`, shape
+    (n2, n1)) inside the frame."""
+    import cv2
+
+    pts = coarse[1:-1, 1:-1]
+    pts = (pts[cells] if cells is not None else pts).reshape(-1, 2)
     pts = pts[(pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)]
     if len(pts) < 3:
         return ()
