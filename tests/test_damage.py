@@ -329,32 +329,62 @@ def test_inspection_runs_only_while_tracking_and_within_its_budget(
     assert spent <= 0.3 * 2.0 * 60 + max(r.inspect_ms for r in inspected)
 
 
-def test_a_large_view_is_inspected_a_strip_at_a_time(renderer: NetRenderer,
-                                                     estimator: NetEstimator) -> None:
-    """A view of more cells than `max_cells_inspected` is cut into overlapping strips, one per
-    inspected frame in turn: each scan says which strip it inspected, the strips together
-    inspect at least the whole view, and a hole is found only in a strip that holds it."""
+def _judged_mask(scan: DamageScan) -> np.ndarray:
     import cv2
 
+    mask = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
+    if len(scan.judged_px) >= 3:
+        cv2.fillConvexPoly(mask, np.round(np.array(scan.judged_px)).astype(np.int32), 1)
+    return mask.astype(bool)
+
+
+def test_a_large_view_is_covered_a_window_at_a_time(renderer: NetRenderer,
+                                                    estimator: NetEstimator) -> None:
+    """A view of more cells than `max_cells_inspected` is inspected a window per frame, each
+    where the view was judged longest ago: no window holds more cells than the cap, and in
+    twice the number of windows the view needs (its cells over a window's judged cells) the
+    windows together judged nearly all of what one whole-view inspection judges (the windows
+    are squares in the lattice, the view is not). A hole is found only by windows that hold it."""
     pose = NetPose(1.0, 10.0, 40.0, 15.0, (0.2, 0.6))
     cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
     assert cell is not None
     hole = missing_knot(cell, np.random.default_rng(6))
     whole, (truth,), est = _scene_with(renderer, estimator, pose, [hole], 12)
-    assert whole.strip == (0, 1) and len(whole.candidates) == 1
+    assert whole.windows == 1 and len(whole.candidates) == 1
     image = _render(renderer, pose, 12, NetDamage([hole]))
     cap = 1500
     detector = DamageDetector(CAMERA, MESH, DamageSettings(max_cells_inspected=cap))
-    scans = [detector.inspect(image, est, part=k) for k in range(7)]
-    count = scans[0].strip[1]
-    assert count > 1
-    assert [s.strip for s in scans] == [(k % count, count) for k in range(7)]
+    first = detector.inspect(image, est)
+    windows = first.windows
+    assert 1 < windows < whole.inspected_cells / (cap // 2)
+    scans = [first] + [detector.inspect(image, est) for _ in range(2 * windows - 1)]
     assert all(0 < s.inspected_cells <= cap for s in scans)
-    assert sum(s.inspected_cells for s in scans[:count]) >= whole.inspected_cells
-    holding = []
-    for k, s in enumerate(scans[:count]):
-        outline = np.array(s.outline_px, dtype=np.float32).reshape(-1, 1, 2)
-        if cv2.pointPolygonTest(outline, truth.centre_px, False) >= 0:
-            holding.append(k)
-    found_in = [k for k, s in enumerate(scans[:count]) if s.candidates]
-    assert found_in and set(found_in) <= set(holding) and len(holding) < count
+    target = _judged_mask(whole)
+    covered = np.zeros_like(target)
+    for s in scans:
+        covered |= _judged_mask(s)
+    assert (covered & target).sum() >= 0.95 * target.sum()
+    holding = [k for k, s in enumerate(scans) if _judged_mask(s)[
+        round(truth.centre_px[1]), round(truth.centre_px[0])]]
+    found_in = [k for k, s in enumerate(scans) if s.candidates]
+    assert found_in and set(found_in) <= set(holding) and len(holding) < len(scans)
+
+
+def test_a_window_holds_the_open_candidates_places_first(renderer: NetRenderer,
+                                                         estimator: NetEstimator) -> None:
+    """Asked to revisit a candidate's place on the net, every window holds it (with its ring),
+    so the hole is judged, and found, in each of those frames."""
+    pose = NetPose(1.0, 10.0, 40.0, 15.0, (0.2, 0.6))
+    cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
+    assert cell is not None
+    hole = missing_knot(cell, np.random.default_rng(6))
+    whole, (truth,), est = _scene_with(renderer, estimator, pose, [hole], 12)
+    image = _render(renderer, pose, 12, NetDamage([hole]))
+    detector = DamageDetector(CAMERA, MESH, DamageSettings(max_cells_inspected=1500))
+    place = whole.candidates[0].plane_xy_m
+    scans = [detector.inspect(image, est, revisit=[place]) for _ in range(4)]
+    assert all(s.windows > 1 and s.revisits == 1 for s in scans)
+    assert all(len(s.candidates) == 1 for s in scans)
+    for s in scans:
+        assert s.candidates[0].plane_xy_m == pytest.approx(place, abs=MESH.bar_length_m)
+        assert _judged_mask(s)[round(truth.centre_px[1]), round(truth.centre_px[0])]

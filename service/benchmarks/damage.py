@@ -307,10 +307,9 @@ def _why_missed(res: object, truth: HoleTruth, pad: float) -> str:
     if len(scan.outline_px) >= 3:
         contour = np.array(scan.outline_px, dtype=np.float32).reshape(-1, 1, 2)
         if cv2.pointPolygonTest(contour, truth.centre_px, False) < 0:
-            k, count = scan.strip
-            if count > 1:
-                # The view was cut into strips and this frame inspected another one.
-                return f"outside this frame's strip ({k + 1} of {count})"
+            if scan.windows > 1:
+                # The view is inspected a window at a time and this frame looked elsewhere.
+                return "outside this frame's window"
             return "outside the inspected region (mesh too fine or too oblique there)"
     for centre, _, why in scan.rejected:
         if _overlaps(centre, truth, pad):

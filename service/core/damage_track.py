@@ -311,7 +311,7 @@ class NetInspector:
             return DamageReport(False, "skipped: inspection budget",
                                 tracks=tuple(self.tracker.tracks))
         t0 = time.perf_counter()
-        scan = self.detector.inspect(image, estimate, part=self.inspected_frames)
+        scan = self.detector.inspect(image, estimate, revisit=self.tracker.open_places(t))
         confirmed = self.tracker.update(scan, t, frame_index)
         ms = (time.perf_counter() - t0) * 1e3
         if st.every_n_frames <= 0:
