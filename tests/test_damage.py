@@ -207,7 +207,7 @@ def test_a_hole_is_confirmed_once_while_the_camera_moves(renderer: NetRenderer,
     confirmed, truths, inspector = _pass(renderer, estimator, 8, 0.4, [hole], settings)
     assert len(confirmed) == 1
     hole_seen = confirmed[0]
-    assert hole_seen.detections >= settings.confirm_frames
+    assert hole_seen.detections >= settings.confirm_hits
     truth = truths[-1][0]
     assert hole_seen.width_m == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
     assert hole_seen.height_m == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
@@ -236,6 +236,78 @@ def test_candidates_that_do_not_stay_put_are_not_confirmed() -> None:
     assert confirmed == []
 
 
+def _still_scan(place: tuple[float, float], found: bool, judged_left: float
+                ) -> DamageScan:
+    """A scan of a net 1 m straight ahead whose judged region is the frame left of
+    `judged_left` px, with (or without) a candidate at `place` on the plane."""
+    from service.core.damage import HoleCandidate, NetFrame
+
+    net = NetFrame(np.array([0.0, 0.0, -1.0]), 1.0, np.array([1.0, 0.0, 0.0]),
+                   np.array([0.0, 1.0, 0.0]))
+    x, y = place
+    px = CAMERA.project_normalized(np.array([[x, y]]))[0]
+    box = (px[0] - 8.0, px[1] - 8.0, px[0] + 8.0, px[1] + 8.0)
+    cand = HoleCandidate((float(px[0]), float(px[1])), box, 2, 1, 0.04, 0.02, (x, y),
+                         (x, y, 1.0), 1.0, 6.0, 1.0)
+    frame = ((0.0, 0.0), (959.0, 0.0), (959.0, 539.0), (0.0, 539.0))
+    judged = ((0.0, 0.0), (judged_left, 0.0), (judged_left, 539.0), (0.0, 539.0))
+    return DamageScan(candidates=(cand,) if found else (), outline_px=frame, geometry=net,
+                      judged_px=judged)
+
+
+def test_confirmation_counts_the_inspections_that_judged_the_place() -> None:
+    """Found in 2 of 3 looks: confirmed. Frames whose judged region did not hold the place
+    (the view is inspected a window at a time) are not looks: found in both of the two
+    inspections that judged it, among four frames, is enough."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)  # left of the middle of the frame
+    left_px = float(CAMERA.project_normalized(np.array([[place[0], 0.0]]))[0, 0])
+    covering, elsewhere = left_px + 100.0, left_px - 100.0
+    tracker = HoleTracker(CAMERA, settings)
+    pattern = [(True, covering), (False, covering), (True, covering)]
+    out = [tracker.update(_still_scan(place, f, edge), 0.1 * k, k)
+           for k, (f, edge) in enumerate(pattern)]
+    assert [len(c) for c in out] == [0, 0, 1]
+    assert (out[2][0].detections, out[2][0].looks) == (2, 3)
+    tracker = HoleTracker(CAMERA, settings)
+    pattern = [(True, covering), (False, elsewhere), (False, elsewhere), (True, covering)]
+    out = [tracker.update(_still_scan(place, f, edge), 0.1 * k, k)
+           for k, (f, edge) in enumerate(pattern)]
+    assert [len(c) for c in out] == [0, 0, 0, 1]
+    assert (out[3][0].detections, out[3][0].looks) == (2, 2)
+    # Once confirmed, further sightings of the same hole are not reported again.
+    more = [tracker.update(_still_scan(place, True, covering), 0.4 + 0.1 * k, 4 + k)
+            for k in range(5)]
+    assert all(c == [] for c in more)
+
+
+def test_a_candidate_is_dropped_when_the_looks_at_its_place_stop_finding_it() -> None:
+    """Two looks in a row without it (of 2-of-3) and it can no longer be confirmed: the
+    track is dropped, and a later sighting at the same place starts afresh."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)
+    left_px = float(CAMERA.project_normalized(np.array([[place[0], 0.0]]))[0, 0])
+    tracker = HoleTracker(CAMERA, settings)
+    for k, found in enumerate([True, False, False]):
+        assert tracker.update(_still_scan(place, found, left_px + 100.0), 0.1 * k, k) == []
+    assert tracker.tracks == [] and tracker.open_places(0.3) == []
+    assert tracker.update(_still_scan(place, True, left_px + 100.0), 0.3, 3) == []
+    (view,) = tracker.tracks
+    assert view.detections == 1 and not view.confirmed
+    (open_place,) = tracker.open_places(0.3)
+    assert open_place == pytest.approx(place)
+
+
+@pytest.mark.parametrize(("hits", "looks", "key"), [(0, 3, "damage.confirm_hits"),
+                                                    (3, 2, "damage.confirm_looks")])
+def test_confirmation_settings_are_checked(hits: int, looks: int, key: str) -> None:
+    from service.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        DamageSettings(confirm_hits=hits, confirm_looks=looks)
+    assert info.value.key == key
+
+
 def test_inspection_runs_only_while_tracking_and_within_its_budget(
         renderer: NetRenderer, estimator: NetEstimator) -> None:
     pose = NetPose(1.0, 10.0, 0.0, 10.0)
@@ -257,32 +329,62 @@ def test_inspection_runs_only_while_tracking_and_within_its_budget(
     assert spent <= 0.3 * 2.0 * 60 + max(r.inspect_ms for r in inspected)
 
 
-def test_a_large_view_is_inspected_a_strip_at_a_time(renderer: NetRenderer,
-                                                     estimator: NetEstimator) -> None:
-    """A view of more cells than `max_cells_inspected` is cut into overlapping strips, one per
-    inspected frame in turn: each scan says which strip it inspected, the strips together
-    inspect at least the whole view, and a hole is found only in a strip that holds it."""
+def _judged_mask(scan: DamageScan) -> np.ndarray:
     import cv2
 
+    mask = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
+    if len(scan.judged_px) >= 3:
+        cv2.fillConvexPoly(mask, np.round(np.array(scan.judged_px)).astype(np.int32), 1)
+    return mask.astype(bool)
+
+
+def test_a_large_view_is_covered_a_window_at_a_time(renderer: NetRenderer,
+                                                    estimator: NetEstimator) -> None:
+    """A view of more cells than `max_cells_inspected` is inspected a window per frame, each
+    where the view was judged longest ago: no window holds more cells than the cap, and in
+    twice the number of windows the view needs (its cells over a window's judged cells) the
+    windows together judged nearly all of what one whole-view inspection judges (the windows
+    are squares in the lattice, the view is not). A hole is found only by windows that hold it."""
     pose = NetPose(1.0, 10.0, 40.0, 15.0, (0.2, 0.6))
     cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
     assert cell is not None
     hole = missing_knot(cell, np.random.default_rng(6))
     whole, (truth,), est = _scene_with(renderer, estimator, pose, [hole], 12)
-    assert whole.strip == (0, 1) and len(whole.candidates) == 1
+    assert whole.windows == 1 and len(whole.candidates) == 1
     image = _render(renderer, pose, 12, NetDamage([hole]))
     cap = 1500
     detector = DamageDetector(CAMERA, MESH, DamageSettings(max_cells_inspected=cap))
-    scans = [detector.inspect(image, est, part=k) for k in range(7)]
-    count = scans[0].strip[1]
-    assert count > 1
-    assert [s.strip for s in scans] == [(k % count, count) for k in range(7)]
+    first = detector.inspect(image, est)
+    windows = first.windows
+    assert 1 < windows < whole.inspected_cells / (cap // 2)
+    scans = [first] + [detector.inspect(image, est) for _ in range(2 * windows - 1)]
     assert all(0 < s.inspected_cells <= cap for s in scans)
-    assert sum(s.inspected_cells for s in scans[:count]) >= whole.inspected_cells
-    holding = []
-    for k, s in enumerate(scans[:count]):
-        outline = np.array(s.outline_px, dtype=np.float32).reshape(-1, 1, 2)
-        if cv2.pointPolygonTest(outline, truth.centre_px, False) >= 0:
-            holding.append(k)
-    found_in = [k for k, s in enumerate(scans[:count]) if s.candidates]
-    assert found_in and set(found_in) <= set(holding) and len(holding) < count
+    target = _judged_mask(whole)
+    covered = np.zeros_like(target)
+    for s in scans:
+        covered |= _judged_mask(s)
+    assert (covered & target).sum() >= 0.95 * target.sum()
+    holding = [k for k, s in enumerate(scans) if _judged_mask(s)[
+        round(truth.centre_px[1]), round(truth.centre_px[0])]]
+    found_in = [k for k, s in enumerate(scans) if s.candidates]
+    assert found_in and set(found_in) <= set(holding) and len(holding) < len(scans)
+
+
+def test_a_window_holds_the_open_candidates_places_first(renderer: NetRenderer,
+                                                         estimator: NetEstimator) -> None:
+    """Asked to revisit a candidate's place on the net, every window holds it (with its ring),
+    so the hole is judged, and found, in each of those frames."""
+    pose = NetPose(1.0, 10.0, 40.0, 15.0, (0.2, 0.6))
+    cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
+    assert cell is not None
+    hole = missing_knot(cell, np.random.default_rng(6))
+    whole, (truth,), est = _scene_with(renderer, estimator, pose, [hole], 12)
+    image = _render(renderer, pose, 12, NetDamage([hole]))
+    detector = DamageDetector(CAMERA, MESH, DamageSettings(max_cells_inspected=1500))
+    place = whole.candidates[0].plane_xy_m
+    scans = [detector.inspect(image, est, revisit=[place]) for _ in range(4)]
+    assert all(s.windows > 1 and s.revisits == 1 for s in scans)
+    assert all(len(s.candidates) == 1 for s in scans)
+    for s in scans:
+        assert s.candidates[0].plane_xy_m == pytest.approx(place, abs=MESH.bar_length_m)
+        assert _judged_mask(s)[round(truth.centre_px[1]), round(truth.centre_px[0])]

@@ -76,9 +76,9 @@ def test_no_candidate_on_the_real_frames() -> None:
     assert [(r.name, r.candidates) for r in rows if r.candidates] == []
 
 
-def test_a_hole_outside_this_frames_strip_is_missed_for_that_reason() -> None:
-    """The account of misses tells a hole the frame's strip did not cover (the view is
-    inspected a strip at a time) from one outside the inspectable view."""
+def test_a_hole_outside_this_frames_window_is_missed_for_that_reason() -> None:
+    """The account of misses tells a hole the frame's window did not cover (the view is
+    inspected a window at a time) from one outside the inspectable view."""
     from types import SimpleNamespace
 
     from drivers.synthetic_damage import HoleTruth, cut_bar
@@ -88,8 +88,8 @@ def test_a_hole_outside_this_frames_strip_is_missed_for_that_reason() -> None:
     truth = HoleTruth(cut_bar((0, 0), 1, np.random.default_rng(0)), 0.04, 0.02, (800.0, 400.0),
                       (790.0, 395.0, 810.0, 405.0), 1.0)
     left_half = ((0.0, 0.0), (400.0, 0.0), (400.0, 719.0), (0.0, 719.0))
-    for strip, expected in (((1, 3), "outside this frame's strip (2 of 3)"),
-                            ((0, 1), "outside the inspected region")):
-        scan = DamageScan(inspected_cells=900, outline_px=left_half, strip=strip)
+    for windows, expected in ((3, "outside this frame's window"),
+                              (1, "outside the inspected region")):
+        scan = DamageScan(inspected_cells=900, outline_px=left_half, windows=windows)
         res = SimpleNamespace(damage=DamageReport(True, "", scan), estimate=None)
         assert damage._why_missed(res, truth, 5.0).startswith(expected)

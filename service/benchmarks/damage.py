@@ -70,6 +70,10 @@ VISIBLE_GREY = 3.0
 # bars) over the frame's noise (sigma, grey levels). Recall targets are judged on holes of at
 # least MIN_CNR; fainter ones are reported apart.
 MIN_CNR = 1.5
+# A hole is scored for confirmation when the pass showed it in at least this many frames
+# (fixed, not the confirmation setting, so that runs with different settings score the same
+# holes).
+MIN_FRAMES_SHOWN = 3
 CNR_BINS = ((0.0, 1.5), (1.5, 3.0), (3.0, 6.0), (6.0, math.inf))
 SIZE_CLASSES = ((2, 2, "2 cells"), (3, 4, "3-4 cells"), (5, 10, "5-10 cells"))
 DISTANCE_BINS = ((0.4, 0.8), (0.8, 1.2), (1.2, 1.5), (1.5, 2.01))
@@ -303,10 +307,9 @@ def _why_missed(res: object, truth: HoleTruth, pad: float) -> str:
     if len(scan.outline_px) >= 3:
         contour = np.array(scan.outline_px, dtype=np.float32).reshape(-1, 1, 2)
         if cv2.pointPolygonTest(contour, truth.centre_px, False) < 0:
-            k, count = scan.strip
-            if count > 1:
-                # The view was cut into strips and this frame inspected another one.
-                return f"outside this frame's strip ({k + 1} of {count})"
+            if scan.windows > 1:
+                # The view is inspected a window at a time and this frame looked elsewhere.
+                return "outside this frame's window"
             return "outside the inspected region (mesh too fine or too oblique there)"
     for centre, _, why in scan.rejected:
         if _overlaps(centre, truth, pad):
@@ -522,8 +525,8 @@ def summarise(results: list[PassResult], real: list[RealDamage]) -> Summary:
                 cell[1] += 1
         hidden += sum(res.frames_hidden)
         for k, truth in enumerate(res.holes):
-            # A hole counts when it was in view for at least the frames confirmation needs.
-            if res.frames_in_view[k] < DamageSettings().confirm_frames:
+            # A hole counts when it was shown in at least MIN_FRAMES_SHOWN frames.
+            if res.frames_in_view[k] < MIN_FRAMES_SHOWN:
                 continue
             found_any = any(e[0] == k for e in res.confirmed_true)
             cnr_cell = cnr_conf.setdefault(_cnr_label(res.cnr[k]), [0, 0])

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.camera import CameraModel
+from service.core.damage_plan import InspectionPlanner, Window
 from service.core.errors import ConfigError
 from service.core.grey import to_gray
 from service.core.mesh import MeshGeometry
@@ -80,8 +82,9 @@ class DamageSettings:
     # area), or seen more obliquely than this (angle between the ray and the net's normal).
     min_cell_px: float = 4.5
     max_view_angle_deg: float = 65.0
-    # Cells inspected in one frame at most: a larger view is inspected a strip at a time.
-    max_cells_inspected: int = 3000
+    # Cells inspected in one frame at most: a larger view is inspected a window at a time,
+    # candidates' places first, then what was inspected longest ago (damage_plan.py).
+    max_cells_inspected: int = 1000
     # A bar is missing when its contrast is below this share of its neighbours' ...
     missing_ratio: float = 0.3
     # ... and below them by this many times their spread (noise and texture), while the
@@ -107,11 +110,15 @@ class DamageSettings:
     # skipped to stay within it), or every n-th tracked frame when `every_n_frames` > 0.
     max_cost_fraction: float = 0.3
     every_n_frames: int = 0
-    # Confirmation (damage_track.py): a hole is reported when seen in this many inspected
-    # frames, in at least this share of those whose view held its place, and never again by the
-    # same track.
-    confirm_frames: int = 3
-    confirm_ratio: float = 0.5
+    # Confirmation (damage_track.py), counted in *looks*: inspections whose judged region held
+    # the candidate's place on the net. A hole is reported (once) when it was found in
+    # `confirm_hits` of the last `confirm_looks` looks; a candidate is dropped when the looks
+    # since its last sighting leave it no way to reach that. Three sightings, not two: before a
+    # track's velocity is known its gate must allow for the net moving up to 0.6 m/s, wide
+    # enough for two unrelated candidates on a patchily fouled net to meet in it; the third
+    # must also agree with the velocity the first two give.
+    confirm_hits: int = 3
+    confirm_looks: int = 5
     # A candidate belongs to a track when within this distance on the net (plus the track's own
     # motion); a track not seen for this long ends.
     gate_m: float = 0.06
@@ -137,10 +144,10 @@ class DamageSettings:
             raise bad("every_n_frames", "must be >= 0 (0: by max_cost_fraction)")
         if not 2 <= self.max_cells <= 64:
             raise bad("max_cells", "must be 2..64")
-        if self.confirm_frames < 1:
-            raise bad("confirm_frames", "must be >= 1")
-        if not 0.0 < self.confirm_ratio <= 1.0:
-            raise bad("confirm_ratio", "must be in (0, 1]")
+        if not 1 <= self.confirm_hits <= 20:
+            raise bad("confirm_hits", "must be 1..20")
+        if not self.confirm_hits <= self.confirm_looks <= 50:
+            raise bad("confirm_looks", f"must be confirm_hits ({self.confirm_hits})..50")
         for key in ("gate_m", "track_timeout_s", "notify_interval_s", "crop_scale"):
             if not getattr(self, key) > 0:
                 raise bad(key, "must be > 0")
@@ -187,9 +194,15 @@ class DamageScan:
     # pixels (its outline), and the net geometry of this frame.
     outline_px: tuple[Vec2, ...] = ()
     geometry: NetFrame | None = None
-    # A view of more than `max_cells_inspected` cells is inspected a strip at a time: this
-    # frame's strip (from 0) and how many the view was cut into (1: all of it).
-    strip: tuple[int, int] = (0, 1)
+    # Where a hole could be judged: cells with three inspected cells around them every way
+    # (the ring a hole is judged by), as a polygon of pixels. A place outside it was not looked
+    # at in this frame, whatever the outline says.
+    judged_px: tuple[Vec2, ...] = ()
+    # A view of more than `max_cells_inspected` cells is inspected a window at a time
+    # (damage_plan.py): about how many windows the view needs (1: all of it at once), and how
+    # many open candidates' places this frame's window was chosen to hold.
+    windows: int = 1
+    revisits: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -238,6 +251,8 @@ class DamageDetector:
         self.settings = settings or DamageSettings()
         self._cameras: dict[tuple[int, int], CameraModel] = {}
         self._rays: dict[tuple[int, int], tuple[F64, F64, F64]] = {}
+        # Which part of a large view to inspect, and what was inspected (places on the net).
+        self.planner = InspectionPlanner(mesh.bar_length_m)
 
     def _camera(self, w: int, h: int) -> CameraModel:
         key = (w, h)
@@ -246,12 +261,14 @@ class DamageDetector:
         return self._cameras[key]
 
     # -- per frame ---------------------------------------------------------------------------
-    def inspect(self, frame: Image, estimate: NetEstimate, part: int = 0) -> DamageScan:
+    def inspect(self, frame: Image, estimate: NetEstimate,
+                revisit: Sequence[Vec2] = ()) -> DamageScan:
         """Candidate holes in `frame`, whose net plane `estimate` measured (a detection).
 
-        A view of more than `max_cells_inspected` cells is inspected a part at a time: strips
-        that overlap by a hole's width and its surroundings, part `part` modulo their number
-        in this frame (the pipeline counts frames, so every place is inspected in turn)."""
+        A view of more than `max_cells_inspected` cells is inspected a window at a time
+        (`damage_plan.py`): one that holds the places on the net plane in `revisit` (open
+        candidates, where they are predicted now) if it can, else the one whose cells were
+        judged longest ago, so that the whole view is covered in few frames."""
         t0 = time.perf_counter()
         if not estimate.detected or estimate.normal is None or estimate.distance_m is None:
             return DamageScan(reason="no net plane in this frame")
@@ -262,10 +279,16 @@ class DamageDetector:
         lattice = self._lattice(cam, estimate)
         if lattice is None:
             return DamageScan(reason="the ROIs' lattices do not give the mesh's orientation")
-        region = self._region(cam, lattice)
-        if region is None:
+        found_region = self._region(cam, lattice)
+        if found_region is None:
             return DamageScan(reason="no part of the view shows the mesh resolved")
-        i0, j0, n1, n2, strip = self._part(region, part)
+        region, seen = found_region
+        normal = np.asarray(estimate.normal, dtype=np.float64)
+        horizontal, vertical = plane_axes(normal)
+        net = NetFrame(normal, float(estimate.distance_m), horizontal, vertical)
+        window = self._window(lattice, net, region, seen, revisit)
+        i0, j0 = region[0] + window.i0, region[1] + window.j0
+        n1, n2 = window.n1, window.n2
         timings["geometry"] = (time.perf_counter() - t0) * 1e3
         t1 = time.perf_counter()
         s = self.settings.samples_per_cell
@@ -280,7 +303,8 @@ class DamageDetector:
         timings["phase"] = (time.perf_counter() - t1) * 1e3
         if polarity == 0:
             return DamageScan(reason="no twine contrast in the inspected region", levels=used,
-                              timings_ms=timings, strip=strip)
+                              timings_ms=timings, windows=window.windows,
+                              revisits=window.revisits)
         t1 = time.perf_counter()
         coarse = self._coarse_pixels(cam, lattice, i0, j0, n1, n2, shift, s)
         lat, valid = _sample(pyramid, coarse, s, levels)
@@ -290,9 +314,6 @@ class DamageDetector:
         found, rejected = self._holes(bars, n1, n2)
         timings["bars"] = (time.perf_counter() - t1) * 1e3
         t1 = time.perf_counter()
-        normal = np.asarray(estimate.normal, dtype=np.float64)
-        horizontal, vertical = plane_axes(normal)
-        net = NetFrame(normal, float(estimate.distance_m), horizontal, vertical)
         candidates = tuple(
             self._candidate(gray, cam, lattice, net, cells, hole, i0, j0, shift)
             for cells, hole in found)
@@ -303,28 +324,48 @@ class DamageDetector:
             if len(cells) <= 4 * self.settings.max_cells)
         return DamageScan(candidates=candidates, inspected_cells=int(bars.inspected),
                           levels=used, timings_ms=timings, outline_px=_outline(coarse, w, h),
-                          geometry=net, rejected=why, strip=strip)
+                          geometry=net, rejected=why, windows=window.windows,
+                          revisits=window.revisits,
+                          judged_px=_outline(coarse, w, h, _judgeable(bars.cell_ok)))
 
-    def _part(self, region: tuple[int, int, int, int], part: int
-              ) -> tuple[int, int, int, int, tuple[int, int]]:
-        """The strip of the region inspected this time (the whole region when small), and
-        (which strip, how many)."""
+    def _window(self, lat: _Lattice, net: NetFrame, region: tuple[int, int, int, int],
+                seen: F64, revisit: Sequence[Vec2]) -> Window:
+        """The window of the region inspected this time (damage_plan.py), in region cells."""
         i0, j0, n1, n2 = region
-        cap = self.settings.max_cells_inspected
-        if n1 * n2 <= cap:
-            return i0, j0, n1, n2, (0, 1)
-        overlap = 2 * 3 + self.settings.max_extent_cells  # a hole and its surroundings
-        along_i = n1 >= n2
-        length, width = (n1, n2) if along_i else (n2, n1)
-        size = max(cap // width, overlap + 4)
-        if size >= length:
-            return i0, j0, n1, n2, (0, 1)
-        count = math.ceil((length - overlap) / (size - overlap))
-        k = part % count
-        start = min(k * (size - overlap), length - size)
-        if along_i:
-            return i0 + start, j0, size, n2, (k, count)
-        return i0, j0 + start, n1, size, (k, count)
+        # Cells in view: the hull of the resolved grid points, in region cells.
+        view = np.zeros((n2, n1), dtype=np.uint8)
+        hull = _hull(seen - np.array([i0, j0], dtype=np.float64))
+        if hull is not None:
+            import cv2
+
+            cv2.fillConvexPoly(view, hull, 1)
+        # Cell centres on the plane: the map from lattice to plane coordinates is affine.
+        c0, c1, c2 = self._lattice_to_plane(lat, net, np.array(
+            [[i0 + 0.5, j0 + 0.5], [i0 + 1.5, j0 + 0.5], [i0 + 0.5, j0 + 1.5]]))
+        cells_xy = (c0 + np.arange(n1)[None, :, None] * (c1 - c0)
+                    + np.arange(n2)[:, None, None] * (c2 - c0))
+        places = self._plane_to_lattice(lat, net, np.array(revisit, dtype=np.float64)
+                                        .reshape(-1, 2)) - np.array([i0, j0])
+        return self.planner.choose(view.astype(bool), cells_xy,
+                                   self.settings.max_cells_inspected, places)
+
+    @staticmethod
+    def _lattice_to_plane(lat: _Lattice, net: NetFrame, s: F64) -> F64:
+        """Net-plane coordinates (NetFrame.plane_xy) of lattice coordinates s, shape (k, 2)."""
+        q = lat.origin + s @ lat.bars.T
+        pts = np.concatenate([q, np.full((len(q), 1), lat.distance)], axis=1) @ lat.rotation
+        rel = pts + net.normal * net.distance_m
+        return np.stack([rel @ net.horizontal, rel @ net.vertical], axis=-1)
+
+    @staticmethod
+    def _plane_to_lattice(lat: _Lattice, net: NetFrame, xy: F64) -> F64:
+        """Lattice coordinates of net-plane coordinates (the inverse of _lattice_to_plane)."""
+        if len(xy) == 0:
+            return np.zeros((0, 2))
+        pts = (-net.normal * net.distance_m + xy[:, :1] * net.horizontal
+               + xy[:, 1:] * net.vertical)
+        q = (pts @ lat.rotation.T)[:, :2] - lat.origin
+        return np.asarray(np.linalg.solve(lat.bars, q.T).T, dtype=np.float64)
 
     # -- geometry ----------------------------------------------------------------------------
     def _lattice(self, cam: CameraModel, est: NetEstimate) -> _Lattice | None:
@@ -418,9 +459,10 @@ class DamageDetector:
         return self._rays[key]
 
     def _region(self, cam: CameraModel, lat: _Lattice
-                ) -> tuple[int, int, int, int] | None:
+                ) -> tuple[tuple[int, int, int, int], F64] | None:
         """Cells to inspect (first cell, counts): where the cells are at least `min_cell_px`
-        and seen within `max_view_angle_deg`."""
+        and seen within `max_view_angle_deg`; and the lattice coordinates of the grid points
+        there (the view's shape in cells)."""
         st = self.settings
         xs, ys, rays = self._grid_rays(cam)
         step = float(xs[1] - xs[0]) if len(xs) > 1 else 1.0
@@ -440,7 +482,7 @@ class DamageDetector:
             return None
         lo = np.floor(s[ok].min(axis=0)).astype(int)
         hi = np.ceil(s[ok].max(axis=0)).astype(int)
-        return int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])
+        return (int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])), s[ok]
 
     def _coarse_pixels(self, cam: CameraModel, lat: _Lattice, i0: int, j0: int, n1: int,
                        n2: int, shift: F64 | None, samples: int) -> F64:
@@ -722,9 +764,12 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
     sign is the twine's polarity there (dark twine is lighter than a dark fish behind the
     net), and it says where the background is on either side of a bar (the nearest place
     within a quarter of the profile's contrast of the opening's level; the middle of the
-    opening when the twine is fouled and thick). A bar's contrast: along the middle half of
-    the bar, the twine's value (the strongest within one sample of the line: real bars are not
-    straight) against the mean of the background on its two sides."""
+    opening when the twine is fouled and thick). A bar's contrast: the twine's value (the
+    strongest within one sample of the line: real bars are not straight), its median along the
+    middle half of the bar, against the mean of the background on its two sides. The median,
+    not the mean: a torn bar leaves stubs of up to a third of it at its knots, and the blur of
+    the knots reaches into the ends of the middle half; either covers less than half of it, so
+    the median reads the gap where a mean would read a faint bar."""
     import cv2
 
     okc = np.asarray(valid.reshape(n2, s, n1, s).all(axis=(1, 3)), dtype=bool)
@@ -758,7 +803,7 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
         flat = (sides <= 0.25) & beyond
         k = np.where(flat.any(axis=2), np.argmax(flat, axis=2) + 1, half)
         signed = rows * sign[..., None, None]
-        twine = signed[..., half - 1 : half + 2].max(axis=3).mean(axis=2)
+        twine = np.median(signed[..., half - 1 : half + 2].max(axis=3), axis=2)
         left = np.take_along_axis(signed.mean(axis=2), (half - k)[..., None], axis=2)[..., 0]
         right = np.take_along_axis(signed.mean(axis=2), (half + k)[..., None], axis=2)[..., 0]
         contrasts.append(np.asarray(twine - 0.5 * (left + right), dtype=np.float64))
@@ -921,11 +966,34 @@ def _sample(pyramid: _Pyramid, coarse: F64, s: int, levels: npt.NDArray[np.int64
     return lat, valid
 
 
-def _outline(coarse: F64, w: int, h: int) -> tuple[Vec2, ...]:
-    """Outline (convex hull, frame pixels) of the inspected cells inside the frame."""
+def _hull(points: F64) -> npt.NDArray[np.int32] | None:
+    """Convex hull of 2-D points as the int32 polygon cv2's fill functions take."""
     import cv2
 
-    pts = coarse[1:-1, 1:-1].reshape(-1, 2)
+    if len(points) < 3:
+        return None
+    pts = np.round(points).astype(np.int32).reshape(-1, 1, 2)
+    return np.asarray(cv2.convexHull(pts), dtype=np.int32)
+
+
+def _judgeable(cell_ok: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """Cells with inspected cells three deep around them every way (a hole there and its ring
+    are wholly judged)."""
+    import cv2
+
+    ok = cv2.erode(cell_ok.astype(np.uint8), np.ones((7, 7), np.uint8),
+                   borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return np.asarray(ok > 0, dtype=bool)
+
+
+def _outline(coarse: F64, w: int, h: int, cells: npt.NDArray[np.bool_] | None = None
+             ) -> tuple[Vec2, ...]:
+    """Outline (convex hull, frame pixels) of the inspected cells (or of `cells`, shape
+    (n2, n1)) inside the frame."""
+    import cv2
+
+    pts = coarse[1:-1, 1:-1]
+    pts = (pts[cells] if cells is not None else pts).reshape(-1, 2)
     pts = pts[(pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)]
     if len(pts) < 3:
         return ()
@@ -977,27 +1045,31 @@ def _reduce(basis: F64) -> F64:
 def _consensus(bases: list[F64], weights: list[float]) -> F64 | None:
     """The lattice most ROIs agree on: each basis expressed in the frame of the reference (of
     the five clearest ROIs, the one most others agree with), then the median."""
+    stack = np.stack(bases)
     order = sorted(range(len(bases)), key=lambda k: -weights[k])[:5]
-    best: tuple[int, F64] | None = None
+    best: tuple[int, int] | None = None
     for k in order:
-        votes = sum(1 for b in bases if _aligned(b, bases[k]) is not None)
+        votes = int(_aligned_all(stack, stack[k])[1].sum())
         if best is None or votes > best[0]:
-            best = (votes, bases[k])
+            best = (votes, k)
     assert best is not None
-    aligned = [a for a in (_aligned(b, best[1]) for b in bases) if a is not None]
-    if not aligned:
+    aligned, ok = _aligned_all(stack, stack[best[1]])
+    if not ok.any():
         return None
-    return np.asarray(np.median(np.stack(aligned), axis=0), dtype=np.float64)
+    return np.asarray(np.median(aligned[ok], axis=0), dtype=np.float64)
 
 
-def _aligned(basis: F64, ref: F64, tol: float = 0.12) -> F64 | None:
-    """`basis` rewritten as the vectors closest to ref's columns (among +-a, +-b, +-(a +- b)),
-    or None when it is not the same lattice within `tol` (relative)."""
-    a, b = basis[:, 0], basis[:, 1]
-    cands = np.stack([a, -a, b, -b, a + b, -a - b, a - b, b - a])  # (8, 2)
-    dist = np.linalg.norm(cands[:, None, :] - ref.T[None, :, :], axis=2)  # (8, 2)
-    pick = np.argmin(dist, axis=0)
-    if (dist[pick, [0, 1]] > tol * np.linalg.norm(ref, axis=0)).any():
-        return None
-    return np.asarray(cands[pick].T, dtype=np.float64)
-
+def _aligned_all(bases: F64, ref: F64, tol: float = 0.12
+                 ) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """Each basis of `bases` (k, 2, 2; columns) rewritten as the vectors closest to ref's
+    columns (among +-a, +-b, +-(a +- b)), and whether it is the same lattice as `ref` within
+    `tol` (relative)."""
+    a, b = bases[:, :, 0], bases[:, :, 1]
+    cands = np.stack([a, -a, b, -b, a + b, -a - b, a - b, b - a], axis=1)  # (k, 8, 2)
+    dist = np.linalg.norm(cands[:, :, None, :] - ref.T[None, None, :, :], axis=3)  # (k, 8, 2)
+    pick = np.argmin(dist, axis=1)  # (k, 2)
+    rows = np.arange(len(bases))[:, None]
+    ok = (dist[rows, pick, np.arange(2)[None, :]] <= tol * np.linalg.norm(ref, axis=0)).all(
+        axis=1)
+    aligned = np.transpose(cands[rows, pick], (0, 2, 1))  # columns: the picked vectors
+    return np.asarray(aligned, dtype=np.float64), np.asarray(ok, dtype=bool)

@@ -6,9 +6,13 @@ estimated pose), so a hole is reported once, when confirmed, not once per frame:
 
 - a candidate joins the track whose predicted place on the net (its last place moved by its
   own velocity) is nearest, within `gate_m` plus how far the net can have moved since;
-- a track is confirmed after `confirm_frames` detections, in at least `confirm_ratio` of the
-  inspected frames whose view held its predicted place (a caustic, a fish or a streak of
-  light does not come back at the same place of the net);
+- confirmation counts *looks*: inspections whose judged region (where a hole and the ring
+  around it are inside what was inspected) held the track's predicted place. Not every frame
+  inspects every place (a large view is inspected a window at a time), so a frame that did not
+  look at the place says nothing about it. A track is confirmed when it was found in
+  `confirm_hits` of its last `confirm_looks` looks (a caustic, a fish or a streak of light does
+  not come back at the same place of the net), and dropped, unconfirmed, as soon as the looks
+  since its last sighting leave it no way to get there;
 - a track not seen for `track_timeout_s` ends (a confirmed one is then forgotten: the net is
   periodic, so netpose cannot tell where on the net it is once the hole has left the view).
 
@@ -52,8 +56,8 @@ class ConfirmedHole:
     t_first: float  # capture time of the first detection (frames' clock)
     t_confirmed: float  # capture time of the frame that confirmed it
     frame_index: int  # that frame's number
-    detections: int  # frames it was detected in, up to confirmation
-    looks: int  # inspected frames whose view held its place, up to confirmation
+    detections: int  # inspections it was found in, up to confirmation
+    looks: int  # inspections that judged its place, up to confirmation
     width_m: float  # median of the detections, knot to knot along the plane's horizontal
     height_m: float  # along the plane's vertical
     cells: int  # mesh openings merged (median of the detections)
@@ -95,8 +99,13 @@ class _Track:
     position: npt.NDArray[np.float64]  # on the plane, metres
     velocity: npt.NDArray[np.float64] | None = None
     hits: list[HoleCandidate] = field(default_factory=list)
-    looks: int = 0
+    # One entry per look (an inspection that judged its place): found there or not.
+    record: list[bool] = field(default_factory=list)
     confirmed: bool = False
+
+    @property
+    def looks(self) -> int:
+        return len(self.record)
 
     def predicted(self, t: float) -> npt.NDArray[np.float64]:
         if self.velocity is None:
@@ -164,24 +173,40 @@ class HoleTracker:
             used_c.add(ci)
             used_t.add(ti)
             self._extend(self._tracks[ti], candidates[ci], t)
-        # Tracks whose place was in view but not seen this time count a look without a hit.
+        # A track whose place this inspection judged, and did not find there, gets a look
+        # without a hit; a frame that did not judge its place leaves its record alone.
         for ti, tr in enumerate(self._tracks):
-            if ti not in used_t and self._in_view(scan, tr.predicted(t)):
-                tr.looks += 1
+            if ti not in used_t and self.judged(scan, tr, t):
+                tr.record.append(False)
         for ci, cand in enumerate(candidates):
             if ci not in used_c:
                 self._tracks.append(_Track(self._next_id, t, t, np.array(cand.plane_xy_m),
-                                           hits=[cand], looks=1))
+                                           hits=[cand], record=[True]))
                 self._next_id += 1
+        # Unconfirmed tracks that can no longer be confirmed: their last looks without a hit
+        # leave fewer than `confirm_hits` sightings possible in any window of `confirm_looks`.
+        hopeless = st.confirm_looks - st.confirm_hits + 1
+        self._tracks = [tr for tr in self._tracks
+                        if tr.confirmed or not (len(tr.record) >= hopeless
+                                                and not any(tr.record[-hopeless:]))]
         confirmed = []
         for tr in self._tracks:
-            if tr.confirmed or len(tr.hits) < st.confirm_frames:
-                continue
-            if len(tr.hits) < st.confirm_ratio * tr.looks:
+            if tr.confirmed or sum(tr.record[-st.confirm_looks:]) < st.confirm_hits:
                 continue
             tr.confirmed = True
             confirmed.append(self._report(tr, t, frame_index))
         return confirmed
+
+    def open_places(self, t: float) -> list[Vec2]:
+        """Predicted places on the net (plane coordinates of this time) of the candidates not
+        yet confirmed: where the next inspections should look first."""
+        st = self.settings
+        out = []
+        for tr in self._tracks:
+            if not tr.confirmed and t - tr.t_last <= st.track_timeout_s:
+                p = tr.predicted(t)
+                out.append((float(p[0]), float(p[1])))
+        return out
 
     def _extend(self, tr: _Track, cand: HoleCandidate, t: float) -> None:
         p = np.array(cand.plane_xy_m)
@@ -192,22 +217,28 @@ class HoleTracker:
         tr.position = p
         tr.t_last = t
         tr.hits.append(cand)
-        tr.looks += 1
+        tr.record.append(True)
 
-    def _in_view(self, scan: DamageScan, plane_xy: npt.NDArray[np.float64]) -> bool:
-        """Was this place of the net inside the region inspected in this frame?"""
+    def judged(self, scan: DamageScan, tr: _Track, t: float) -> bool:
+        """Did this inspection judge the track's predicted place: is it inside the region
+        where a hole and its ring were wholly inspected, by at least half the hole's size?"""
         import cv2
 
         net = scan.geometry
-        if net is None or len(scan.outline_px) < 3:
+        outline = scan.judged_px or scan.outline_px
+        if net is None or len(outline) < 3:
             return False
+        plane_xy = tr.predicted(t)
         foot = -net.normal * net.distance_m
         point = foot + plane_xy[0] * net.horizontal + plane_xy[1] * net.vertical
         if point[2] <= 1e-6:
             return False
         px = self.camera.project_normalized(point[:2] / point[2])
-        contour = np.array(scan.outline_px, dtype=np.float32).reshape(-1, 1, 2)
-        return bool(cv2.pointPolygonTest(contour, (float(px[0]), float(px[1])), False) >= 0)
+        x0, y0, x1, y1 = tr.hits[-1].box_px
+        half = 0.5 * max(x1 - x0, y1 - y0)
+        contour = np.array(outline, dtype=np.float32).reshape(-1, 1, 2)
+        inside = cv2.pointPolygonTest(contour, (float(px[0]), float(px[1])), True)
+        return bool(inside >= half)
 
     def _report(self, tr: _Track, t: float, frame_index: int) -> ConfirmedHole:
         last = tr.hits[-1]
@@ -215,8 +246,8 @@ class HoleTracker:
         conf_frame = float(np.median([c.confidence for c in tr.hits]))
         # Repeated sightings add up: each further one halves what is left of the doubt.
         repeat = 1.0 - 0.5 ** max(len(tr.hits) - 1, 0)
-        confidence = conf_frame * (0.5 + 0.5 * repeat) * min(1.0, len(tr.hits) / tr.looks
-                                                              / self.settings.confirm_ratio)
+        window = tr.record[-self.settings.confirm_looks:]
+        confidence = conf_frame * (0.5 + 0.5 * repeat) * sum(window) / len(window)
         return ConfirmedHole(
             hole_id=tr.track_id, t_first=tr.t_first, t_confirmed=t, frame_index=frame_index,
             detections=len(tr.hits), looks=tr.looks,
@@ -280,7 +311,7 @@ class NetInspector:
             return DamageReport(False, "skipped: inspection budget",
                                 tracks=tuple(self.tracker.tracks))
         t0 = time.perf_counter()
-        scan = self.detector.inspect(image, estimate, part=self.inspected_frames)
+        scan = self.detector.inspect(image, estimate, revisit=self.tracker.open_places(t))
         confirmed = self.tracker.update(scan, t, frame_index)
         ms = (time.perf_counter() - t0) * 1e3
         if st.every_n_frames <= 0:

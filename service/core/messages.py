@@ -333,8 +333,9 @@ class DamageMessage(Message):
                        "` low` when well off the optical axis")
     confidence: float = doc("0..1, from how clearly its bars are missing and how often it was "
                             "seen where it was expected")
-    detections: int = doc("frames it was detected in, up to its confirmation")
-    looks: int = doc("inspected frames whose view held its place, up to its confirmation")
+    detections: int = doc("inspections it was found in, up to its confirmation")
+    looks: int = doc("inspections that judged its place (the hole and its ring inspected), up "
+                     "to its confirmation")
     crop_jpeg: str = doc("the evidence: the frame around the hole, JPEG, base64", "")
 
 

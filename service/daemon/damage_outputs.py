@@ -99,7 +99,7 @@ class DamageOutputs:
         for hole in holes:
             self.reported += 1
             log.warning("net damage: hole %d confirmed, %.0f x %.0f cm (%d cells), %s at %.2f m "
-                        "(confidence %.2f, seen in %d of %d frames)", hole.hole_id,
+                        "(confidence %.2f, found in %d of %d looks)", hole.hole_id,
                         hole.width_m * 100, hole.height_m * 100, hole.cells, hole.bearing,
                         hole.range_m, hole.confidence, hole.detections, hole.looks)
             message = damage_message(hole, vehicle=self._vehicle, frame=frame, now_mono=now,
