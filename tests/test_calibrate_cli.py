@@ -17,7 +17,7 @@ from service.core.camera import load_camera, save_camera
 from service.tools.calibration import BoardSpec, detect_board
 from service.tools.calibration_io import CalibrationInputError, sample_video
 from tests.checkerboard_render import TEST_CAMERA, render_views
-from tests.shared_data import REAL_NET_FRAME
+from tests.shared_data import REAL_NET_FRAME, needs_real_net_frame
 
 REPO = Path(__file__).resolve().parents[1]
 NET_FRAME = REAL_NET_FRAME
@@ -122,6 +122,7 @@ def test_wrong_board_size_names_the_board_seen(board_folder: Path, tmp_path: Pat
     assert not out.exists()
 
 
+@needs_real_net_frame
 def test_no_board_in_real_net_frame(tmp_path: Path, capsys) -> None:
     out = tmp_path / "never.yaml"
     code = main(["calibrate", str(NET_FRAME), "-o", str(out)])
@@ -208,6 +209,7 @@ def test_undistort_makes_board_rows_straight(images: list[np.ndarray], tmp_path:
     assert straight < bent / 5
 
 
+@needs_real_net_frame
 def test_undistort_errors(tmp_path: Path, capsys) -> None:
     camera_file = tmp_path / "cam.yaml"
     save_camera(TEST_CAMERA, camera_file)

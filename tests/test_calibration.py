@@ -24,7 +24,7 @@ from service.tools.calibration import (
     parse_board_size,
 )
 from tests.checkerboard_render import TEST_CAMERA, render_views
-from tests.shared_data import REAL_NET_FRAME
+from tests.shared_data import REAL_NET_FRAME, needs_real_net_frame
 
 NET_FRAME = REAL_NET_FRAME
 BOARD = BoardSpec(7, 4, 0.0311)
@@ -173,6 +173,7 @@ def test_nonsense_corners_are_refused_not_written(views: list[BoardView]) -> Non
         calibrate(garbage, BOARD, SIZE)
 
 
+@needs_real_net_frame
 def test_no_board_in_a_real_net_frame() -> None:
     frame = cv2.imread(str(NET_FRAME), cv2.IMREAD_GRAYSCALE)
     assert frame is not None

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from service.benchmarks import damage
-from tests.shared_data import shared_data_dir
+from tests.shared_data import needs_real_field, shared_data_dir
 
 PASSES = 4
 WIDTH, HEIGHT = 960, 540
@@ -66,6 +66,7 @@ def test_the_report_states_every_target(results: list[damage.PassResult]) -> Non
     assert len(summary.targets) == 5
 
 
+@needs_real_field
 def test_no_candidate_on_the_real_frames() -> None:
     data = shared_data_dir()
     rows = damage.run_real(data)

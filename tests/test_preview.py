@@ -17,7 +17,7 @@ from service.tools.preview import (
     estimate_caption,
     render_preview,
 )
-from tests.shared_data import REAL_NET_FRAME
+from tests.shared_data import REAL_NET_FRAME, needs_real_net_frame
 
 REAL_FRAME = REAL_NET_FRAME
 
@@ -73,6 +73,7 @@ def test_roi_colour_says_what_it_contributed(roi: RoiResult, colour: tuple[int, 
         assert not drawn[62:118, 132:188].any()
 
 
+@needs_real_net_frame
 def test_real_frame_with_caption_and_float_input() -> None:
     frame = cv2.imread(str(REAL_FRAME), cv2.IMREAD_GRAYSCALE)
     assert frame is not None
@@ -100,6 +101,7 @@ def test_no_net_caption_and_no_upscaling() -> None:
     assert render_preview(small, [], width=320).shape == (100, 200, 3)
 
 
+@needs_real_net_frame
 def test_jpeg_round_trip_and_errors() -> None:
     frame = cv2.imread(str(REAL_FRAME), cv2.IMREAD_COLOR)
     assert frame is not None

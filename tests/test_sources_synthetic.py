@@ -20,7 +20,7 @@ from service.benchmarks.accuracy import (
 )
 from service.core.camera import load_camera
 from service.core.estimator import NetEstimator
-from tests.shared_data import REAL_NET_CALIBRATION
+from tests.shared_data import REAL_NET_CALIBRATION, needs_real_net_frame
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -96,6 +96,7 @@ def test_duration_ends_and_loop_repeats() -> None:
     assert np.array_equal(looped[7].image, frames[2].image)  # frame 2 again, second pass
 
 
+@needs_real_net_frame
 def test_built_in_camera_and_calibration_file() -> None:
     source = SyntheticSource("synthetic:")
     assert (source.camera.width, source.camera.height) == (960, 540)
