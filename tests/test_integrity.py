@@ -266,6 +266,26 @@ def test_former_gross_errors_give_no_distance_or_an_honest_one(
     assert abs(error) * truth.range_m <= 3.0 * est.sigma_range_m
 
 
+# Gross errors that the 20,000-frame run of 2026-11-24 (seed 1) still finds, among 8,575 valid
+# outputs; both give the same answer with the code before that session's speed work, so they
+# are not regressions of it. Kept here, failing, until they are mended (docs/benchmarks.md):
+# - (1, 482, 19): 640x360, 0.74 m, 20 deg, four ROIs (the fewest a plane may have): the range
+#   is right (+2 %) but the normal is 13.4 deg off at a sigma of 4.1 deg;
+# - (1, 995, 7): 480x270, a 46 deg rhombic mesh at 1.91 m, 4.8 px at the centre, billowing:
+#   -5.6 % at a sigma of 1.1 % (six ROIs whose periods are all near the 5 px floor). On
+#   bookworm's stack (OpenCV 4.6 renders the frame a little differently) it is not gross, so
+#   the mark below is not strict.
+OPEN_GROSS_CASES = [(1, 482, 19), (1, 995, 7)]
+
+
+@pytest.mark.xfail(strict=False, reason="open gross errors of the 20,000-frame integrity run")
+@pytest.mark.parametrize(("seed", "group", "index"), OPEN_GROSS_CASES)
+def test_open_gross_errors_give_no_distance_or_an_honest_one(
+    seed: int, group: int, index: int
+) -> None:
+    test_former_gross_errors_give_no_distance_or_an_honest_one(seed, group, index)
+
+
 def test_the_t_factor_is_the_student_t_quantile_ratio() -> None:
     """The sigma's widening for a variance known to `dof` degrees of freedom: the geometric mean
     of the Student-t over normal quantiles at 1 and 3 sigma, finite from the pooled variance's
