@@ -764,12 +764,9 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
     sign is the twine's polarity there (dark twine is lighter than a dark fish behind the
     net), and it says where the background is on either side of a bar (the nearest place
     within a quarter of the profile's contrast of the opening's level; the middle of the
-    opening when the twine is fouled and thick). A bar's contrast: the twine's value (the
-    strongest within one sample of the line: real bars are not straight), its median along the
-    middle half of the bar, against the mean of the background on its two sides. The median,
-    not the mean: a torn bar leaves stubs of up to a third of it at its knots, and the blur of
-    the knots reaches into the ends of the middle half; either covers less than half of it, so
-    the median reads the gap where a mean would read a faint bar."""
+    opening when the twine is fouled and thick). A bar's contrast: along the middle half of
+    the bar, the twine's value (the strongest within one sample of the line: real bars are not
+    straight) against the mean of the background on its two sides."""
     import cv2
 
     okc = np.asarray(valid.reshape(n2, s, n1, s).all(axis=(1, 3)), dtype=bool)
@@ -803,7 +800,7 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
         flat = (sides <= 0.25) & beyond
         k = np.where(flat.any(axis=2), np.argmax(flat, axis=2) + 1, half)
         signed = rows * sign[..., None, None]
-        twine = np.median(signed[..., half - 1 : half + 2].max(axis=3), axis=2)
+        twine = signed[..., half - 1 : half + 2].max(axis=3).mean(axis=2)
         left = np.take_along_axis(signed.mean(axis=2), (half - k)[..., None], axis=2)[..., 0]
         right = np.take_along_axis(signed.mean(axis=2), (half + k)[..., None], axis=2)[..., 0]
         contrasts.append(np.asarray(twine - 0.5 * (left + right), dtype=np.float64))
