@@ -61,7 +61,7 @@ def add_parser(subparsers: Any) -> None:
     dmg.set_defaults(handler=_damage)
 
     soak = sub.add_parser("soak", help="the daemon for minutes on a 720p camera-like source, "
-                          "unconstrained and held to 25 % of a core")
+                          "unconstrained and held to 25 %% of a core")
     soak.add_argument("--duration", type=float, default=120.0,
                       help="seconds per case (default 120)")
     soak.add_argument("--size", default="1280x720", help="frame size (default 1280x720)")
