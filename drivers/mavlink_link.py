@@ -41,6 +41,7 @@ from service.core.backoff import Backoff
 from service.core.messages import AutopilotHealth, AutopilotIdentity
 from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.redact import redact_text
+from service.core.state_log import StateLog, not_logged_note
 
 log = logging.getLogger(__name__)
 
@@ -207,6 +208,11 @@ class MavlinkLink(AutopilotLink):
         self._reconnects = 0
         self._sending_distance = False
         self._sending_net_plane = False
+        # The link's own state-change lines (sending / not sending): at most one a second per
+        # output, as the daemon's (issue 13): a loaded Pi flips the net plane frame by frame.
+        self._sending_log = StateLog()
+        for output in ("distance", "net_plane"):
+            self._sending_log.update(output, False, self._started_at)  # the state at start
         self._foreign_autopilots: set[int] = set()
         self._backoff = Backoff(settings.retry_initial_s, settings.retry_max_s)
         self._url = redact_text(settings.url)
@@ -397,7 +403,7 @@ class MavlinkLink(AutopilotLink):
         why = "" if reading.sendable else "nothing believed"
         if reading.sendable and not fresh_range:
             why = f"newest reading {now - reading.t_capture:.2f} s old, limit {limit:.2f} s"
-        self._note_sending("distance", fresh_range, why)
+        self._note_sending("distance", fresh_range, now, why)
         max_age = self.settings.max_age_s
         if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
@@ -425,7 +431,14 @@ class MavlinkLink(AutopilotLink):
         # that frame"), so the applet stops at once rather than at its timeout.
         fresh_plane = plane is not None and now - plane.t_capture <= max_age and all(
             math.isfinite(v) for v in plane.foot_m)
-        self._note_sending("net_plane", fresh_plane and plane is not None and plane.usable)
+        if plane is None:
+            plane_why = "no plane yet"
+        elif not fresh_plane:
+            plane_why = f"newest plane {now - plane.t_capture:.2f} s old, limit {max_age:.2f} s"
+        else:
+            plane_why = "the newest frame did not confirm the net: sending a zero vector"
+        self._note_sending("net_plane", fresh_plane and plane is not None and plane.usable, now,
+                           plane_why)
         if fresh_plane and plane is not None:
             usec = self._autopilot_time_ms(plane.t_capture) * 1000
             x, y, z = plane.foot_m
@@ -435,17 +448,21 @@ class MavlinkLink(AutopilotLink):
                 lambda: conn.mav.debug_vect_send(NET_PLANE_NAME, usec, x, y, z),
             )
 
-    def _note_sending(self, what: str, sending: bool, why: str = "") -> None:
+    def _note_sending(self, what: str, sending: bool, now: float, why: str = "") -> None:
+        """Record whether an output is going out (status() reports it at once) and log the
+        change, rate-limited: a state that flaps gives one line a second, counting the rest."""
         attribute = f"_sending_{what}"
         with self._lock:
-            changed = getattr(self, attribute) != sending
             setattr(self, attribute, sending)
-        if changed:
-            label = what.replace("_", " ")
-            if sending:
-                log.info("MAVLink: sending %s", label)
-            else:
-                log.info("MAVLink: not sending %s (%s)", label, why or "not fresh")
+        due, _, between = self._sending_log.update(what, sending, now)
+        if not due:
+            return
+        label = what.replace("_", " ")
+        if sending:
+            log.info("MAVLink: sending %s%s", label, not_logged_note(between))
+        else:
+            log.info("MAVLink: not sending %s (%s)%s", label, why or "not fresh",
+                     not_logged_note(between))
 
     def _autopilot_time_ms(self, t: float) -> int:
         """Instant `t` (this host's monotonic clock) in milliseconds since the autopilot booted

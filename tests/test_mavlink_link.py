@@ -607,3 +607,40 @@ def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
             status = link.status()
     assert (zero.name, zero.x, zero.y, zero.z) == ("NET_PLANE", 0.0, 0.0, 0.0)
     assert status.sending_net_plane is False  # nothing valid is being sent
+
+
+def test_a_flapping_net_plane_is_sent_frame_by_frame_but_logged_once_a_second(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A loaded Pi that finds the net in every other frame: the applet gets every frame's
+    plane (a real one, then a zero vector), but the log gets at most one line a second about
+    it (issue 13), naming what happened rather than "not fresh"."""
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
+    plane = NetPlane.from_distance_normal(0.0, 1.2, (0.1, 0.0, -0.995))
+    stop = threading.Event()
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+
+        def flapping_frames() -> None:
+            for k in itertools.count():
+                now = time.monotonic()
+                link.set_range(fresh(READING, now))
+                shown = plane if k % 2 == 0 else NetPlane.none(now)
+                link.set_net_plane(dataclasses.replace(shown, t_capture=now))
+                if stop.wait(0.03):
+                    return
+
+        feeder = threading.Thread(target=flapping_frames)
+        with link:
+            feeder.start()
+            started = time.monotonic()
+            time.sleep(2.5)
+            stop.set()
+            feeder.join()
+            elapsed = time.monotonic() - started
+    vectors = [r.msg for r in autopilot.received("DEBUG_VECT")]
+    zeros = sum((v.x, v.y, v.z) == (0.0, 0.0, 0.0) for v in vectors)
+    assert zeros >= 3 and len(vectors) - zeros >= 3  # both kinds reach the autopilot
+    lines = [r.getMessage() for r in caplog.records if "net plane" in r.getMessage()]
+    assert 1 <= len(lines) <= math.ceil(elapsed) + 1, lines
+    assert not any("not fresh" in line for line in lines), lines

@@ -1,8 +1,5 @@
-"""Log lines about state changes, never one per frame, and never more than one a second.
-
-A state that flaps (a net at the edge of detection, a stream that stutters) must not fill the
-journal: each topic logs at most once per `min_interval_s`; the changes in between are counted
-and the next line says how many there were.
+"""Log lines about the daemon's state changes, never one per frame, and never more than one a
+second per topic (`service.core.state_log.StateLog` decides when).
 """
 
 from __future__ import annotations
@@ -10,51 +7,10 @@ from __future__ import annotations
 import logging
 import math
 
+from service.core.state_log import StateLog, not_logged_note
 from service.core.tracking import Outcome, TrackOutput, TrackState
 
 log = logging.getLogger("netpose.daemon")
-
-
-class StateLog:
-    """Decides when a state change is logged: at most once per `min_interval_s` per topic.
-
-    The caller reports the current state every time it looks (every frame, every status); a
-    line is due when the state differs from the one last logged and the topic has been quiet
-    long enough. Changes in between are counted, and the line that follows names the state in
-    force then, so the log always ends on the truth, however fast the state flapped.
-    """
-
-    def __init__(self, min_interval_s: float = 1.0) -> None:
-        self.min_interval_s = min_interval_s
-        self._logged: dict[str, object] = {}
-        self._current: dict[str, object] = {}
-        self._changes: dict[str, int] = {}
-        self._last_line: dict[str, float] = {}
-
-    def update(self, topic: str, state: object, now: float) -> tuple[bool, object, int]:
-        """(log now?, the state last logged, changes since it beyond the one being logged)."""
-        if topic in self._current and self._current[topic] != state:
-            self._changes[topic] = self._changes.get(topic, 0) + 1
-        self._current[topic] = state
-        if topic not in self._logged:
-            self._logged[topic] = state  # the initial state is not a change
-            self._changes[topic] = 0
-            return False, state, 0
-        previous = self._logged[topic]
-        if state == previous:
-            return False, previous, 0
-        last = self._last_line.get(topic)
-        if last is not None and now - last < self.min_interval_s:
-            return False, previous, 0
-        changes = self._changes.get(topic, 1)
-        self._logged[topic] = state
-        self._changes[topic] = 0
-        self._last_line[topic] = now
-        return True, previous, max(0, changes - 1)
-
-
-def _more(between: int) -> str:
-    return f" (after {between} more change(s) not logged)" if between else ""
 
 
 class OnceLogger:
@@ -101,14 +57,14 @@ class TrackLog:
         if has_net:
             log.info("net acquired at %.2f m (tilt %.1f deg)%s",
                      out.distance_m if out.distance_m is not None else math.nan,
-                     tilt_deg(out), _more(between))
+                     tilt_deg(out), not_logged_note(between))
         elif out.measurement is Outcome.RESET:
             log.info("net track restarted at %.2f m: measurements left the gate %d times in a "
                      "row%s", out.distance_m if out.distance_m is not None else math.nan,
-                     self.max_rejects, _more(between))
+                     self.max_rejects, not_logged_note(between))
         else:
             log.info("net lost (no accepted measurement for %.1f s)%s", self.coast_timeout_s,
-                     _more(between))
+                     not_logged_note(between))
 
 
 class SourceWatch:

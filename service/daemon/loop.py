@@ -28,9 +28,10 @@ from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import RangeReading
 from service.core.redact import redact_text
+from service.core.state_log import StateLog
 from service.core.tracking import NetTracker, TrackOutput
 from service.daemon.damage_outputs import DamageOutputs
-from service.daemon.events import OnceLogger, SourceWatch, StateLog, TrackLog
+from service.daemon.events import OnceLogger, SourceWatch, TrackLog
 from service.daemon.outputs import FrameOutputs, PreviewSettings
 from service.daemon.ports import (
     AutopilotLink,

@@ -27,8 +27,9 @@ from service.core.messages import (
     TelemetryHealth,
 )
 from service.core.redact import redact_config
+from service.core.state_log import StateLog
 from service.core.tracking import NetTracker, TrackOutput
-from service.daemon.events import SourceWatch, StateLog, TrackLog
+from service.daemon.events import SourceWatch, TrackLog
 from service.daemon.outputs import FrameOutputs
 from service.daemon.ports import AutopilotLink, FrameSource, Notifier, TelemetrySink
 from service.daemon.stats import LoopStats, StatsSnapshot
