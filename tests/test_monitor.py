@@ -109,6 +109,24 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert state.rate_hz(VEHICLE, "estimate", t + 6.0) == 0.0
 
 
+def test_a_net_seen_without_a_distance_is_shown_as_such() -> None:
+    """A frame whose plane was too uncertain for a distance: the pilot reads that a net is in
+    view and roughly how far, not "no net" (and not a distance)."""
+    import dataclasses
+
+    state = MonitorState(stale_after_s=2.0, window_s=5.0)
+    seen = dataclasses.replace(
+        estimate_message(1, detected=False), net_seen=True, approx_range_m=0.83,
+        approx_sigma_range_m=0.031,
+        reason="plane too uncertain (range +- 4%, normal +- 2 deg): the ROIs that see ...")
+    payload = to_json(seen)
+    assert schema_problems(payload) == []
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(payload), 100.0)
+    text = "\n".join(state.render(100.0))
+    assert "net seen, ~0.83+/-0.03 m, no distance (plane too uncertain" in text
+    assert "no net" not in text
+
+
 def test_bad_and_foreign_payloads_are_flagged_not_fatal() -> None:
     state = MonitorState()
     assert state.ingest(f"netpose/{VEHICLE}/estimate", b"\x00not json", 1.0) is None

@@ -44,6 +44,7 @@ def test_no_net_free_scene_is_a_net_or_too_close(results: list[RealResult]) -> N
         assert not r.estimate.detected, (r.frame.name, r.estimate.range_m)
         assert r.estimate.distance_m is None
         assert not r.estimate.too_close, r.frame.name
+        assert not r.estimate.net_seen, (r.frame.name, r.estimate.approx_range_m)
 
 
 def test_the_stills_give_a_plausible_distance_or_say_why_not(results: list[RealResult]) -> None:
@@ -97,3 +98,25 @@ def test_sequence_distances_agree_within_their_sigma(results: list[RealResult]) 
 
         z = (np.array(steps) - np.mean(steps)) / np.array(sigmas)
         assert float(np.sum(z**2)) <= chi2.ppf(0.999, len(steps) - 1), (steps, sigmas)
+
+
+def test_a_net_seen_without_a_distance_is_where_its_measured_neighbours_are(
+    results: list[RealResult],
+) -> None:
+    """Frames refused only for precision ("plane too uncertain") still say a net is in view,
+    with the range that was refused and its sigma, and never a distance. That range must be
+    honest: within 3 of its own sigmas, plus the pass's drift (0.70 to 0.97 m over 43 frames:
+    under 1 cm a frame), of the nearest frame of the sequence that was measured."""
+    seq = [r.estimate for r in results if r.frame.kind == "sequence"]
+    measured = [(i, e) for i, e in enumerate(seq) if e.detected]
+    seen = [(i, e) for i, e in enumerate(seq) if e.net_seen and not e.detected]
+    assert measured and seen  # both kinds occur on this pass (bench real prints how many)
+    for i, e in seen:
+        assert e.distance_m is None and e.range_m is None and e.normal is None
+        assert e.approx_range_m is not None and e.approx_sigma_range_m is not None
+        assert e.reason.startswith("plane too uncertain")
+        j, near = min(measured, key=lambda m: abs(m[0] - i))
+        assert near.range_m is not None and near.sigma_range_m is not None
+        allowed = 3.0 * math.hypot(e.approx_sigma_range_m, near.sigma_range_m) + 0.01 * abs(i - j)
+        assert abs(e.approx_range_m - near.range_m) <= allowed, (i, j, e.approx_range_m,
+                                                                near.range_m)

@@ -172,6 +172,7 @@ class Row:
     fish_front: float
     detected: bool
     too_close: bool
+    seen: bool  # recognised as a net, with or without a distance (NetEstimate.net_seen)
     confidence: float
     est_range_m: float
     sigma_range_m: float
@@ -180,6 +181,7 @@ class Row:
     sigma_normal_deg: float
     reason: str
     ms: float
+    approx_z: float = math.nan  # a net seen without a distance: refused range error / its sigma
 
     @property
     def gross(self) -> bool:
@@ -203,6 +205,9 @@ def evaluate(case: Case, image: Gray, truth: GroundTruth, est: NetEstimate, ms: 
     if est.detected and est.normal is not None and truth.net_present:
         cos = float(np.clip(np.dot(est.normal, truth.normal), -1.0, 1.0))
         nerr = math.degrees(math.acos(cos))
+    approx_z = math.nan
+    if est.approx_range_m is not None and est.approx_sigma_range_m and truth.net_present:
+        approx_z = (est.approx_range_m - truth.range_m) / est.approx_sigma_range_m
     st = case.style
     return Row(
         group=case.group, index=case.index, width=case.camera.width, height=case.camera.height,
@@ -213,9 +218,10 @@ def evaluate(case: Case, image: Gray, truth: GroundTruth, est: NetEstimate, ms: 
         ropes=st.ropes, billow=st.billow, turbidity=st.turbidity, spotlight=st.spotlight,
         motion_blur_px=st.motion_blur_px, jpeg_quality=st.jpeg_quality,
         fish_front=truth.occluded_fraction, detected=est.detected, too_close=est.too_close,
-        confidence=est.confidence, est_range_m=est.range_m or math.nan,
+        seen=est.net_seen, confidence=est.confidence, est_range_m=est.range_m or math.nan,
         sigma_range_m=est.sigma_range_m or math.nan, range_error=rel, normal_error_deg=nerr,
         sigma_normal_deg=est.sigma_normal_deg or math.nan, reason=est.reason, ms=ms,
+        approx_z=approx_z,
     )
 
 
@@ -263,6 +269,8 @@ class Summary:
     coverage_3sigma: float
     z_std: float
     detection: float
+    seen_only: int = 0  # frames with a net seen, but no distance (too uncertain)
+    seen_only_coverage_3sigma: float = math.nan  # of their refused ranges
 
     @property
     def targets(self) -> dict[str, bool]:
@@ -279,16 +287,22 @@ def summarise(rows: list[Row]) -> Summary:
     net = [r for r in rows if r.net]
     valid = [r for r in net if r.detected]
     z = np.array([r.z for r in valid if math.isfinite(r.z)])
+    seen_only = [r for r in net if r.seen and not r.detected]
+    seen_z = np.array([r.approx_z for r in seen_only if math.isfinite(r.approx_z)])
     return Summary(
         frames=len(rows),
         net_frames=len(net),
         valid=len(valid),
         gross=sum(r.gross for r in valid),
-        false_nets=sum(r.detected for r in rows if not r.net),
+        # A net-free frame recognised as a net is a false net, with or without a distance.
+        false_nets=sum(r.seen or r.detected for r in rows if not r.net),
         false_too_close=sum(r.too_close for r in rows if not r.net),
         coverage_3sigma=float(np.mean(np.abs(z) <= 3.0)) if z.size else math.nan,
         z_std=float(np.std(z)) if z.size > 1 else math.nan,
         detection=len(valid) / max(1, len(net)),
+        seen_only=len(seen_only),
+        seen_only_coverage_3sigma=float(np.mean(np.abs(seen_z) <= 3.0)) if seen_z.size
+        else math.nan,
     )
 
 
@@ -328,6 +342,8 @@ def format_report(rows: list[Row], worst: int = 8) -> list[str]:
         f"{s.gross}",
         f"3-sigma coverage of the range: {s.coverage_3sigma:.2%}; std(error/sigma) "
         f"{s.z_std:.2f}",
+        f"net seen without a distance (plane too uncertain): {s.seen_only} frames, their "
+        f"refused range within 3 sigma of the truth in {s.seen_only_coverage_3sigma:.1%}",
         f"net-free frames: {s.false_nets} taken for a net, {s.false_too_close} 'too close' "
         f"(of {s.frames - s.net_frames})",
         "detection rate | gross | coverage by condition:",

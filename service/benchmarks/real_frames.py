@@ -116,6 +116,10 @@ def describe(result: RealResult) -> str:
                 f"{e.distance_m:.3f} m, tilt {e.tilt_deg or 0:4.1f} +- "
                 f"{e.sigma_normal_deg or 0:.1f} deg, {e.rois_used}/{len(e.rois)} ROIs, "
                 f"conf {e.confidence:.2f}, {result.cpu_ms:.0f} ms")
+    if e.approx_range_m is not None and e.approx_sigma_range_m is not None:
+        return (f"{head} seen  ~{e.approx_range_m:.2f} +- {e.approx_sigma_range_m:.2f} m, no "
+                f"distance: {e.reason.split(':')[0]} ({e.rois_used}/{len(e.rois)} ROIs, "
+                f"{result.cpu_ms:.0f} ms)")
     state = "CLOSE" if e.too_close else "none "
     return f"{head} {state} {e.reason} (conf {e.confidence:.2f}, {result.cpu_ms:.0f} ms)"
 
@@ -126,6 +130,7 @@ class RealSummary:
     stills_detected: int
     sequence: int
     sequence_detected: int
+    sequence_seen: int  # recognised as the net, measured or not (`NetEstimate.net_seen`)
     no_net: int
     false_nets: int
     false_too_close: int
@@ -148,6 +153,8 @@ class RealSummary:
                 math.isfinite(d) and lo - STANDOFF_TOLERANCE_M <= d <= hi + STANDOFF_TOLERANCE_M,
             "sequence sigma >= frame-to-frame spread":
                 self.sequence_sigma_median_m >= self.sequence_frame_to_frame_m,
+            f">= {TARGET_SEQUENCE_DETECTED} of {self.sequence} sequence frames seen as a net "
+            "(measured or not)": self.sequence_seen >= TARGET_SEQUENCE_DETECTED,
         }
 
 
@@ -173,8 +180,10 @@ def summarise(results: list[RealResult]) -> RealSummary:
         stills_detected=sum(r.estimate.detected for r in stills),
         sequence=len(seq),
         sequence_detected=len(found),
+        sequence_seen=sum(r.estimate.net_seen for r in seq),
         no_net=len(free),
-        false_nets=sum(r.estimate.detected for r in free),
+        # A net-free scene recognised as a net is a false net, with or without a distance.
+        false_nets=sum(r.estimate.net_seen for r in free),
         false_too_close=sum(r.estimate.too_close for r in free),
         sequence_distance_median_m=float(np.median(dist)) if dist.size else math.nan,
         sequence_range_median_m=float(np.median(rng)) if rng.size else math.nan,
@@ -186,8 +195,9 @@ def summarise(results: list[RealResult]) -> RealSummary:
 def format_summary(s: RealSummary, label: str) -> list[str]:
     lines = [
         f"{label}: stills {s.stills_detected}/{s.stills} detected; sequence "
-        f"{s.sequence_detected}/{s.sequence} detected; net-free {s.false_nets}/{s.no_net} taken "
-        f"for a net, {s.false_too_close} 'too close'",
+        f"{s.sequence_detected}/{s.sequence} detected (a distance), {s.sequence_seen}/"
+        f"{s.sequence} seen as a net (with or without one); net-free {s.false_nets}/{s.no_net} "
+        f"taken for a net, {s.false_too_close} 'too close'",
         f"{label}: sequence distance median {s.sequence_distance_median_m:.3f} m (range "
         f"{s.sequence_range_median_m:.3f} m), frame-to-frame spread "
         f"{s.sequence_frame_to_frame_m * 100:.1f} cm, reported sigma median "

@@ -1426,11 +1426,16 @@ class NetEstimator:
                              change[0] * range_m, deformation * range_m, _MODEL_FLOOR * range_m)
         sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
         if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
+            # Every proof passed: it is the net, at a range known only roughly. Said so (for
+            # the pilot), never given as a distance.
+            seen = confidence >= s.min_confidence
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
                 rois_used=len(agreeing), level=p.level, measured_opening_deg=opening,
                 reason=(f"plane too uncertain (range +- {sigma_r / range_m:.0%}, normal +- "
                         f"{sigma_n:.0f} deg): the ROIs that see the net do not span the view"),
+                approx_range_m=range_m if seen else None,
+                approx_sigma_range_m=sigma_r if seen else None,
             )
         detected = confidence >= s.min_confidence
         return NetEstimate(

@@ -136,6 +136,12 @@ class EstimateMessage(Message):
     rois: int = doc("regions of interest analysed in this frame", 0)
     rois_used: int = doc("regions whose lattice entered the plane fit", 0)
     reason: str = doc("why nothing was detected (empty when detected)", "")
+    net_seen: bool = doc(
+        "a net is in view: detected, or recognised with a range too uncertain to give", False)
+    approx_range_m: float | None = doc(
+        "for a net seen but not detected: the range along the optical axis that was refused "
+        "as too uncertain (never sent to the autopilot)", None)
+    approx_sigma_range_m: float | None = doc("its one-sigma uncertainty", None)
     budget_level: int = doc(
         "estimator work level of this frame: 0 full work, up to 3 the leanest (slow CPU)", 0
     )

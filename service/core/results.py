@@ -77,6 +77,20 @@ class NetEstimate:
     # only while the proof is recent and the net cannot have moved a harmonic factor since.
     frames_since_scale_proof: int = 0
     scale_proved_range_m: float | None = None
+    # The net was recognised (the configured mesh, its scale proved, a plane that the ROIs
+    # converge on) but that plane is not precise enough for a distance (`reason` says by how
+    # much): `detected` stays False and nothing goes to the autopilot, but the pilot can be
+    # told that a net is in view and roughly how far. For such a frame only: the range along
+    # the optical axis and its one-sigma uncertainty that were refused (None whenever
+    # `detected`: then `range_m` holds the distance). See `net_seen`.
+    approx_range_m: float | None = None
+    approx_sigma_range_m: float | None = None
+
+    @property
+    def net_seen(self) -> bool:
+        """A net is in view: measured (`detected`), or recognised with a range too uncertain
+        to give (`approx_range_m`)."""
+        return self.detected or self.approx_range_m is not None
 
     @property
     def tilt_deg(self) -> float | None:
@@ -104,6 +118,9 @@ class NetEstimate:
             "rois_used": self.rois_used,
             "rois": len(self.rois),
             "reason": self.reason,
+            "net_seen": self.net_seen,
+            "approx_range_m": rounded(self.approx_range_m, 4),
+            "approx_sigma_range_m": rounded(self.approx_sigma_range_m, 4),
             "budget_level": self.budget_level,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
         }

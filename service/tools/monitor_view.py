@@ -272,6 +272,11 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
         return ""
     if not estimate.get("detected"):
         reason = estimate.get("reason") or "no net"
+        if estimate.get("net_seen"):
+            # The net is there; its range is too uncertain to be a distance (none is sent).
+            return (f"net seen, ~{_fmt(estimate.get('approx_range_m'))}+/-"
+                    f"{_fmt(estimate.get('approx_sigma_range_m'))} m, no distance "
+                    f"({reason.split(':')[0]})")
         return f"no net ({reason})"
     return (
         f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(estimate.get('sigma_distance_m'))} m"

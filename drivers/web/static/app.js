@@ -86,7 +86,8 @@ function onEstimate(m) {
   state.textContent = f.state; state.className = "badge " + f.state;
   $("distance").textContent = f.valid ? fmt(f.distance_m) + " m" : "–";
   $("tilt").textContent = m.detected ? `raw ${fmt(m.distance_m)} m, tilt ${fmt(m.tilt_deg, 0)}°, conf ${fmt(m.confidence)}`
-                                     : `no net: ${m.reason || "–"}`;
+    : m.net_seen ? `net seen, ~${fmt(m.approx_range_m)} ± ${fmt(m.approx_sigma_range_m)} m: no distance (${(m.reason || "").split(":")[0]})`
+    : `no net: ${m.reason || "–"}`;
   page.points.push(plotPoint(m));
   const oldest = m.frame_time_mono - Math.max(page.historyS, page.spanS);
   while (page.points.length && page.points[0][0] < oldest) page.points.shift();
