@@ -141,6 +141,16 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     assert re.search(rb'^calibration = "calibration-[0-9a-f]{8}\.yaml"$',
                      daemon.config.read_bytes(), re.M)
     page.locator("section.setup").screenshot(path=str(shots / "web-calibration.png"))
+
+    # A frame whose plane was too uncertain for a distance reads "net seen", not "no net".
+    seen = page.evaluate("""() => {
+        const m = Object.assign({}, window.netpose.lastEstimate, {
+            detected: false, net_seen: true, approx_range_m: 0.83, approx_sigma_range_m: 0.031,
+            distance_m: null, range_m: null,
+            reason: "plane too uncertain (range +- 4%, normal +- 2 deg): the ROIs ..."});
+        onEstimate(m);
+        return document.getElementById("tilt").textContent; }""")
+    assert seen.startswith("net seen, ~0.83 ± 0.03 m: no distance (plane too uncertain"), seen
     assert not errors, errors
 
 
