@@ -317,6 +317,46 @@ def test_a_net_of_another_opening_angle_gives_no_distance_and_says_the_angle(
     assert "mesh opening angle measured 45 deg, configured 90 deg" in warnings[0]
 
 
+def test_a_net_seen_too_uncertain_for_a_distance_is_explained_to_the_pilot(
+    caplog: pytest.LogCaptureFixture
+) -> None:
+    """The net is in view but its plane is too uncertain for a distance (2 m, 40 deg, a
+    1.5 cm mesh: only the near side resolves it). The autopilot gets nothing, and the pilot
+    hears why once, with the rough range, rather than silence as in open water."""
+    from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+    from service.benchmarks.accuracy import draw_pose
+    from service.benchmarks.scenes import PAPER_MESH, bench_camera
+    from service.core.estimator import NetEstimator
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.daemon.view_notices import View, ViewNotices
+    from service.pipeline import Pipeline
+
+    cam = bench_camera(1280, 720)
+    rng = np.random.default_rng([3, 200, 40])
+    draw = draw_pose(rng)
+    pose = NetPose(2.0, 40.0, draw.tilt_axis_deg, draw.roll_deg, draw.phase)
+    image, truth = NetRenderer(cam, PAPER_MESH).render(pose, rng, SceneStyle.varied(rng))
+    pipeline = Pipeline(NetEstimator(cam, PAPER_MESH), NetTracker(FilterSettings()))
+    link = RecordingAutopilotLink()
+    notices = ViewNotices(link, 90.0)
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    for k in range(6):
+        result = pipeline.process(image, k / 10.0, k)
+        assert result.reading.status is RangeStatus.NONE
+        notices.update(result, k / 10.0)
+    assert notices.view is View.IMPRECISE
+    assert len(link.texts) == 1
+    text = link.texts[0][1]
+    assert text.startswith("netpose: net ~") and text.endswith("too little in view: no dist")
+    assert len(text) <= 50
+    said = float(text.split("~")[1].split(" m")[0])
+    assert result.estimate is not None and result.estimate.approx_sigma_range_m is not None
+    # Rounded to 0.1 m, and honest within 3 of the refused range's own sigmas.
+    assert abs(said - truth.range_m) <= 0.05 + 3.0 * result.estimate.approx_sigma_range_m
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "net seen, but its plane is too uncertain" in warnings[0]
+
+
 class SlowCpu(RecordingObserver):
     """Stands in for a busy CPU: each processed frame costs `seconds` of the loop's clock."""
 

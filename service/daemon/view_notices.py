@@ -1,7 +1,9 @@
-"""What the pilot must hear about the view itself: the net is too close to measure, or the
-camera sees a regular grid that is not the configured net (a pool's tiles, a brick wall, a net
-of another opening angle). Both mean "no distance" for a reason the pilot can act on, unlike
-open water, so each is logged as a warning and sent as a STATUSTEXT when it starts.
+"""What the pilot must hear about the view itself: the net is too close to measure, the camera
+sees a regular grid that is not the configured net (a pool's tiles, a brick wall, a net of
+another opening angle), or it sees the net but too little of it (bunched behind boards, one
+side only) to pin the plane down to a distance. Each means "no distance" for a reason the pilot
+can act on, unlike open water, so each is logged as a warning and sent as a STATUSTEXT when it
+starts.
 
 An episode must last a few frames before it is announced (one frame of a fish at the lens is
 not news), and a STATUSTEXT of the same kind goes out at most once per `interval_s`, so a view
@@ -28,6 +30,7 @@ class View(enum.Enum):
     NET = "net"  # measured, or nothing to say
     TOO_CLOSE = "too_close"
     ANOTHER_GRID = "another_grid"
+    IMPRECISE = "imprecise"  # the net is seen, its plane too uncertain for a distance
 
 
 def classify(result: PipelineResult) -> View:
@@ -35,6 +38,11 @@ def classify(result: PipelineResult) -> View:
         return View.TOO_CLOSE
     if result.estimate is not None and refused_as_another_grid(result.estimate):
         return View.ANOTHER_GRID
+    # Only while the autopilot gets nothing: a filter still coasting on earlier frames is
+    # sending a distance, and then there is nothing to explain.
+    if (result.estimate is not None and result.estimate.net_seen
+            and not result.estimate.detected and result.reading.status is RangeStatus.NONE):
+        return View.IMPRECISE
     return View.NET
 
 
@@ -42,6 +50,10 @@ def pilot_text(view: View, result: PipelineResult, configured_opening_deg: float
     est = result.estimate
     if view is View.TOO_CLOSE:
         return "netpose: net too close to measure, back off"
+    if view is View.IMPRECISE:
+        approx = est.approx_range_m if est is not None else None
+        where = f"~{approx:.1f} m" if approx is not None else "seen"
+        return f"netpose: net {where}, too little in view: no dist"[:STATUSTEXT_CHARS]
     measured = est.measured_opening_deg if est is not None else None
     if measured is not None and abs(measured - configured_opening_deg) > 1.0 and (
         est is not None and est.reason.startswith("mesh opening angle")
@@ -52,7 +64,7 @@ def pilot_text(view: View, result: PipelineResult, configured_opening_deg: float
 
 
 class ViewNotices:
-    """Announces TOO_CLOSE and ANOTHER_GRID episodes to the log and the pilot."""
+    """Announces TOO_CLOSE, ANOTHER_GRID and IMPRECISE episodes to the log and the pilot."""
 
     def __init__(self, link: AutopilotLink, configured_opening_deg: float,
                  confirm_frames: int = 3, interval_s: float = 30.0) -> None:
@@ -99,4 +111,6 @@ class ViewNotices:
 def _episode(view: View) -> str:
     if view is View.TOO_CLOSE:
         return "net too close to measure"
+    if view is View.IMPRECISE:
+        return "net seen, but its plane is too uncertain for a distance"
     return "the camera sees a grid that is not the configured net"
