@@ -482,6 +482,12 @@ def test_caption_lines() -> None:
     assert lines[1] == "truth d=0.81 m  tilt 23 deg  err +1.3 cm"
     missed = NetEstimate(detected=False, confidence=0.1, reason="too few ROIs")
     assert caption_lines(missed) == ["no net (too few ROIs)  conf 0.10"]
+    seen = NetEstimate(detected=False, confidence=0.2, approx_range_m=0.834,
+                       approx_sigma_range_m=0.031, reason="plane too uncertain (range +- 4%, "
+                       "normal +- 2 deg): the ROIs that see the net do not span the view")
+    assert caption_lines(seen) == [
+        "net seen, ~0.83 +- 0.03 m: no distance (plane too uncertain (range +- 4%, normal +- "
+        "2 deg))"]
 
 
 def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:
