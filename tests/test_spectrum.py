@@ -155,3 +155,17 @@ def test_a_stack_of_patches_gives_each_patch_its_own_analysis() -> None:
         np.testing.assert_array_equal(snr, one_snr)
         np.testing.assert_array_equal(logp, one_logp)
     assert len(batch[0][0]) >= 2 and len(batch[-1][0]) == 0
+
+
+@pytest.mark.parametrize("size", [32, 64, 128, 256])
+def test_half_plane_power_is_the_real_fft_power(size: int) -> None:
+    """OpenCV's packed real DFT, unpacked: |rfft2|^2 (numpy's layout, computed in float64) to
+    float32 precision, including the columns kx = 0 and N/2 that OpenCV packs down the rows."""
+    from service.core.spectrum import half_plane_power
+
+    rng = np.random.default_rng(size)
+    patches = rng.standard_normal((3, size, size)).astype(np.float32)
+    expected = np.abs(np.fft.rfft2(patches.astype(np.float64))) ** 2
+    got = half_plane_power(patches)
+    assert got.shape == expected.shape and got.dtype == np.float32
+    assert np.max(np.abs(got - expected)) <= 1e-6 * expected.max()

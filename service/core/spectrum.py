@@ -21,6 +21,39 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
 
+def half_plane_power(patches: F32) -> F32:
+    """|F(ky, kx)|^2 of each real square patch of a stack (n, N, N), for kx = 0 .. N/2: what
+    a real 2D FFT gives (numpy's `rfft2` layout), computed by OpenCV's real DFT.
+
+    Why OpenCV and not scipy.fft: it is as fast for these sizes, and the process already holds
+    it; scipy.fft brings scipy.special with it, about 24 MB of resident memory and a fifth of
+    a second of start-up on a Pi (issue 13), for nothing else the frame loop needs.
+
+    OpenCV returns a real input's spectrum packed (CCS): columns 1 .. N-2 hold Re and Im of
+    kx = 1 .. N/2 - 1 side by side, for every row; columns 0 and N-1 hold kx = 0 and kx = N/2,
+    whose spectra are Hermitian along ky, packed down the column: Re F(0), then Re and Im of
+    ky = 1 .. N/2 - 1, then Re F(N/2); rows ky > N/2 are the mirror images of N - ky.
+    """
+    import cv2
+
+    n, size, _ = patches.shape
+    half = size // 2
+    packed = np.empty((n, size, size), dtype=np.float32)
+    for i in range(n):
+        cv2.dft(patches[i], packed[i])
+    power = np.empty((n, size, half + 1), dtype=np.float32)
+    re, im = packed[:, :, 1 : size - 1 : 2], packed[:, :, 2 : size - 1 : 2]
+    power[:, :, 1:half] = re * re + im * im
+    for column, kx in ((0, 0), (size - 1, half)):
+        col = packed[:, :, column]
+        inner = col[:, 1 : size - 1 : 2] ** 2 + col[:, 2 : size - 1 : 2] ** 2  # ky 1 .. N/2-1
+        power[:, 0, kx] = col[:, 0] ** 2
+        power[:, 1:half, kx] = inner
+        power[:, half, kx] = col[:, size - 1] ** 2
+        power[:, half + 1 :, kx] = inner[:, ::-1]
+    return power
+
+
 @dataclass(frozen=True)
 class Peaks:
     """Spectral peaks of one ROI, in bins (cycles per ROI), half-plane only, strongest first."""
@@ -95,12 +128,10 @@ class SpectrumAnalyzer:
     def _log_power_many(self, patches: F32) -> F32:
         """`log_power` of each patch of a stack (n, size, size): one stacked real FFT."""
         import cv2
-        from scipy import fft
 
         p = patches.astype(np.float32, copy=False)
         p = (p - p.mean(axis=(1, 2), keepdims=True)) * self._modulated_window
-        spec = fft.rfft2(p, workers=1)
-        power = np.asarray(spec.real * spec.real + spec.imag * spec.imag, dtype=np.float32)
+        power = half_plane_power(p)
         # A flat patch has no spectrum at all: a floor keeps the log finite.
         floor = power.mean(axis=(1, 2), keepdims=True) * np.float32(1e-10) + np.float32(1e-20)
         np.maximum(power, floor, out=power)
