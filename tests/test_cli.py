@@ -40,3 +40,23 @@ def test_bench_help_answers_from_the_installed_command() -> None:
     )
     assert done.returncode == 0, done.stderr
     assert "soak" in done.stdout and "Traceback" not in done.stderr
+
+
+def test_estimate_says_net_seen_for_a_frame_too_uncertain_for_a_distance() -> None:
+    """A real sequence frame whose plane is too uncertain for a distance: the command says a
+    net is seen, roughly how far, and that there is no distance (exit 0: nothing was wrong
+    with the file)."""
+    from tests.shared_data import shared_data_dir
+
+    folder = shared_data_dir() / "real-field" / "sequence_2024-08-22_142905"
+    if not folder.is_dir():
+        pytest.skip(f"real-field data set not found at {folder.parent}")
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(folder / "camera.yaml"),
+         "--mesh-size", "0.0275", str(folder / "038.png"), str(folder / "032.png")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    seen, measured = done.stdout.splitlines()
+    assert "038.png: net seen, ~0." in seen and "no distance (plane too uncertain" in seen
+    assert "032.png: net detected" in measured
