@@ -370,6 +370,31 @@ class SlowCpu(RecordingObserver):
         self._clock.now += self.seconds
 
 
+def test_a_pass_of_the_loop_near_the_watchdog_limit_is_a_warning(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """systemd's watchdog is pinged between passes only: a frame that holds the loop for as
+    long as half the watchdog interval (the harness's is 1 s) is logged with how long it took
+    and which frame, so a kill by the watchdog, or a near miss, can be explained afterwards.
+    Ordinary passes say nothing."""
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+
+    class OneSlowFrame(SlowCpu):
+        def observe(self, frame: Frame, result: Any, message: Any) -> None:
+            self.seconds = 1.2 if frame.index == 4 else 0.0
+            super().observe(frame, result, message)
+
+    slow = OneSlowFrame(None, 0.0)
+    h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames[:8], FPS, 100.0)],
+                     observers=(slow,))
+    slow._clock = h.clock
+    h.run_script()
+    stalls = [r.getMessage() for r in caplog.records if "stalled" in r.getMessage()]
+    assert len(stalls) == 1, stalls
+    assert stalls[0].startswith("frame loop stalled: 1.2 s since the previous pass (watchdog 1 s)")
+    assert stalls[0].endswith("last frame 4")
+
+
 def test_a_loop_slower_than_the_camera_lowers_the_estimators_work_and_says_so(
     frames: list[Frame], caplog: pytest.LogCaptureFixture
 ) -> None:

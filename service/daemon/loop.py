@@ -139,6 +139,8 @@ class Daemon:
         self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg)
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
+        self.last_index: int | None = None  # the source's number of the last frame processed
+        self._last_pass: float | None = None
         self._closed = False
 
     # -- the loop ----------------------------------------------------------------------------
@@ -146,6 +148,7 @@ class Daemon:
         """One pass of the frame loop."""
         frame = self.parts.source.read(self.config.camera.read_timeout_s)
         now = self.clock()
+        self._note_stall(now)
         self.parts.notifier.watchdog(now)
         if frame is None:
             result = self.pipeline.tick(now)
@@ -155,6 +158,7 @@ class Daemon:
             self.source_watch.frame(w, h, now)
             result = self.pipeline.process(frame.image, frame.t_monotonic, frame.index,
                                            budget=self.budget.level)
+            self.last_index = frame.index
         sent = self.outputs.to_autopilot(result)
         self.stats.record(result, self.clock())
         if frame is not None:
@@ -166,6 +170,19 @@ class Daemon:
         self.last = result.track
         self.reporter.tick(now, self.last)
         return result
+
+    def _note_stall(self, now: float) -> None:
+        """A pass of the loop that took as long as half the systemd watchdog's interval (at
+        least a second) is a warning: the watchdog is pinged between passes only, so one more
+        such pass and systemd kills the service; the line says how long, and which frame."""
+        last, self._last_pass = self._last_pass, now
+        interval = self.parts.notifier.watchdog_interval_s
+        limit = max(1.0, interval / 2.0) if interval is not None else 5.0
+        if last is not None and now - last >= limit:
+            log.warning("frame loop stalled: %.1f s since the previous pass (watchdog %s); last"
+                        " frame %s", now - last,
+                        f"{interval:.0f} s" if interval is not None else "off",
+                        self.last_index if self.last_index is not None else "none")
 
     def run(self, duration_s: float | None = None) -> int:
         """Start, loop until stopped (signal or `duration_s`), close. Returns the exit status."""

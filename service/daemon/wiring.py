@@ -280,6 +280,10 @@ class _RestartAware:
         self._inner = inner
         self._restart = restart
 
+    @property
+    def watchdog_interval_s(self) -> float | None:
+        return self._inner.watchdog_interval_s
+
     def ready(self, status: str | None = None) -> bool:
         return self._inner.ready(status)
 
