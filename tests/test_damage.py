@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from drivers.synthetic_damage import (
+    Hole,
     NetDamage,
     bars_between,
     cell_at_pixel,
@@ -142,6 +143,31 @@ def test_a_hole_is_found_and_measured(renderer: NetRenderer, estimator: NetEstim
             assert abs(got - want) <= max(SIZE_TOLERANCE * want, 1.01 * cell_m)
     assert found.range_m == pytest.approx(truth.range_m, rel=0.05)
     assert found.crop is not None and found.crop.shape[0] >= 48
+
+
+@pytest.mark.parametrize("z,tilt,family", [(0.7, 10.0, 1), (1.0, 25.0, 2), (1.3, 35.0, 1)])
+def test_a_cut_bar_is_found_whatever_stubs_it_leaves(renderer: NetRenderer,
+                                                     estimator: NetEstimator, z: float,
+                                                     tilt: float, family: int) -> None:
+    """A bar cut in the middle keeps stubs of up to a third of its length on both knots: two
+    thirds of its twine stay in the middle half of the bar. Its middle third is gone
+    whatever the stubs, and that is where a bar is judged missing."""
+    pose = NetPose(z, tilt, 40.0, 15.0, (0.2, 0.6))
+    cell = cell_at_pixel(CAMERA, pose, MESH, (430.0, 300.0))
+    assert cell is not None
+    i, j = cell
+    bar = (family, i, j)
+    other = (i - 1, j) if family == 1 else (i, j - 1)
+    stub = 1.0 / 3.0  # the longest stub the renderer leaves on a knot
+    hole = Hole("cut_bar", frozenset({cell, other}), frozenset({bar}), ((bar, stub, stub),))
+    scan, (truth,), _ = _scene_with(renderer, estimator, pose, [hole], 11)
+    assert len(scan.candidates) == 1, [c.centre_px for c in scan.candidates]
+    found = scan.candidates[0]
+    x0, y0, x1, y1 = truth.box_px
+    assert x0 <= found.centre_px[0] <= x1 and y0 <= found.centre_px[1] <= y1
+    assert found.cells == 2 and found.missing_bars == 1
+    assert found.width_m == pytest.approx(truth.width_m, rel=SIZE_TOLERANCE)
+    assert found.height_m == pytest.approx(truth.height_m, rel=SIZE_TOLERANCE)
 
 
 @pytest.mark.parametrize("what", ["plain", "fouling", "seam", "rope", "board", "fish in front"])

@@ -698,6 +698,12 @@ class _Bars:
     ref: tuple[F64, F64]
     sigma: tuple[F64, F64]
     usable: tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
+    # The same over the middle third of each bar only (`gap`): whether a bar is missing is
+    # judged there, where a cut leaves no twine whatever its stubs.
+    gap: tuple[F64, F64]
+    gap_ref: tuple[F64, F64]
+    gap_sigma: tuple[F64, F64]
+    gap_usable: tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
     cell: F64
     cell_ok: npt.NDArray[np.bool_]
     inspected: int
@@ -713,9 +719,12 @@ class _Bars:
         return float(self.contrast[f][j, i] / self.ref[f][j, i])
 
     def significance(self, fam: int, i: int, j: int) -> float:
-        """How many sigmas the bar falls short of its neighbours."""
+        """How many sigmas the bar's middle third falls short of its neighbours'. A bar that
+        is gone shows the openings beside it (contrast 0): reading lighter than them is light
+        on the bar (a streak, a speck), not more of the bar gone, so it counts as 0."""
         f = fam - 1
-        return float((self.ref[f][j, i] - self.contrast[f][j, i]) / self.sigma[f][j, i])
+        gap = max(float(self.gap[f][j, i]), 0.0)
+        return float((self.gap_ref[f][j, i] - gap) / self.gap_sigma[f][j, i])
 
     def broken(self, fam: int, i: int, j: int, ratio: float) -> bool:
         """The bar is clearly weaker than `ratio` of its neighbours (or cannot be judged)."""
@@ -730,14 +739,21 @@ class _Bars:
         return self.usable[fam - 1][j, i] and self.broken(fam, i, j, ratio)
 
     def missing(self, fam: int, st: DamageSettings) -> npt.NDArray[np.bool_]:
+        """Bars cut: their middle third is gone (whatever stubs the cut left on the knots),
+        and the bar as a whole falls short of its neighbours as well (a dip in the middle of
+        an otherwise intact bar, a speck or a thin place of the twine, is not a cut)."""
         f = fam - 1
-        c, r, sg = self.contrast[f], self.ref[f], self.sigma[f]
+        c, r, sg = self.gap[f], self.gap_ref[f], self.gap_sigma[f]
+        whole, whole_ref, whole_sigma = self.contrast[f], self.ref[f], self.sigma[f]
         # Gone, not inverted: where a bar is missing its place looks like the openings beside
         # it; a streak of light along a bar makes it lighter than them.
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.asarray(self.usable[f] & (c < st.missing_ratio * r)
+            return np.asarray(self.gap_usable[f] & (c < st.missing_ratio * r)
                               & (r - c > st.missing_sigmas * sg)
-                              & (c > -st.missing_ratio * r - 2.0 * sg), dtype=bool)
+                              & (c > -st.missing_ratio * r - 2.0 * sg)
+                              & self.usable[f]
+                              & (whole_ref - whole > st.missing_sigmas * whole_sigma),
+                              dtype=bool)
 
 
 def _across_bars(lat: F32, n1: int, n2: int, s: int) -> tuple[F32, F32]:
@@ -777,7 +793,10 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
     ok2 = okc & np.roll(okc, 1, axis=0)
     ok2[0, :] = False
     half = s // 2
-    contrasts, steps = [], []
+    # The middle third of the bar, as rows of the middle half: a torn bar keeps stubs of up
+    # to a third of a bar on its knots, so its twine is surely gone only there.
+    third = slice(-(-s // 3) - s // 4, 2 * s // 3 - s // 4 + 1)
+    contrasts, gaps, steps = [], [], []
     del polarity  # the local profile decides, bar by bar
     for rows, ok in zip(_across_bars(lat, n1, n2, s), (ok1, ok2), strict=True):
         prof = rows.mean(axis=2)  # (n2, n1, s + 1)
@@ -800,24 +819,37 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
         flat = (sides <= 0.25) & beyond
         k = np.where(flat.any(axis=2), np.argmax(flat, axis=2) + 1, half)
         signed = rows * sign[..., None, None]
-        twine = signed[..., half - 1 : half + 2].max(axis=3).mean(axis=2)
+        strongest = signed[..., half - 1 : half + 2].max(axis=3)  # (n2, n1, rows)
         left = np.take_along_axis(signed.mean(axis=2), (half - k)[..., None], axis=2)[..., 0]
         right = np.take_along_axis(signed.mean(axis=2), (half + k)[..., None], axis=2)[..., 0]
-        contrasts.append(np.asarray(twine - 0.5 * (left + right), dtype=np.float64))
+        background = 0.5 * (left + right)
+        contrasts.append(np.asarray(strongest.mean(axis=2) - background, dtype=np.float64))
+        gaps.append(np.asarray(strongest[..., third].mean(axis=2) - background,
+                               dtype=np.float64))
         steps.append(np.abs(np.asarray(right - left, dtype=np.float64)))
-    refs, sigmas, usable = [], [], []
-    for c, ok, step in zip(contrasts, (ok1, ok2), steps, strict=True):
-        ref, spread = _local_level(c, ok, 7)
-        # The background's step across the bar: where it lies between the two sides is
-        # unknown (a fish's edge behind the net), so it blurs what the bar's contrast means.
-        sigma = np.sqrt(spread**2 + (0.15 * step) ** 2)
-        refs.append(ref)
-        sigmas.append(sigma)
-        with np.errstate(invalid="ignore"):
-            usable.append(np.asarray(ok & (ref > min_snr * spread), dtype=bool))
-    return _Bars(contrast=(contrasts[0], contrasts[1]), ref=(refs[0], refs[1]),
-                 sigma=(sigmas[0], sigmas[1]), usable=(usable[0], usable[1]), cell=cell,
-                 cell_ok=okc, inspected=int(okc.sum()))
+    whole = [_judged_against_neighbours(c, ok, step, min_snr)
+             for c, ok, step in zip(contrasts, (ok1, ok2), steps, strict=True)]
+    middle = [_judged_against_neighbours(c, ok, step, min_snr)
+              for c, ok, step in zip(gaps, (ok1, ok2), steps, strict=True)]
+    return _Bars(contrast=(contrasts[0], contrasts[1]), ref=(whole[0][0], whole[1][0]),
+                 sigma=(whole[0][1], whole[1][1]), usable=(whole[0][2], whole[1][2]),
+                 gap=(gaps[0], gaps[1]), gap_ref=(middle[0][0], middle[1][0]),
+                 gap_sigma=(middle[0][1], middle[1][1]), gap_usable=(middle[0][2], middle[1][2]),
+                 cell=cell, cell_ok=okc, inspected=int(okc.sum()))
+
+
+def _judged_against_neighbours(c: F64, ok: npt.NDArray[np.bool_], step: F64, min_snr: float
+                               ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Bar contrasts `c` in units of their neighbours': the local reference (robust mean of
+    the family within 3 cells), the uncertainty of a bar's contrast against it, and where the
+    neighbours stand out of the openings by `min_snr` times their spread."""
+    ref, spread = _local_level(c, ok, 7)
+    # The background's step across the bar: where it lies between the two sides is unknown
+    # (a fish's edge behind the net), so it blurs what the bar's contrast means.
+    sigma = np.sqrt(spread**2 + (0.15 * step) ** 2)
+    with np.errstate(invalid="ignore"):
+        usable = np.asarray(ok & (ref > min_snr * spread), dtype=bool)
+    return ref, sigma, usable
 
 
 def _smooth_complex(z: npt.NDArray[np.complexfloating[Any, Any]], sigma: float
