@@ -414,3 +414,19 @@ def test_a_window_holds_the_open_candidates_places_first(renderer: NetRenderer,
     for s in scans:
         assert s.candidates[0].plane_xy_m == pytest.approx(place, abs=MESH.bar_length_m)
         assert _judged_mask(s)[round(truth.centre_px[1]), round(truth.centre_px[0])]
+
+
+def test_the_phase_unwrapping_dct_is_scipys_orthonormal_dct() -> None:
+    """The phase is unwrapped with a DCT written as matrix products (no scipy in the frame
+    loop): it must be scipy's orthonormal 2D DCT-II and its inverse, to rounding."""
+    from scipy.fft import dctn
+
+    from service.core.damage import _dct_matrix
+
+    rng = np.random.default_rng(7)
+    for shape in [(7, 9), (31, 31), (40, 25), (1, 5)]:
+        a = rng.standard_normal(shape)
+        c2, c1 = _dct_matrix(shape[0]), _dct_matrix(shape[1])
+        d = c2 @ a @ c1.T
+        assert np.max(np.abs(d - dctn(a, type=2, norm="ortho"))) < 1e-12
+        assert np.max(np.abs(c2.T @ d @ c1 - a)) < 1e-12
