@@ -357,6 +357,40 @@ def test_a_net_seen_too_uncertain_for_a_distance_is_explained_to_the_pilot(
     assert len(warnings) == 1 and "net seen, but its plane is too uncertain" in warnings[0]
 
 
+def test_a_view_that_flickers_between_seen_and_nothing_logs_once_a_second(
+    caplog: pytest.LogCaptureFixture
+) -> None:
+    """Three frames with the net seen too uncertain for a distance, three with nothing, for
+    4 s: an episode starts and ends every 0.6 s, but the log says so at most once a second
+    (issue 13: state-change lines rate-limited), and the pilot hears it once."""
+    from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+    from service.benchmarks.accuracy import draw_pose
+    from service.benchmarks.scenes import PAPER_MESH, bench_camera
+    from service.core.estimator import NetEstimator
+    from service.core.state_log import StateLog
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.daemon.view_notices import ViewNotices
+    from service.pipeline import Pipeline
+
+    cam = bench_camera(1280, 720)
+    rng = np.random.default_rng([3, 200, 40])
+    draw = draw_pose(rng)
+    pose = NetPose(2.0, 40.0, draw.tilt_axis_deg, draw.roll_deg, draw.phase)
+    seen, _ = NetRenderer(cam, PAPER_MESH).render(pose, rng, SceneStyle.varied(rng))
+    blank = np.full_like(seen, 90)
+    pipeline = Pipeline(NetEstimator(cam, PAPER_MESH), NetTracker(FilterSettings()))
+    link = RecordingAutopilotLink()
+    notices = ViewNotices(link, 90.0, states=StateLog())
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    for k in range(40):  # 4 s at 10 frames/s
+        image = seen if (k // 3) % 2 == 0 else blank
+        notices.update(pipeline.process(image, k / 10.0, k), k / 10.0)
+    lines = [r.getMessage() for r in caplog.records if "uncertain" in r.getMessage()]
+    assert 2 <= len(lines) <= 5, lines  # 13 episodes in 4 s; one line a second at most
+    assert any("more change(s) not logged" in line for line in lines)
+    assert len(link.texts) == 1
+
+
 class SlowCpu(RecordingObserver):
     """Stands in for a busy CPU: each processed frame costs `seconds` of the loop's clock."""
 

@@ -136,7 +136,7 @@ class Daemon:
             summary_interval_s=config.service.summary_interval_s, started_at=now,
             wall_clock=wall_clock, states=states,
         )
-        self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg)
+        self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg, states=states)
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
         self.last_index: int | None = None  # the source's number of the last frame processed

@@ -17,6 +17,7 @@ import logging
 
 from service.core.estimator import refused_as_another_grid
 from service.core.readings import RangeStatus
+from service.core.state_log import StateLog, not_logged_note
 from service.daemon.ports import AutopilotLink
 from service.pipeline import PipelineResult
 
@@ -67,8 +68,13 @@ class ViewNotices:
     """Announces TOO_CLOSE, ANOTHER_GRID and IMPRECISE episodes to the log and the pilot."""
 
     def __init__(self, link: AutopilotLink, configured_opening_deg: float,
-                 confirm_frames: int = 3, interval_s: float = 30.0) -> None:
+                 confirm_frames: int = 3, interval_s: float = 30.0,
+                 states: StateLog | None = None) -> None:
         self._link = link
+        # The log lines go through the daemon's StateLog (at most one a second): a view at the
+        # limit (a net seen in one frame, measured in the next) can start and end an episode
+        # every few frames.
+        self._states = states or StateLog()
         self.configured_opening_deg = configured_opening_deg
         self.confirm_frames = confirm_frames
         self.interval_s = interval_s
@@ -92,20 +98,26 @@ class ViewNotices:
         self._candidate = view
         # TOO_CLOSE comes confirmed: the pipeline asks for frames in a row before it says so.
         needed = 1 if view is View.TOO_CLOSE else self.confirm_frames
-        if view is self._announced or self._frames < needed:
+        if view is not self._announced and self._frames >= needed:
+            self._announced = view
+            if view is not View.NET and (
+                now - self._last_text_at.get(view, -float("inf")) >= self.interval_s
+            ):
+                self._last_text_at[view] = now
+                text = pilot_text(view, result, self.configured_opening_deg)
+                self.sent.append(text)
+                self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
+        due, logged, between = self._states.update("view", self._announced, now)
+        if not due:
             return
-        previous, self._announced = self._announced, view
-        if view is View.NET:
-            log.info("%s ended", _episode(previous))
+        if self._announced is View.NET:
+            assert isinstance(logged, View)
+            log.info("%s ended%s", _episode(logged), not_logged_note(between))
             return
         est = result.estimate
         reason = est.reason if est is not None else ""
-        log.warning("%s: no distance to the autopilot (%s)", _episode(view), reason)
-        if now - self._last_text_at.get(view, -float("inf")) >= self.interval_s:
-            self._last_text_at[view] = now
-            text = pilot_text(view, result, self.configured_opening_deg)
-            self.sent.append(text)
-            self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
+        log.warning("%s: no distance to the autopilot (%s)%s", _episode(self._announced), reason,
+                    not_logged_note(between))
 
 
 def _episode(view: View) -> str:
