@@ -33,6 +33,7 @@ from drivers.web.live import (
     ClientSlots,
     LiveFeed,
     PlotHistory,
+    plot_point,
 )
 from drivers.web.security import origin_allowed
 from drivers.web.settings import WebSettings
@@ -138,6 +139,28 @@ def test_plot_history_thins_but_keeps_the_gaps() -> None:
     assert gap and abs(gap[0] - 5.0) < 1 / 30 + 1e-9  # the gap starts where it did
     resumed = [p[0] or 0.0 for p in history.points() if (p[0] or 0.0) >= 6.0 and p[1] is not None]
     assert abs(resumed[0] - 6.0) < 1 / 30 + 1e-9
+
+
+def test_plot_points_carry_a_net_seen_without_a_distance() -> None:
+    """A frame whose net was seen but refused as too uncertain: no raw distance, its refused
+    range in the sixth place (drawn hollow by the page), and the history keeps where such a
+    stretch starts and ends as it keeps the gaps."""
+    import dataclasses
+
+    seen = dataclasses.replace(_estimate(1, 1.0, detected=False, valid=False), net_seen=True,
+                               approx_range_m=0.83, approx_sigma_range_m=0.03)
+    point = plot_point(seen)
+    assert point[1] is None and point[3] is None and point[5] == 0.83
+    assert plot_point(_estimate(2, 2.0))[5] is None  # measured: a raw distance, no seen range
+    history = PlotHistory(span_s=60.0)
+    for i in range(300):  # 10 s at 30 frames/s; seen only from 4 s to 5 s
+        t = i / 30
+        e = _estimate(i, t, detected=not 4.0 <= t < 5.0, valid=True)
+        if 4.0 <= t < 5.0:
+            e = dataclasses.replace(e, net_seen=True, approx_range_m=0.8)
+        history.add(e)
+    marked = [p[0] or 0.0 for p in history.points() if p[5] is not None]
+    assert marked and abs(marked[0] - 4.0) < 1 / 30 + 1e-9
 
 
 # -- what BlueOS and Cockpit read -----------------------------------------------------------------

@@ -149,8 +149,11 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
             distance_m: null, range_m: null,
             reason: "plane too uncertain (range +- 4%, normal +- 2 deg): the ROIs ..."});
         onEstimate(m);
-        return document.getElementById("tilt").textContent; }""")
-    assert seen.startswith("net seen, ~0.83 ± 0.03 m: no distance (plane too uncertain"), seen
+        return [document.getElementById("tilt").textContent,
+                window.netpose.points[window.netpose.points.length - 1]]; }""")
+    assert seen[0].startswith("net seen, ~0.83 ± 0.03 m: no distance (plane too uncertain"), seen
+    assert seen[1][1] is None and seen[1][5] == 0.83  # a hollow point on the plot, no raw one
+    page.wait_for_timeout(300)  # a frame drawn with it: no page error
     assert not errors, errors
 
 

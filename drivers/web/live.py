@@ -102,17 +102,21 @@ def _tilt_of(normal: tuple[float, float, float] | None) -> float | None:
 
 
 def plot_point(message: EstimateMessage) -> list[float | None]:
-    """[capture time (monotonic s), raw distance, raw tilt, filtered distance, filtered tilt]:
-    None where there is nothing to plot (no net, or the filter does not believe its value)."""
+    """[capture time (monotonic s), raw distance, raw tilt, filtered distance, filtered tilt,
+    seen range]: None where there is nothing to plot (no net, or the filter does not believe
+    its value). The seen range is a net seen but too uncertain for a distance (its refused
+    range along the axis; the page draws it hollow). The page's `plotPoint` builds the same."""
     f = message.filtered
     valid = f is not None and f.valid
     t = message.frame_time_mono if message.frame_time_mono is not None else message.time_mono
+    seen = not message.detected and message.net_seen
     return [
         round(t, 3),
         message.distance_m if message.detected else None,
         message.tilt_deg if message.detected else None,
         f.distance_m if valid and f is not None else None,
         _tilt_of(f.normal) if valid and f is not None else None,
+        message.approx_range_m if seen else None,
     ]
 
 
@@ -132,7 +136,7 @@ class PlotHistory:
         if last is not None:
             last_t = last[0]
             assert last_t is not None
-            same_gaps = all((point[i] is None) == (last[i] is None) for i in (1, 3))
+            same_gaps = all((point[i] is None) == (last[i] is None) for i in (1, 3, 5))
             if same_gaps and t - last_t < HISTORY_STEP_S:
                 return
         self._points.append(point)

@@ -74,8 +74,11 @@ const tiltOf = (n) => (n ? (Math.acos(Math.min(1, Math.abs(n[2]))) * 180) / Math
 function plotPoint(m) {
   const f = m.filtered; const valid = f && f.valid;
   const t = m.frame_time_mono !== null ? m.frame_time_mono : m.time_mono;
+  // [5]: a net seen but too uncertain for a distance: its refused range, drawn hollow.
+  const seen = !m.detected && m.net_seen && m.approx_range_m !== null && m.approx_range_m !== undefined;
   return [t, m.detected ? m.distance_m : null, m.detected ? m.tilt_deg : null,
-          valid ? f.distance_m : null, valid ? tiltOf(f.normal) : null];
+          valid ? f.distance_m : null, valid ? tiltOf(f.normal) : null,
+          seen ? m.approx_range_m : null];
 }
 
 function onEstimate(m) {
@@ -97,11 +100,11 @@ function onEstimate(m) {
 function drawPlots() {
   page.drawPending = false;
   if ($("points")) $("points").textContent = `(${page.points.length} points)`;
-  plot($("plot-distance"), 1, 3, "distance, m");
+  plot($("plot-distance"), 1, 3, "distance, m", 5);
   if ($("plot-tilt")) plot($("plot-tilt"), 2, 4, "tilt, deg");
 }
 
-function plot(canvas, rawIndex, filtIndex, label) {
+function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
   if (!canvas) return;
   const ctx = canvas.getContext("2d");
   const W = canvas.width, H = canvas.height, L = 44, B = 18, T = 6;
@@ -112,7 +115,7 @@ function plot(canvas, rawIndex, filtIndex, label) {
   let lo = Infinity, hi = -Infinity;
   for (const p of pts) {
     if (p[0] < tStart) continue;
-    for (const i of [rawIndex, filtIndex]) if (p[i] !== null) { lo = Math.min(lo, p[i]); hi = Math.max(hi, p[i]); }
+    for (const i of [rawIndex, filtIndex, seenIndex]) if (i !== null && p[i] != null) { lo = Math.min(lo, p[i]); hi = Math.max(hi, p[i]); }
   }
   if (!isFinite(lo)) { lo = 0; hi = 1; }
   const pad = Math.max(0.05 * (hi - lo), rawIndex === 1 ? 0.05 : 1);
@@ -134,6 +137,10 @@ function plot(canvas, rawIndex, filtIndex, label) {
   ctx.fillText(label, L + 4, T + 10);
   ctx.fillStyle = "#8b9bab";
   for (const p of pts) if (p[0] >= tStart && p[rawIndex] !== null) ctx.fillRect(x(p[0]) - 1, y(p[rawIndex]) - 1, 2, 2);
+  if (seenIndex !== null) {
+    ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 1;
+    for (const p of pts) if (p[0] >= tStart && p[seenIndex] != null) ctx.strokeRect(x(p[0]) - 2, y(p[seenIndex]) - 2, 4, 4);
+  }
   ctx.strokeStyle = "#2a9df4"; ctx.lineWidth = 2; ctx.beginPath();
   let open = false, lastT = null;
   for (const p of pts) {
