@@ -37,7 +37,7 @@ from service.tools.replay import (
     truth_from_object,
     write_truth_csv,
 )
-from tests.shared_data import REAL_NET_FRAME
+from tests.shared_data import REAL_FIELD_DIR, REAL_NET_FRAME, needs_real_field
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -510,3 +510,27 @@ def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:
             load_truth_csv(path)
     with pytest.raises(NetposeError, match="not found"):
         load_truth_csv(tmp_path / "nothing.csv")
+
+
+@needs_real_field
+def test_replay_of_a_real_sequence_says_where_the_net_was_seen_without_a_distance(
+    tmp_path: Path,
+) -> None:
+    """The real SOLAQUA strip as an image folder: estimates.csv marks the frames whose net was
+    seen but too uncertain for a distance (their refused range, no distance), and the summary
+    counts them beside the measured ones."""
+    folder = REAL_FIELD_DIR / "sequence_2024-08-22_142905"
+    out = tmp_path / "out"
+    code = main(["replay", str(folder), "--calibration", str(folder / "camera.yaml"),
+                 "--mesh-size", "0.0275", "--out", str(out), "--no-video", "--progress", "off"])
+    assert code == 0
+    rows = read_csv(out / "estimates.csv")
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(rows) == summary["frames"] == 44
+    seen_only = [r for r in rows if r["net_seen"] == "1" and r["detected"] == "0"]
+    assert seen_only and summary["net_seen_frames"] == summary["detected_frames"] + len(
+        seen_only)
+    for r in seen_only:
+        assert r["distance_m"] == "" and r["range_m"] == ""
+        assert 0.5 < num(r, "approx_range_m") < 1.2 and num(r, "approx_sigma_range_m") > 0
+        assert r["reason"].startswith("plane too uncertain")

@@ -584,5 +584,6 @@ def _finish(
     summary["outputs"] = [*outcome.outputs, "summary.json"]
     write_json(out_dir / "summary.json", summary)
     detection = summary.get("detection_rate")
-    log.info("replay: %d frames, %s detected, written to %s", summary["frames"],
-             "-" if detection is None else f"{100 * detection:.0f} %", out_dir)
+    log.info("replay: %d frames, %s detected (a distance), %d with the net seen, written to %s",
+             summary["frames"], "-" if detection is None else f"{100 * detection:.0f} %",
+             summary.get("net_seen_frames", 0), out_dir)

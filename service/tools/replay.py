@@ -303,6 +303,8 @@ CSV_COLUMNS = (
     "detected", "confidence", "range_m", "distance_m", "nx", "ny", "nz", "tilt_deg",
     "sigma_range_m", "sigma_distance_m", "sigma_normal_deg", "rois", "rois_used", "level",
     "reason", "process_ms",
+    # a net seen but too uncertain for a distance (no distance above): its refused range
+    "net_seen", "approx_range_m", "approx_sigma_range_m",
     # filter (--filter)
     "filter_state", "filter_valid", "filter_measurement", "filtered_range_m",
     "filtered_distance_m", "filtered_nx", "filtered_ny", "filtered_nz", "filtered_tilt_deg",
@@ -351,6 +353,9 @@ def csv_row(result: FrameResult) -> list[str]:
         None if e is None else e.level,
         result.error if e is None else e.reason,
         round(result.process_ms, 3),
+        e is not None and e.net_seen,
+        None if e is None else e.approx_range_m,
+        None if e is None else e.approx_sigma_range_m,
         None if k is None else k.state.value,
         None if k is None else k.valid,
         None if k is None else k.measurement.value,
@@ -433,6 +438,7 @@ class _Series:
     time_s: list[float] = field(default_factory=list)
     index: list[int] = field(default_factory=list)
     detected: list[bool] = field(default_factory=list)
+    seen: list[bool] = field(default_factory=list)  # a net seen, with a distance or not
     confidence: list[float] = field(default_factory=list)
     distance: list[float] = field(default_factory=list)
     range: list[float] = field(default_factory=list)
@@ -510,6 +516,7 @@ class ReplayStats:
         s.time_s.append(result.frame.time_s)
         s.index.append(result.frame.index)
         s.detected.append(result.detected)
+        s.seen.append(e is not None and e.net_seen)
         s.confidence.append(_nan(None if e is None else e.confidence))
         s.distance.append(_nan(e.distance_m) if e is not None and e.detected else math.nan)
         s.range.append(_nan(e.range_m) if e is not None and e.detected else math.nan)
@@ -580,6 +587,8 @@ class ReplayStats:
             "duration_s": (s.time_s[-1] - s.time_s[0]) if n else 0.0,
             "detected_frames": detected,
             "detection_rate": detected / n if n else None,
+            # With a distance or not: also the frames whose plane was too uncertain for one.
+            "net_seen_frames": sum(s.seen),
             "refused_frames": self.refused,
             "confidence": _stats(s.confidence),
             "distance_m": _stats(s.distance),
