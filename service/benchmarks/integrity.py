@@ -295,7 +295,7 @@ def summarise(rows: list[Row]) -> Summary:
         valid=len(valid),
         gross=sum(r.gross for r in valid),
         # A net-free frame recognised as a net is a false net, with or without a distance.
-        false_nets=sum(r.seen or r.detected for r in rows if not r.net),
+        false_nets=sum(r.seen for r in rows if not r.net),
         false_too_close=sum(r.too_close for r in rows if not r.net),
         coverage_3sigma=float(np.mean(np.abs(z) <= 3.0)) if z.size else math.nan,
         z_std=float(np.std(z)) if z.size > 1 else math.nan,

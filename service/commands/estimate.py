@@ -33,9 +33,8 @@ def describe(name: str, est: NetEstimate) -> str:
     """The human-readable line for one image."""
     if est.too_close:
         return f"{name}: net too close ({est.reason}); no distance"
-    if est.approx_range_m is not None and est.approx_sigma_range_m is not None:
-        return (f"{name}: net seen, ~{est.approx_range_m:.2f} m +- {est.approx_sigma_range_m:.2f},"
-                f" no distance ({est.reason})")
+    if (seen := est.seen_text()) is not None:
+        return f"{name}: {seen}"
     if not est.detected or est.range_m is None or est.normal is None:
         return f"{name}: no net ({est.reason or 'not detected'}; confidence {est.confidence:.2f})"
     nx, ny, nz = est.normal

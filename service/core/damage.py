@@ -251,8 +251,14 @@ class DamageDetector:
         self.settings = settings or DamageSettings()
         self._cameras: dict[tuple[int, int], CameraModel] = {}
         self._rays: dict[tuple[int, int], tuple[F64, F64, F64]] = {}
+        self._dcts: dict[int, F64] = {}  # DCT matrices by length: windows repeat their sizes
         # Which part of a large view to inspect, and what was inspected (places on the net).
         self.planner = InspectionPlanner(mesh.bar_length_m)
+
+    def _dct(self, n: int) -> F64:
+        if n not in self._dcts:
+            self._dcts[n] = _dct_matrix(n)
+        return self._dcts[n]
 
     def _camera(self, w: int, h: int) -> CameraModel:
         key = (w, h)
@@ -525,7 +531,7 @@ class DamageDetector:
         out = np.zeros((n2, n1, 2))
         for f, z in enumerate((z1, z2)):
             zs = _smooth_complex(polarity * z * weight, 1.5)
-            out[..., f] = -_unwrap(zs) / (2 * np.pi)
+            out[..., f] = -_unwrap(zs, self._dct(n2), self._dct(n1)) / (2 * np.pi)
         return polarity, out
 
     # -- holes -------------------------------------------------------------------------------
@@ -861,11 +867,11 @@ def _smooth_complex(z: npt.NDArray[np.complexfloating[Any, Any]], sigma: float
     return parts[0] + 1j * parts[1]
 
 
-def _unwrap(z: npt.NDArray[np.complex128]) -> F64:
+def _unwrap(z: npt.NDArray[np.complex128], c2: F64, c1: F64) -> F64:
     """Phase of a smooth complex field, unwrapped: least-squares integration of its wrapped
     gradients (Ghiglia and Romero's DCT solution of the Poisson equation), with the constant
     that best matches the wrapped phase. Gradients where the field is weak (a hole, a board)
-    are left out."""
+    are left out. `c2`, `c1`: `_dct_matrix` of the field's rows and columns."""
     n2, n1 = z.shape
     mag = np.abs(z)
     strong = mag > 0.2 * float(np.median(mag[mag > 0])) if (mag > 0).any() else mag > 0
@@ -879,7 +885,6 @@ def _unwrap(z: npt.NDArray[np.complex128]) -> F64:
     rho[1:, :] -= gy[:-1, :]
     # The orthonormal 2D DCT-II as two matrix products: these grids are at most a few hundred
     # cells a side, where that is as fast as an FFT and keeps scipy out of the frame loop.
-    c2, c1 = _dct_matrix(n2), _dct_matrix(n1)
     d = c2 @ rho @ c1.T
     ii = np.arange(n1)
     jj = np.arange(n2)[:, None]

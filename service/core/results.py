@@ -92,6 +92,14 @@ class NetEstimate:
         to give (`approx_range_m`)."""
         return self.detected or self.approx_range_m is not None
 
+    def seen_text(self) -> str | None:
+        """'net seen, ~0.83 +- 0.03 m: no distance (why)' for a net seen without a distance
+        (None otherwise): the one wording of captions and command lines."""
+        if self.approx_range_m is None or self.approx_sigma_range_m is None:
+            return None
+        return (f"net seen, ~{self.approx_range_m:.2f} +- {self.approx_sigma_range_m:.2f} m: "
+                f"no distance ({self.reason.split(':')[0]})")
+
     @property
     def tilt_deg(self) -> float | None:
         """Angle between the optical axis and the net normal (0 = facing the net squarely)."""

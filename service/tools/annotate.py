@@ -52,10 +52,8 @@ def caption_lines(
         if tilt is not None:
             text += f"  tilt {tilt:.0f} deg"
         lines.append(f"{text}  conf {estimate.confidence:.2f}")
-    elif estimate.approx_range_m is not None and estimate.approx_sigma_range_m is not None:
-        lines.append(f"net seen, ~{estimate.approx_range_m:.2f} +- "
-                     f"{estimate.approx_sigma_range_m:.2f} m: no distance "
-                     f"({estimate.reason.split(':')[0]})")
+    elif (seen := estimate.seen_text()) is not None:
+        lines.append(seen)
     else:
         reason = estimate.reason or "no net"
         lines.append(f"no net ({reason})  conf {estimate.confidence:.2f}")
