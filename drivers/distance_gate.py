@@ -26,6 +26,7 @@ A reading that wavers around the limit therefore flips the output at most once a
 from __future__ import annotations
 
 import collections
+import statistics
 from dataclasses import dataclass, field
 
 from service.core.readings import RangeReading
@@ -60,6 +61,13 @@ class DistanceGate:
             self._intervals.append(reading.t_capture - self._last_capture)
         self._last_capture = reading.t_capture
         self._latencies.append(max(0.0, handed_over - reading.t_capture))
+
+    @property
+    def frame_interval_s(self) -> float | None:
+        """The typical interval between readings (their capture times), once measured."""
+        if len(self._intervals) < MIN_INTERVALS:
+            return None
+        return statistics.median(self._intervals)
 
     @property
     def freshness_s(self) -> float:

@@ -5,14 +5,24 @@ value under a lock, a bounded queue of depth one where the newest value wins. On
 (`MavlinkLink`) does all I/O with pymavlink (MAVLink 2): it connects, retries a dead transport
 with backoff (service.core.backoff), sends HEARTBEAT at 1 Hz as an onboard controller, tracks
 the autopilot's heartbeat (waiting -> connected -> lost -> connected), and sends DISTANCE_SENSOR
-at `rate_hz` while the newest reading is sendable (service.core.readings.RangeStatus) and fresh
-(drivers.distance_gate: a freshness limit that follows the measured frame interval and latency,
-up to `max_age_s`, and start/stop hysteresis). Every message is stamped with the capture time of the
-frame it describes, on the autopilot's boot clock. With no believable reading it sends nothing;
-ArduPilot then reports the rangefinder as "no data" after 500 ms, which is the protocol's own
-meaning of "invalid" for a MAVLink rangefinder. The net plane goes out as DEBUG_VECT named
-`NET_PLANE` (docs/net-hold.md), only while the newest plane is younger than `max_age_s` (a zero
-vector when that frame did not confirm the net).
+at least at `rate_hz` while the newest reading is sendable (service.core.readings.RangeStatus) and
+fresh (drivers.distance_gate: a freshness limit that follows the measured frame interval and
+latency, up to `max_age_s`, and start/stop hysteresis). Every message is stamped with the capture
+time of the frame it describes, on the autopilot's boot clock.
+
+When it is sent: a new reading goes out as it arrives (the frame loop wakes the link thread
+through a pipe) unless the frame after it is due within the period after the last reading sent
+this way (frame times are capture times: the camera's clock, without the loop's jitter). So
+the frames sent are at most a period apart: every second one at 30 frames/s, every one at 15 or
+fewer. The newest reading is also repeated one period after the last send, which bounds the
+gap whatever the camera does. A fixed schedule alone made each reading wait up to a frame
+interval for its slot (issue 13's latency).
+
+With no believable reading it sends nothing; ArduPilot then reports the rangefinder as "no
+data" after 500 ms, which is the protocol's own meaning of "invalid" for a MAVLink rangefinder.
+The net plane goes out as DEBUG_VECT named `NET_PLANE` (docs/net-hold.md) with each distance,
+only while the newest plane is younger than `max_age_s` (a zero vector when that frame did not
+confirm the net).
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -25,6 +35,7 @@ import functools
 import logging
 import math
 import os
+import select
 import threading
 import time
 from abc import abstractmethod
@@ -56,6 +67,10 @@ _SERIAL_WRITE_TIMEOUT_S = 0.2
 CLOSE_WAIT_S = 0.2
 # A jump of the autopilot's boot clock larger than this is a reboot, not network jitter.
 _REBOOT_JUMP_S = 1.0
+# A new reading is sent on arrival when the one after it (a frame interval later) would come
+# later than a period after the last reading sent, less this share of a frame interval: the
+# margin for a camera whose frame times wobble.
+_FRAME_MARGIN = 0.1
 
 # MAVLink enum values used below (common.xml), spelled out to keep pymavlink out of import time.
 MAV_TYPE_ONBOARD_CONTROLLER = 18
@@ -192,6 +207,9 @@ class MavlinkLink(AutopilotLink):
         # Inputs, written by the frame loop.
         self._range: RangeReading = RangeReading.none(-math.inf)
         self._plane: NetPlane | None = None
+        # A sendable reading arrived since the link thread last looked; the pipe wakes it.
+        self._arrived = False
+        self._wake: tuple[int, int] | None = None
         # Link state, written by the link thread, read by status().
         self._transport_up = False
         self._autopilot: _AutopilotIdentity | None = None
@@ -225,6 +243,12 @@ class MavlinkLink(AutopilotLink):
         with self._lock:
             self._range = reading
             self._gate.observe(reading, now)
+            self._arrived = reading.sendable
+            wake = self._wake
+        if wake is not None and reading.sendable:
+            # A full pipe already holds a wake-up; a closed one means the link is stopping.
+            with contextlib.suppress(BlockingIOError, OSError):
+                os.write(wake[1], b"\0")
 
     def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
@@ -237,6 +261,11 @@ class MavlinkLink(AutopilotLink):
     def start(self) -> None:
         if self._thread is not None:
             return
+        if self._wake is None:
+            read_end, write_end = os.pipe()
+            os.set_blocking(read_end, False)
+            os.set_blocking(write_end, False)
+            self._wake = (read_end, write_end)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="netpose-mavlink", daemon=True)
         self._thread.start()
@@ -251,6 +280,11 @@ class MavlinkLink(AutopilotLink):
             thread.join(timeout=CLOSE_WAIT_S)
             if thread.is_alive():
                 log.info("MAVLink thread still connecting; not waiting for it")
+                return  # its wake-up pipe ends with the process
+        with self._lock:
+            wake, self._wake = self._wake, None
+        for fd in wake or ():
+            os.close(fd)
 
     def status(self) -> AutopilotHealth:
         now = self._clock()
@@ -349,25 +383,63 @@ class MavlinkLink(AutopilotLink):
         now = self._clock()
         next_heartbeat = now
         next_output = now
+        last_capture_sent = -math.inf
         period = self.settings.period_s
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_heartbeat:
                 self._send_heartbeat(conn)
                 next_heartbeat = _advance(next_heartbeat, HEARTBEAT_PERIOD_S, now)
-            if now >= next_output:
+            # An arrival that is not sent now is not kept for later: the next frame or the
+            # repeat carries the newest reading, and a send between frames only adds latency.
+            arrived = self._take_arrival(last_capture_sent)
+            if arrived is not None or now >= next_output:
                 self._send_outputs(conn, now)
                 self._send_texts(conn)
-                next_output = _advance(next_output, period, now)
+                if arrived is not None:
+                    last_capture_sent = arrived
+                    next_output = now + period
+                else:
+                    next_output = _advance(next_output, period, now)
             self._check_autopilot_timeout(now)
             wait = min(next_heartbeat, next_output) - self._clock()
             if wait > 0:
-                conn.select(min(wait, _POLL_LIMIT_S))
+                self._wait(conn, min(wait, _POLL_LIMIT_S))
             for _ in range(_MAX_MESSAGES_PER_TURN):
                 msg = conn.recv_msg()
                 if msg is None:
                     break
                 self._handle(msg, self._clock())
+
+    def _take_arrival(self, last_capture_sent: float) -> float | None:
+        """The capture time of a reading that arrived since the last look and is to go out now
+        (see the module docstring), else None. Until the frame interval is measured, a reading
+        half a period younger than the last one sent goes."""
+        period = self.settings.period_s
+        with self._lock:
+            arrived, self._arrived = self._arrived, False
+            capture = self._range.t_capture
+            interval = self._gate.frame_interval_s
+        if not arrived:
+            return None
+        spacing = 0.5 * period if interval is None else period - (1.0 + _FRAME_MARGIN) * interval
+        return capture if capture - last_capture_sent >= spacing else None
+
+    def _wait(self, conn: Any, timeout: float) -> None:
+        """Wait up to `timeout` for incoming data or a new reading (pymavlink's own select
+        where the connection has no file descriptor to wait on)."""
+        fd = getattr(conn, "fd", None)
+        wake = self._wake
+        if fd is None or wake is None:
+            conn.select(timeout)
+            return
+        try:
+            readable, _, _ = select.select([fd, wake[0]], [], [], timeout)
+        except (OSError, ValueError):
+            return  # a closed descriptor: the next read says why
+        if wake[0] in readable:
+            with contextlib.suppress(OSError):
+                os.read(wake[0], 4096)
 
     def _send_texts(self, conn: Any) -> None:
         while True:
