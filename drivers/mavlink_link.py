@@ -20,9 +20,9 @@ interval for its slot (issue 13's latency).
 
 With no believable reading it sends nothing; ArduPilot then reports the rangefinder as "no
 data" after 500 ms, which is the protocol's own meaning of "invalid" for a MAVLink rangefinder.
-The net plane goes out as DEBUG_VECT named `NET_PLANE` (docs/net-hold.md) with each distance,
-only while the newest plane is younger than `max_age_s` (a zero vector when that frame did not
-confirm the net).
+The net plane goes out as DEBUG_VECT named `NET_PLANE` (docs/net-hold.md) on a fixed
+`rate_hz` schedule (what the net-hold applet was proved with), only while the newest plane is
+younger than `max_age_s` (a zero vector when that frame did not confirm the net).
 
 `RecordingAutopilotLink` is the stand-in with the same interface for tests that need no network.
 """
@@ -382,7 +382,8 @@ class MavlinkLink(AutopilotLink):
     def _serve(self, conn: Any) -> None:
         now = self._clock()
         next_heartbeat = now
-        next_output = now
+        next_distance = now
+        next_plane = now
         last_capture_sent = -math.inf
         period = self.settings.period_s
         while not self._stop.is_set():
@@ -393,16 +394,21 @@ class MavlinkLink(AutopilotLink):
             # An arrival that is not sent now is not kept for later: the next frame or the
             # repeat carries the newest reading, and a send between frames only adds latency.
             arrived = self._take_arrival(last_capture_sent)
-            if arrived is not None or now >= next_output:
-                self._send_outputs(conn, now)
-                self._send_texts(conn)
+            if arrived is not None or now >= next_distance:
+                self._send_distance(conn, now)
                 if arrived is not None:
                     last_capture_sent = arrived
-                    next_output = now + period
+                    next_distance = now + period
                 else:
-                    next_output = _advance(next_output, period, now)
+                    next_distance = _advance(next_distance, period, now)
+            # The net plane keeps the fixed schedule the net-hold applet was proved with in
+            # SITL (its closing-speed filter counts messages, not seconds).
+            if now >= next_plane:
+                self._send_plane(conn, now)
+                self._send_texts(conn)
+                next_plane = _advance(next_plane, period, now)
             self._check_autopilot_timeout(now)
-            wait = min(next_heartbeat, next_output) - self._clock()
+            wait = min(next_heartbeat, next_distance, next_plane) - self._clock()
             if wait > 0:
                 self._wait(conn, min(wait, _POLL_LIMIT_S))
             for _ in range(_MAX_MESSAGES_PER_TURN):
@@ -467,16 +473,15 @@ class MavlinkLink(AutopilotLink):
             ),
         )
 
-    def _send_outputs(self, conn: Any, now: float) -> None:
+    def _send_distance(self, conn: Any, now: float) -> None:
         with self._lock:
-            reading, plane = self._range, self._plane
+            reading = self._range
             fresh_range = self._gate.decide(reading, now)
             limit = self._gate.freshness_s
         why = "" if reading.sendable else "nothing believed"
         if reading.sendable and not fresh_range:
             why = f"newest reading {now - reading.t_capture:.2f} s old, limit {limit:.2f} s"
         self._note_sending("distance", fresh_range, now, why)
-        max_age = self.settings.max_age_s
         if fresh_range:
             fields = distance_sensor_fields(reading, self.settings)
             time_boot_ms = self._autopilot_time_ms(reading.t_capture)
@@ -497,8 +502,13 @@ class MavlinkLink(AutopilotLink):
                     signal_quality=fields.signal_quality,
                 ),
             )
+
+    def _send_plane(self, conn: Any, now: float) -> None:
         if not self.settings.send_net_plane:
             return
+        with self._lock:
+            plane = self._plane
+        max_age = self.settings.max_age_s
         # A fresh plane goes out whether it confirms the net or not (a zero vector: "no net in
         # that frame"), so the applet stops at once rather than at its timeout.
         fresh_plane = plane is not None and now - plane.t_capture <= max_age and all(
