@@ -1185,7 +1185,7 @@ class NetEstimator:
         levels: list[int] = []
         patches: list[Image] = []
         for full, _, step, _, _ in maps:
-            level = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, s.levels - 1))
+            level = min(max(math.floor(math.log2(max(step, 1.0))), 0), s.levels - 1)
             scale = 2**level
             to_level = np.array(
                 [[1 / scale, 0, -(scale - 1) / (2 * scale)],
@@ -1212,8 +1212,10 @@ class NetEstimator:
                        for (peaks, _, _), weak in zip(spectra, weak_peaks, strict=True)]
         fits = self._lattice.fit_many(found_peaks, expected, expected_share=0.3)
         out: list[_Roi] = []
-        for geom, (_, jm, step, virt, t), level, (_, snr, logp), peaks, fit in zip(
-            grid, maps, levels, spectra, found_peaks, fits, strict=True
+        # Pixels -> output pixels at each ROI centre, for carrying its lattice back to pixels.
+        jm_inv_t = np.linalg.inv(np.array([jm for _, jm, _, _, _ in maps])).transpose(0, 2, 1)
+        for geom, (_, _, step, virt, t), level, (_, snr, logp), peaks, fit, to_pixels in zip(
+            grid, maps, levels, spectra, found_peaks, fits, jm_inv_t, strict=True
         ):
             meas = _Roi(geometry=geom, level=level, size=n, fit=fit, peaks=len(peaks), snr=snr,
                         logp=logp, footprint_px=n * step)
@@ -1221,8 +1223,9 @@ class NetEstimator:
             out.append(meas)
             if fit is None:
                 continue
-            lengths = np.linalg.norm(fit.basis, axis=0)
-            period_ok = lengths.min() >= s.min_cycles and lengths.max() <= n / s.min_period_px
+            (a, b), (c, d) = fit.basis.tolist()
+            shorter, longer = sorted((math.hypot(a, c), math.hypot(b, d)))
+            period_ok = shorter >= s.min_cycles and longer <= n / s.min_period_px
             if expected is not None:
                 quality_ok = fit.mean_snr >= s.guided_snr and fit.inlier_weight_fraction >= 0.3
             else:
@@ -1231,16 +1234,17 @@ class NetEstimator:
                 )
             # The rectification was designed to show the mesh at period_out; a lattice far from
             # it means the seed plane was wrong or the ROI shows something else.
-            found = n / math.sqrt(fit.det)
+            det = abs(a * d - b * c)  # cell area in bins^2
+            found = n / math.sqrt(det)
             on_target = abs(math.log(found / period_out)) < math.log(1.35)
             # Resampling cannot restore what the camera never resolved: a mesh finer than
             # ~3.5 px in the source has aliased harmonics and a peak position biased by the
             # pixel response.
             resolved = found * step >= s.min_source_period_px
             k_out = fit.basis / n  # cycles per output pixel
-            meas.area_norm = t * t / abs(float(np.linalg.det(k_out)))
+            meas.area_norm = t * t * n * n / det
             # For reporting: the lattice in full-resolution image pixels through the local map.
-            meas.reciprocal_px = np.linalg.inv(jm).T @ k_out
+            meas.reciprocal_px = to_pixels @ k_out
             meas.valid = bool(period_ok and quality_ok and on_target and resolved)
             if period_ok and quality_ok and resolved:
                 meas.period_ratio = found / period_out

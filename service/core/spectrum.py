@@ -202,8 +202,10 @@ class SpectrumAnalyzer:
         snr_cl = (channels - background.reshape(channels.shape)).reshape(channels.shape)
         local_max = channels >= cv2.dilate(channels, self._kernel).reshape(channels.shape)
         snr = np.ascontiguousarray(snr_cl.transpose(2, 0, 1))
-        mask = (local_max & (snr_cl > self.min_snr)).transpose(2, 0, 1) & self.valid
-        roi, rows, cols = np.nonzero(mask)
+        # Found in the channels' own layout (a transposed mask costs nonzero() a strided walk),
+        # then ordered by ROI below.
+        mask = local_max & (snr_cl > self.min_snr) & self.valid[:, :, None]
+        rows, cols, roi = np.nonzero(mask)
         strength = snr[roi, rows, cols]
         # Strongest first within each ROI, at most max_peaks each.
         order = np.lexsort((-strength, roi))
