@@ -71,3 +71,18 @@ def test_a_stale_reading_is_not_repeated_beyond_the_ceiling() -> None:
     sending = [gate.decide(good(0.0), t / 100) for t in range(5, 100, 10)]
     last_sent = max(t / 100 for t, s in zip(range(5, 100, 10), sending, strict=True) if s)
     assert last_sent <= 0.4
+
+
+def test_the_frame_interval_is_the_typical_spacing_of_capture_times() -> None:
+    """What the link spaces its sends on arrival by: the median interval between the capture
+    times of consecutive readings (one dropped frame does not move it), once four are known;
+    the loop's jitter in handing them over does not enter."""
+    gate = DistanceGate(ceiling_s=1.0, send_period_s=PERIOD)
+    rng = np.random.default_rng(3)
+    captures = [i / 30.0 for i in range(12) if i != 6]  # frame 6 dropped
+    for i, t in enumerate(captures):
+        if i == 4:
+            assert gate.frame_interval_s is None  # three intervals: not yet measured
+        gate.observe(good(t), t + 0.02 + 0.03 * float(rng.random()))
+    interval = gate.frame_interval_s
+    assert interval is not None and abs(interval - 1 / 30.0) < 1e-9
