@@ -1552,15 +1552,21 @@ def _normalise_contrast_many(patches: Image, period: float) -> F32:
     k1 = max(3, int(round(1.6 * period)) | 1)
     k2 = max(3, int(round(3.2 * period)) | 1)
     mean = cv2.blur(stack, (k1, k1), borderType=cv2.BORDER_REFLECT).reshape(shape)
-    detail = stack - mean
-    var = cv2.blur(detail * detail, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    # In place from here on: each temporary of this size is a megabyte the kernel must map
+    # and clear, which costs about what the arithmetic does.
+    detail = stack if stack is not patches else stack.copy()
+    np.subtract(detail, mean, out=detail)
+    np.multiply(detail, detail, out=mean)
+    var = cv2.blur(mean, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
     # The floor is a regulariser: the median of every fourth row and column of the (box-
     # smoothed, so slowly varying) variance is as good, and a full median of every ROI's
     # pixels was the costliest step of the rectified pass.
     median = np.median(np.ascontiguousarray(var[::4, ::4]).reshape(-1, shape[2]), axis=0)
     floor = (1e-3 + 0.1 * median.astype(np.float64)).astype(np.float32)
-    out = detail / np.sqrt(var + floor)
-    return np.ascontiguousarray(out.transpose(2, 0, 1), dtype=np.float32)
+    np.add(var, floor, out=var)
+    np.sqrt(var, out=var)
+    np.divide(detail, var, out=detail)
+    return np.ascontiguousarray(detail.transpose(2, 0, 1), dtype=np.float32)
 
 
 def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
@@ -1824,10 +1830,12 @@ def _overlap(rois: list[_Roi]) -> float:
     step = max((x1 - x0), (y1 - y0)) / 64.0
     gx = np.arange(x0, x1, step) + step / 2
     gy = np.arange(y0, y1, step) + step / 2
-    cov = np.zeros((gy.size, gx.size), bool)
-    for (cx, cy), f in sq:
-        cov |= (np.abs(gx[None, :] - cx) <= f / 2) & (np.abs(gy[:, None] - cy) <= f / 2)
-    union = float(cov.sum()) * step * step
+    # Which grid columns and rows each footprint spans; a cell is covered when one footprint
+    # spans both its column and its row (all footprints at once: a matrix product of the masks).
+    in_x = np.abs(gx[None, :] - xs[:, None]) <= fs[:, None] / 2
+    in_y = np.abs(gy[None, :] - ys[:, None]) <= fs[:, None] / 2
+    covered = in_y.T.astype(np.float32) @ in_x.astype(np.float32)
+    union = float(np.count_nonzero(covered)) * step * step
     return max(1.0, total / max(union, 1e-9))
 
 

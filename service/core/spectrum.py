@@ -43,7 +43,9 @@ def half_plane_power(patches: F32) -> F32:
         cv2.dft(patches[i], packed[i])
     power = np.empty((n, size, half + 1), dtype=np.float32)
     re, im = packed[:, :, 1 : size - 1 : 2], packed[:, :, 2 : size - 1 : 2]
-    power[:, :, 1:half] = re * re + im * im
+    inner_power = power[:, :, 1:half]
+    np.multiply(re, re, out=inner_power)
+    inner_power += im * im
     for column, kx in ((0, 0), (size - 1, half)):
         col = packed[:, :, column]
         inner = col[:, 1 : size - 1 : 2] ** 2 + col[:, 2 : size - 1 : 2] ** 2  # ky 1 .. N/2-1
@@ -130,7 +132,8 @@ class SpectrumAnalyzer:
         import cv2
 
         p = patches.astype(np.float32, copy=False)
-        p = (p - p.mean(axis=(1, 2), keepdims=True)) * self._modulated_window
+        p = p - p.mean(axis=(1, 2), keepdims=True)
+        p *= self._modulated_window
         power = half_plane_power(p)
         # A flat patch has no spectrum at all: a floor keeps the log finite.
         floor = power.mean(axis=(1, 2), keepdims=True) * np.float32(1e-10) + np.float32(1e-20)
