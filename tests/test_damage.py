@@ -416,6 +416,18 @@ def test_a_window_holds_the_open_candidates_places_first(renderer: NetRenderer,
         assert _judged_mask(s)[round(truth.centre_px[1]), round(truth.centre_px[0])]
 
 
+def test_the_detector_keeps_a_bounded_set_of_dct_matrices() -> None:
+    """A daemon sees window sizes from a few cells to hundreds over hours: the detector keeps
+    the matrices of the last few sizes only, and a size met again is rebuilt the same."""
+    from service.core.damage import _DCT_CACHE_SIZES, _dct_matrix
+
+    detector = DamageDetector(bench_camera(640, 360), MESH)
+    for n in range(5, 5 + 4 * _DCT_CACHE_SIZES):
+        assert np.array_equal(detector._dct(n), _dct_matrix(n))
+    assert len(detector._dcts) == _DCT_CACHE_SIZES
+    assert np.array_equal(detector._dct(5), _dct_matrix(5))
+
+
 def test_the_phase_unwrapping_dct_is_scipys_orthonormal_dct() -> None:
     """The phase is unwrapped with a DCT written as matrix products (no scipy in the frame
     loop): it must be scipy's orthonormal 2D DCT-II and its inverse, to rounding."""

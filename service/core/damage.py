@@ -70,6 +70,9 @@ Vec3 = tuple[float, float, float]
 Cell = tuple[int, int]  # (i, j): the opening with corner knots (i, j) .. (i + 1, j + 1)
 Bar = tuple[int, int, int]  # (family, i, j): left (1) or top (2) bar of cell (i, j)
 
+# Window lengths whose DCT matrices a detector keeps (the oldest goes first).
+_DCT_CACHE_SIZES = 8
+
 
 @dataclass(frozen=True)
 class DamageSettings:
@@ -257,6 +260,10 @@ class DamageDetector:
 
     def _dct(self, n: int) -> F64:
         if n not in self._dcts:
+            # Bounded: a daemon that sees every window size from a few cells to a few hundred
+            # over hours would otherwise keep tens of megabytes of matrices it rarely reuses.
+            if len(self._dcts) >= _DCT_CACHE_SIZES:
+                del self._dcts[next(iter(self._dcts))]
             self._dcts[n] = _dct_matrix(n)
         return self._dcts[n]
 
