@@ -113,8 +113,15 @@ def status_now(vehicle: str = "rov9", telemetry: TelemetryHealth | None = None) 
 # of the state queryable, then exits once it has `want` estimates, a status and a preview.
 SUBSCRIBER = textwrap.dedent(
     """
-    import json, sys, time, zenoh
+    import json, sys, threading, time, zenoh
     connect, prefix, want, limit = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+    # Zenoh's callback thread and the main thread both print: one whole line at a time (print()
+    # writes the text and its newline separately, so two lines could interleave).
+    out_lock = threading.Lock()
+    def emit(obj):
+        with out_lock:
+            sys.stdout.write(json.dumps(obj) + "\\n")
+            sys.stdout.flush()
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([connect]))
@@ -130,9 +137,9 @@ SUBSCRIBER = textwrap.dedent(
                 "attachment": None if att is None else json.loads(att.to_bytes())}
         if kind != "preview":
             line["payload"] = json.loads(data)
-        print(json.dumps(line), flush=True)
+        emit(line)
     sub = session.declare_subscriber(prefix + "/**", on_sample)
-    print(json.dumps({"ready": True}), flush=True)
+    emit({"ready": True})
     deadline = time.monotonic() + limit
     while time.monotonic() < deadline:
         if seen["estimate"] >= want and seen["status"] >= 1 and seen["preview"] >= 1:
@@ -140,8 +147,8 @@ SUBSCRIBER = textwrap.dedent(
         time.sleep(0.02)
     for reply in session.get(prefix + "/state", timeout=5):
         if reply.ok is not None:
-            print(json.dumps({"reply": json.loads(reply.ok.payload.to_bytes()),
-                              "encoding": str(reply.ok.encoding)}), flush=True)
+            emit({"reply": json.loads(reply.ok.payload.to_bytes()),
+                  "encoding": str(reply.ok.encoding)})
     session.close()
     """
 )
