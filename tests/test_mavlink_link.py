@@ -12,6 +12,7 @@ import os
 import socket
 import statistics
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -161,6 +162,33 @@ def test_signing_key_file_formats(tmp_path: Path) -> None:
         with pytest.raises(ConfigError) as info:
             MavlinkLink(settings("udpout:127.0.0.1:9", signing_key_file=str(tmp_path / name)))
         assert info.value.key == "mavlink.signing_key_file"
+
+
+@pytest.mark.parametrize(("env_dialect", "expected"),
+                         [(None, "ardupilotmega"), ("common", "common")])
+def test_mavutil_speaks_mavlink2_with_ardupilots_dialect_and_loads_no_other(
+    env_dialect: str | None, expected: str
+) -> None:
+    """In a fresh interpreter (the daemon's start): MAVLink 2, ArduPilot's dialect unless the
+    user chose one, and neither pymavlink's "all" dialect nor its MAVLink 1 twin loaded, while
+    an explicit import of the latter still works afterwards."""
+    code = (
+        "import json, sys\n"
+        "from drivers.mavlink_link import import_mavutil\n"
+        "m = import_mavutil()\n"
+        "loaded = sorted(k for k in sys.modules if k.startswith('pymavlink.dialects.'))\n"
+        "import importlib; later = importlib.import_module('pymavlink.dialects.v10.all').__name__\n"
+        "print(json.dumps([m.mavlink.__name__, m.mavlink.WIRE_PROTOCOL_VERSION, loaded, later]))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MAVLINK_DIALECT", "MAVLINK20")}
+    if env_dialect is not None:
+        env["MAVLINK_DIALECT"] = env_dialect
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=60, check=True, cwd=Path(__file__).resolve().parents[1])
+    name, wire, loaded, later = json.loads(out.stdout.strip().splitlines()[-1])
+    assert name == f"pymavlink.dialects.v20.{expected}" and wire == "2.0"
+    assert loaded == ["pymavlink.dialects.v10", "pymavlink.dialects.v20", name]
+    assert later == "pymavlink.dialects.v10.all"
 
 
 # ---- over real sockets ----------------------------------------------------------------------
