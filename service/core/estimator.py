@@ -125,10 +125,10 @@ class EstimatorSettings:
     # Mesh shape: measured opening angle and bar-length ratio against the configured mesh.
     opening_tolerance_deg: float = 20.0
     aspect_tolerance: float = 0.25
-    # No distance is reported less certain than this (1 sigma). The normal's limit keeps a
-    # normal error over the 10 deg of a gross error a 3-sigma event at least.
+    # No distance is reported less certain than this (1 sigma). Both limits put a gross error
+    # (5 % of the range, 10 deg of the normal) at 2.5 sigma or more.
     max_sigma_range_fraction: float = 0.02
-    max_sigma_normal_deg: float = 3.3
+    max_sigma_normal_deg: float = 4.0
     # A tracked frame's blind scale check (a full search that proves the tracked scale is not a
     # harmonic) may be skipped while the net cannot have changed scale by a harmonic factor
     # since the prior's frame: at this closing speed (a BlueROV2's top speed is ~1.5 m/s) it
