@@ -263,11 +263,12 @@ class MavlinkLink(AutopilotLink):
             self._range = reading
             self._gate.observe(reading, now)
             self._arrived = reading.sendable
-            wake = self._wake
-        if wake is not None and reading.sendable:
-            # A full pipe already holds a wake-up; a closed one means the link is stopping.
-            with contextlib.suppress(BlockingIOError, OSError):
-                os.write(wake[1], b"\0")
+            if self._wake is not None and reading.sendable:
+                # Under the lock, as close() closes the pipe: a descriptor number freed there
+                # and reused by another file must never receive this byte. The write never
+                # blocks; a full pipe already holds a wake-up.
+                with contextlib.suppress(BlockingIOError):
+                    os.write(self._wake[1], b"\0")
 
     def set_net_plane(self, plane: NetPlane) -> None:
         with self._lock:
@@ -302,8 +303,8 @@ class MavlinkLink(AutopilotLink):
                 return  # its wake-up pipe ends with the process
         with self._lock:
             wake, self._wake = self._wake, None
-        for fd in wake or ():
-            os.close(fd)
+            for fd in wake or ():
+                os.close(fd)
 
     def status(self) -> AutopilotHealth:
         now = self._clock()
