@@ -36,6 +36,7 @@ lens Jacobians) is computed once and cached. ROIs are measured independently of 
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -937,10 +938,12 @@ class NetEstimator:
         previous: tuple[F64, float] | None = None
         last: _Pass | None = None
         corrected = 0
+        planes: list[tuple[F64, float]] = []  # each pass's plane over this frame, in order
 
-        def verdict(p: _Pass, converged: _Converged | None, failure: str) -> NetEstimate:
+        def verdict(p: _Pass, converged: _Converged | None, failure: str,
+                    settled: bool = True) -> NetEstimate:
             t1 = time.perf_counter()
-            result = self._verdict(p, converged, layout, failure)
+            result = self._verdict(p, converged, layout, failure, settled)
             frame.lap("proofs", t1)
             return result
 
@@ -987,6 +990,7 @@ class NetEstimator:
                 previous = None
                 continue
             hints = p.consensus
+            planes.append((n_new, d_new))
             step = (abs(d_new / distance - 1.0), math.degrees(math.acos(
                 float(np.clip(np.dot(n_new, normal), -1.0, 1.0)))))
             # Converged when the pass moved the plane by less than its own uncertainty, or by
@@ -999,8 +1003,21 @@ class NetEstimator:
             previous = (normal, distance)
             normal, distance = n_new, d_new
         assert last is not None
-        return verdict(last, None,
-                       "the ROIs do not converge on one plane (rectified passes disagree)")
+        failure = "the ROIs do not converge on one plane (rectified passes disagree)"
+        if last.plane is None or len(planes) < 2 or planes[-1][1] != last.plane.distance_m:
+            return verdict(last, None, failure)
+        # The passes went round between planes, each fitted to the subset of ROIs that agreed
+        # in its rectified view (a real net's cells differ more than a rendered one's, and on
+        # one side of a marker board the subset decides the tilt). Each pass's own sigma does
+        # not cover that: the net is seen, at a range known to about the spread of the last
+        # passes, and no distance is given.
+        recent = planes[-3:]
+        ds = [d for _, d in recent]
+        spread = ((max(ds) - min(ds)) / float(np.median(ds)),
+                  max(math.degrees(math.acos(float(np.clip(np.dot(a, b), -1.0, 1.0))))
+                      for (a, _), (b, _) in itertools.combinations(recent, 2)))
+        n_last, d_last = planes[-1]
+        return verdict(last, (n_last, d_last, planes[-2], spread), "", settled=False)
 
     def _rectified_pass(
         self,
@@ -1383,7 +1400,11 @@ class NetEstimator:
         converged: _Converged | None,
         layout: _Layout,
         failure: str,
+        settled: bool = True,
     ) -> NetEstimate:
+        """The estimate from a pass. `converged` is the plane it settled on, or, when the
+        passes went round without settling (`settled` false), the last plane with the spread
+        of the last passes as its step: then the net is at most seen, never measured."""
         s = self.settings
         rois = tuple(_roi_result(m, m.agrees) for m in p.rois)
         agreeing = [m for m in p.rois if m.agrees]
@@ -1430,15 +1451,19 @@ class NetEstimator:
         sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
                              change[0] * range_m, deformation * range_m, _MODEL_FLOOR * range_m)
         sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], 0.2)
-        if sigma_r > s.max_sigma_range_fraction * range_m or sigma_n > s.max_sigma_normal_deg:
+        too_uncertain = (sigma_r > s.max_sigma_range_fraction * range_m
+                         or sigma_n > s.max_sigma_normal_deg)
+        if too_uncertain or not settled:
             # Every proof passed: it is the net, at a range known only roughly. Said so (for
             # the pilot), never given as a distance.
             seen = confidence >= s.min_confidence
+            why = ("the ROIs that see the net do not span the view" if settled else
+                   "the passes do not settle on one plane")
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
                 rois_used=len(agreeing), level=p.level, measured_opening_deg=opening,
                 reason=(f"plane too uncertain (range +- {sigma_r / range_m:.0%}, normal +- "
-                        f"{sigma_n:.0f} deg): the ROIs that see the net do not span the view"),
+                        f"{sigma_n:.0f} deg): {why}"),
                 approx_range_m=range_m if seen else None,
                 approx_sigma_range_m=sigma_r if seen else None,
             )
