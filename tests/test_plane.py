@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.core.plane import PRIOR_DOF, axis_leverage, fit_plane
+from service.core.plane import PRIOR_DOF, axis_leverage, fit_plane, tilt_leverage
 
 F64 = npt.NDArray[np.float64]
 CELL_M2 = 0.015**2
@@ -212,3 +212,32 @@ def test_axis_leverage_is_small_inside_the_rois_and_grows_on_one_side() -> None:
     assert lever > 4.0
     # Depth does not matter: rays are compared where they cross z = 1.
     assert axis_leverage(side * 2.0, axis * 3.0, 0.2) == pytest.approx(lever)
+
+
+def test_tilt_leverage_says_how_far_an_error_common_to_one_side_tilts_the_plane() -> None:
+    """A relative error in the cell sizes that grows across the view (a net bulging on one
+    side) is not noise that averages over ROIs: fitted exactly, it tilts the plane by its rms
+    over the ROIs' spread that way, and sqrt(tilt_leverage) bounds that for any direction."""
+    rays = _rays()
+    normal = _unit(np.array([0.0, 0.0, 1.0]))
+    areas = _areas(rays, normal, 1.0)
+    sigmas = np.full(len(rays), 0.002)
+    x = rays[:, 0]
+    rms = 0.01
+    ramp = rms * (x - x.mean()) / x.std()
+    bent = areas * (1.0 + ramp) ** 3  # c, the cube root of the area, off by `ramp`
+    flat_fit = fit_plane(rays, areas, sigmas, CELL_M2)
+    bent_fit = fit_plane(rays, bent, sigmas, CELL_M2)
+    assert flat_fit is not None and bent_fit is not None
+    tilt = math.acos(min(1.0, float(flat_fit.normal_away @ bent_fit.normal_away)))
+    assert tilt == pytest.approx(rms / x.std(), rel=0.1)
+    leverage = tilt_leverage(rays, 0.0)
+    assert rms * math.sqrt(leverage) >= tilt
+    # Larger ROIs (each a square, not a point) pin it a little better; a view twice as wide
+    # both ways, four times better.
+    assert tilt_leverage(rays, 0.2) < leverage
+    wide = rays * np.array([2.0, 2.0, 1.0])
+    assert tilt_leverage(wide, 0.0) == pytest.approx(leverage / 4.0)
+    # One row of ROIs leaves the tilt across it unpinned but for the ROIs' own extent.
+    row = rays[np.isclose(rays[:, 1], 0.0)]
+    assert tilt_leverage(row, 0.2) > 20 * tilt_leverage(rays, 0.2)

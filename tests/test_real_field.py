@@ -9,6 +9,7 @@ targets are measured and printed by `netpose bench real` (see docs/benchmarks.md
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Iterator
@@ -21,6 +22,9 @@ from service.benchmarks.real_frames import (
     real_field_frames,
     run_frames,
 )
+from service.core.camera import load_camera
+from service.core.estimator import NetEstimator
+from service.core.grey import decode_gray
 from tests.shared_data import shared_data_dir
 
 REAL_FIELD = shared_data_dir() / "real-field"
@@ -120,3 +124,43 @@ def test_a_net_seen_without_a_distance_is_where_its_measured_neighbours_are(
         allowed = 3.0 * math.hypot(e.approx_sigma_range_m, near.sigma_range_m) + 0.01 * abs(i - j)
         assert abs(e.approx_range_m - near.range_m) <= allowed, (i, j, e.approx_range_m,
                                                                 near.range_m)
+
+
+def test_crops_of_a_real_frame_agree_with_it_within_their_sigmas() -> None:
+    """The real net frame whole and through five crops of 70 % of it (the corners and the
+    centre, the calibration's principal point moved with each crop): one net, one camera, so
+    one plane. Each crop that gives a distance agrees with the whole frame's range and normal
+    within 3 of their combined sigmas (the normal's sigma is the total over both axes, so a
+    Gaussian error exceeds 3 of it once in 8,000). Issue 11: crops of a real frame once spread
+    over 17 deg against a claimed +-0.5 deg; here the fit's own sigma alone claimed 0.5-0.8 deg
+    where the crops differ by 2-3 deg."""
+    frames = [f for f in real_field_frames(shared_data_dir()) if f.name == "real-net-frame"]
+    if not frames:
+        pytest.skip("shared/data/real-net-frame/ not found")
+    frame = frames[0]
+    gray, _ = decode_gray(frame.image.read_bytes())
+    camera = load_camera(frame.calibration)
+    whole = NetEstimator(camera, frame.mesh).estimate(gray)
+    assert whole.detected and whole.normal is not None
+    assert whole.range_m is not None and whole.sigma_range_m is not None
+    assert whole.sigma_normal_deg is not None
+    h, w = gray.shape
+    cw, ch = int(0.7 * w), int(0.7 * h)
+    measured = 0
+    for x0, y0 in ((0, 0), (w - cw, 0), (0, h - ch), (w - cw, h - ch),
+                   ((w - cw) // 2, (h - ch) // 2)):
+        crop_camera = dataclasses.replace(camera, width=cw, height=ch, cx=camera.cx - x0,
+                                          cy=camera.cy - y0)
+        crop = NetEstimator(crop_camera, frame.mesh).estimate(
+            np.ascontiguousarray(gray[y0 : y0 + ch, x0 : x0 + cw]))
+        if not crop.detected:
+            continue
+        measured += 1
+        assert crop.range_m is not None and crop.sigma_range_m is not None
+        assert crop.normal is not None and crop.sigma_normal_deg is not None
+        assert abs(crop.range_m - whole.range_m) <= 3.0 * math.hypot(
+            crop.sigma_range_m, whole.sigma_range_m), (x0, y0)
+        angle = math.degrees(math.acos(min(1.0, abs(float(np.dot(crop.normal, whole.normal))))))
+        assert angle <= 3.0 * math.hypot(crop.sigma_normal_deg, whole.sigma_normal_deg), (
+            x0, y0, angle, crop.sigma_normal_deg, whole.sigma_normal_deg)
+    assert measured >= 3  # the net fills this frame: most crops measure it

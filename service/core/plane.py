@@ -162,6 +162,20 @@ def axis_leverage(rays: F64, axis: F64, extent: float) -> float:
         return math.inf
 
 
+def tilt_leverage(rays: F64, extent: float) -> float:
+    """How weakly the ROIs' layout pins the tilt: the trace of the inverse covariance of the
+    ROI centres (rays compared at z = 1, each ROI a square of side `extent`), so that a
+    relative error e in the cell areas, common to a side of the view rather than independent
+    per ROI, tilts the fitted plane by about e * sqrt(this) radians. Small when the ROIs span
+    the view both ways; large when they sit in a row (one direction unpinned) or a bunch."""
+    xy = rays[:, :2] / rays[:, 2:3]
+    spread = np.cov(xy.T, bias=True) + np.eye(2) * extent * extent / 12.0
+    try:
+        return float(np.trace(np.linalg.inv(spread)))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
 def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Bools | None:
     """Exhaustive RANSAC over ROI triples: the plane most ROIs agree with seeds the fit.
 
