@@ -1766,8 +1766,9 @@ _UNSEEN_DEFORMATION = 0.005
 # The same for the normal (relative to the cell areas' cube roots, over the ROIs' spread beyond
 # the view's own): chosen on `netpose bench integrity` (3,000 frames, seed 7) so that the
 # normal's error is within 2 sigma in 98 % and within 3 sigma in 99.4 % of valid outputs (a
-# 2-D error against a total sigma: 98.2 % and 99.99 % if it were Gaussian); the range's 0.5 %
-# made the normal's sigma twice too large (rms error/sigma 0.51), none left its tails short.
+# 2-D error against a total sigma: 98.2 % and 99.99 % if it were Gaussian). The range's 0.5 %
+# made the normal's sigma twice too large (rms error/sigma 0.51); without it the tails of
+# billowing nets stayed short (97.5 % within 3 sigma).
 _UNSEEN_TILT = 0.0025
 _MODEL_FLOOR = 0.001
 
@@ -1841,9 +1842,10 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     (`tilt_leverage`), however many ROIs there are (the fit's covariance assumed it averages
     down). The part they show counts in full; the part they cannot show only by how much less
     the ROIs span than the whole view (`_UNSEEN_TILT`): the normal reported is the net's over
-    the view, and a fit over all of it leaves nothing unseen to carry. Crops of the real stills
-    disagree on the normal by 2-3 deg where ROIs cover the view (real-net-frame) and by 10-13
-    deg where boards leave a few (docs/benchmarks.md); the fit's sigma alone had claimed 0.5-1.6.
+    the view, and a fit over all of it leaves nothing unseen to carry. Crops of the real net
+    frame disagree with it on the normal by 2-3 deg, where the fit's sigma alone claimed 0.5
+    (now 1.4); crops of two SOLAQUA stills, by 9-13 deg, which this does not cover either
+    (docs/estimator.md, Limits).
     """
     assert p.plane is not None
     if not agreeing:

@@ -140,6 +140,13 @@ def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64, int] | None:
             np.asarray(np.linalg.inv(ata) * scale, dtype=np.float64), dof)
 
 
+def _layout_spread(rays: F64, extent: float) -> tuple[F64, F64]:
+    """The ROI centres where their rays cross z = 1, and their covariance with each ROI counted
+    as a square of side `extent` (uniform over it: variance extent^2 / 12 each way)."""
+    xy = rays[:, :2] / rays[:, 2:3]
+    return xy, np.cov(xy.T, bias=True) + np.eye(2) * extent * extent / 12.0
+
+
 def axis_leverage(rays: F64, axis: F64, extent: float) -> float:
     """How far the fit extrapolates to `axis`: the squared Mahalanobis distance of the axis's
     image point from the cloud of ROI centres (rays and axis as (x, y, z) in one camera frame,
@@ -151,11 +158,8 @@ def axis_leverage(rays: F64, axis: F64, extent: float) -> float:
     ROIs did not see (a net that billows) enters in proportion to the lever, so the variance it
     adds grows with this number.
     """
-    xy = rays[:, :2] / rays[:, 2:3]
-    target = axis[:2] / axis[2]
-    centre = xy.mean(axis=0)
-    spread = np.cov(xy.T, bias=True) + np.eye(2) * extent * extent / 12.0
-    offset = target - centre
+    xy, spread = _layout_spread(rays, extent)
+    offset = axis[:2] / axis[2] - xy.mean(axis=0)
     try:
         return float(offset @ np.linalg.solve(spread, offset))
     except np.linalg.LinAlgError:
@@ -168,8 +172,7 @@ def tilt_leverage(rays: F64, extent: float) -> float:
     relative error e in the cell areas, common to a side of the view rather than independent
     per ROI, tilts the fitted plane by about e * sqrt(this) radians. Small when the ROIs span
     the view both ways; large when they sit in a row (one direction unpinned) or a bunch."""
-    xy = rays[:, :2] / rays[:, 2:3]
-    spread = np.cov(xy.T, bias=True) + np.eye(2) * extent * extent / 12.0
+    _, spread = _layout_spread(rays, extent)
     try:
         return float(np.trace(np.linalg.inv(spread)))
     except np.linalg.LinAlgError:
