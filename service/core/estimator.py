@@ -939,6 +939,7 @@ class NetEstimator:
         last: _Pass | None = None
         corrected = 0
         planes: list[tuple[F64, float]] = []  # each pass's plane over this frame, in order
+        planed: _Pass | None = None  # the pass that gave the last of them
 
         def verdict(p: _Pass, converged: _Converged | None, failure: str,
                     settled: bool = True) -> NetEstimate:
@@ -991,6 +992,7 @@ class NetEstimator:
                 continue
             hints = p.consensus
             planes.append((n_new, d_new))
+            planed = p
             step = (abs(d_new / distance - 1.0), math.degrees(math.acos(
                 float(np.clip(np.dot(n_new, normal), -1.0, 1.0)))))
             # Converged when the pass moved the plane by less than its own uncertainty, or by
@@ -1004,7 +1006,8 @@ class NetEstimator:
             normal, distance = n_new, d_new
         assert last is not None
         failure = "the ROIs do not converge on one plane (rectified passes disagree)"
-        if last.plane is None or len(planes) < 2 or planes[-1][1] != last.plane.distance_m:
+        if last is not planed or len(planes) < 2:
+            # The last pass gave no plane, or one at a scale it then corrected.
             return verdict(last, None, failure)
         # The passes went round between planes, each fitted to the subset of ROIs that agreed
         # in its rectified view (a real net's cells differ more than a rendered one's, and on
