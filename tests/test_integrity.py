@@ -249,13 +249,18 @@ def test_never_too_close_without_a_net(seed: int) -> None:
 GROSS_CASES = [(11, 13, 1), (5, 60, 11), (5, 72, 5), (5, 34, 10), (11, 13, 4)]
 
 
+def _estimate_case(seed: int, group: int, index: int) -> tuple[NetEstimate, GroundTruth]:
+    """One frame of `netpose bench integrity`, rendered again and estimated cold."""
+    case = integrity.build_case(seed, group, index)
+    frame, truth = integrity.render_case(case)
+    return NetEstimator(case.camera, case.mesh).estimate(frame), truth
+
+
 @pytest.mark.parametrize(("seed", "group", "index"), GROSS_CASES)
 def test_former_gross_errors_give_no_distance_or_an_honest_one(
     seed: int, group: int, index: int
 ) -> None:
-    case = integrity.build_case(seed, group, index)
-    frame, truth = integrity.render_case(case)
-    est = NetEstimator(case.camera, case.mesh).estimate(frame)
+    est, truth = _estimate_case(seed, group, index)
     if not est.detected:
         assert est.distance_m is None and est.reason
         return
@@ -300,9 +305,7 @@ UNSETTLED_CASES = [(7, 54, 7), (7, 58, 15)]
 def test_passes_that_do_not_settle_give_a_net_seen_and_no_distance(
     seed: int, group: int, index: int
 ) -> None:
-    case = integrity.build_case(seed, group, index)
-    frame, truth = integrity.render_case(case)
-    est = NetEstimator(case.camera, case.mesh).estimate(frame)
+    est, truth = _estimate_case(seed, group, index)
     assert not est.detected and est.distance_m is None and est.range_m is None
     assert est.net_seen and "do not settle on one plane" in est.reason, est.reason
     assert est.approx_range_m is not None and est.approx_sigma_range_m is not None
