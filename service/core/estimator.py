@@ -1260,8 +1260,10 @@ class NetEstimator:
             on_target = abs(math.log(found / period_out)) < math.log(1.35)
             # Resampling cannot restore what the camera never resolved: a mesh finer than
             # ~3.5 px in the source has aliased harmonics and a peak position biased by the
-            # pixel response.
-            resolved = found * step >= s.min_source_period_px
+            # pixel response. Judged on the period the seed plane predicts here, not on the
+            # ROI's own measurement: near the limit, keeping only the ROIs that happened to
+            # measure a coarser mesh would bias the plane nearer (truncation by the measurement).
+            resolved = period_out * step >= s.min_source_period_px
             k_out = fit.basis / n  # cycles per output pixel
             meas.area_norm = t * t * n * n / det
             # For reporting: the lattice in full-resolution image pixels through the local map.
