@@ -1260,10 +1260,12 @@ class NetEstimator:
             on_target = abs(math.log(found / period_out)) < math.log(1.35)
             # Resampling cannot restore what the camera never resolved: a mesh finer than
             # ~3.5 px in the source has aliased harmonics and a peak position biased by the
-            # pixel response. Judged on the period the seed plane predicts here, not on the
-            # ROI's own measurement: near the limit, keeping only the ROIs that happened to
-            # measure a coarser mesh would bias the plane nearer (truncation by the measurement).
-            resolved = period_out * step >= s.min_source_period_px
+            # pixel response. Both the period the ROI measured and the one the seed plane
+            # predicts here must pass: a test on the measurement alone keeps, near the limit,
+            # exactly the ROIs whose noise (or a billow) made the mesh look coarser, and the
+            # plane fitted to them comes out nearer (a selection bias); one on the prediction
+            # alone admits fine meshes whose biased peaks the seed plane underrated.
+            resolved = min(found, period_out) * step >= s.min_source_period_px
             k_out = fit.basis / n  # cycles per output pixel
             meas.area_norm = t * t * n * n / det
             # For reporting: the lattice in full-resolution image pixels through the local map.
