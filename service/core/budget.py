@@ -11,9 +11,11 @@ second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
 "Behind" means both: a frame takes more than `load` of the camera's interval, and the source
 drops frames for it (a source that renders or reads on demand, such as `sim:`, never drops
 one; it only runs slower, and less work would buy nothing). A leaner level must keep seeing
-the net: one whose share of frames with a net falls well below a richer level's is left for
-that level at once, and it and the leaner levels are blocked for a while (doubling each time
-it happens again).
+the net: one whose share of frames with a net falls well below a richer level's is left at
+once for the next richer level, one step (not straight back to the richer level it was judged
+against: on a CPU that could only afford the leaner level, a frame of several levels' more
+work stalls the distance for a second), and it and the leaner levels are blocked for a while
+(doubling each time it happens again). If the next level loses the net too, it steps again.
 
 The controller is pure: the daemon hands it each processed frame's capture time, frame number
 and the loop time that frame took (a measurement), and uses the level it returns for the next
@@ -163,7 +165,7 @@ class BudgetController:
             return
         budget = self.settings.load * interval
         held = t - (self._changed_at if self._changed_at is not None else t)
-        # The nearest richer level measured lately: back to it if this one loses the net.
+        # The nearest richer level measured lately: the yardstick of this one's detections.
         richer_level = next((k for k in range(self.level - 1, -1, -1)
                              if k in self._costs and t - self._costs[k].last_t <= COST_MEMORY_S),
                             None)
@@ -172,7 +174,7 @@ class BudgetController:
             if (richer.detected >= MIN_DETECTED
                     and cost.detected < richer.detected - DETECTION_LOSS):
                 block = self._block_from(self.level, t)
-                self._set(richer_level, t,
+                self._set(self.level - 1, t,
                           f"level {self.level} loses the net (detected {cost.detected:.0%} of "
                           f"frames, {richer.detected:.0%} at level {richer_level}); not used "
                           f"for {block:.0f} s")
