@@ -184,8 +184,14 @@ class _Layout:
     rect: dict[tuple[int, int, int], list[_Geometry]] = field(default_factory=dict)
     # The frame's corners, edge midpoints and centre: where a plane's mesh period is sampled.
     corners: list[_Geometry] = field(default_factory=list)
+    # Their rays (k, 3), once per frame size: every verdict compares the ROIs' spread with them.
+    corner_rays: F64 = field(init=False)
     # Rectified ROI geometries by centre: a tracked frame's prior ROIs sit at these centres.
     by_centre: dict[tuple[float, float], _Geometry] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        rays = np.array([g.ray for g in self.corners], dtype=np.float64).reshape(-1, 3)
+        object.__setattr__(self, "corner_rays", rays)  # frozen: set once, here
 
 
 @dataclass
@@ -1454,7 +1460,7 @@ class NetEstimator:
             else (0.0, 0.0)
         deformation, deformation_tilt = _deformation(
             p, agreeing, self.mesh.cell_area_m2,
-            np.array([g.ray for g in layout.corners]) @ p.rotation.T)
+            layout.corner_rays @ p.rotation.T)
         sigma_d = math.hypot(plane.sigma_distance_m * inflation, change[0] * d_new,
                              deformation * d_new, _MODEL_FLOOR * d_new)
         sigma_r = math.hypot(plane.sigma_range_m * range_m / plane.range_m * inflation,
