@@ -16,11 +16,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import pytest
 
 from drivers.errors import SourceError
 from drivers.net import free_port
-from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
+from drivers.sources import FrameSource, SourceOptions, SourceState, open_source, opencv_capture
 from drivers.sources.fake_capture import read_pattern_number
 from tests.stream_peers import (
     FPS,
@@ -91,6 +92,60 @@ def test_h264_over_udp_gives_the_newest_frame(streamers: list[Streamer]) -> None
         assert stats.drops >= FPS - 5 - lag
         assert stats.captured - stats.frames - stats.drops in (0, 1)
         assert stats.corrupt == 0 and stats.reconnects == 0
+
+
+@pytest.fixture
+def four_decoder_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Raspberry Pi 4 or 5: OpenCV's FFmpeg backend decodes with one frame thread per core,
+    four there, two on this machine. The hardware that decides it is emulated at the lowest
+    edge, the capture's open parameters."""
+    if not hasattr(cv2, "CAP_PROP_N_THREADS"):
+        pytest.skip("this OpenCV cannot set the decoder's thread count (CAP_PROP_N_THREADS is "
+                    "newer than OpenCV 4.6), so a four-core machine cannot be emulated")
+    plain = opencv_capture.timeout_params
+    monkeypatch.setattr(opencv_capture, "timeout_params",
+                        lambda open_s, read_s: [*plain(open_s, read_s),
+                                                int(cv2.CAP_PROP_N_THREADS), 4])
+
+
+# Each decoder frame thread past the first holds every frame back by one frame.
+FOUR_THREADS_LAG = 3
+
+
+@pytest.mark.usefixtures("four_decoder_threads")
+def test_h264_over_udp_decodes_with_a_four_core_pi_s_decoder_threads(
+    streamers: list[Streamer]
+) -> None:
+    # With `fpsprobesize;0` and `nobuffer` together, this stream (parameter sets in band,
+    # joined mid-GOP) gave 4 frames in 8 s at three or four decoder threads, fine at one or two.
+    exe, port = ffmpeg_exe(), free_udp_port()
+    streamer = Streamer(exe, mpegts_output(port))
+    streamers.append(streamer)
+    with open_source(f"udp://127.0.0.1:{port}", OPTIONS) as source:
+        numbers = read_numbers(source, 2 * FPS, timeout_s=8.0)
+        assert len(numbers) == 2 * FPS, numbers
+        assert numbers == sorted(set(numbers))
+        assert 0 <= streamer.sent - numbers[-1] <= 8 + FOUR_THREADS_LAG
+        assert source.stats().reconnects == 0
+
+
+@pytest.mark.usefixtures("four_decoder_threads")
+def test_rtsp_decodes_with_a_four_core_pi_s_decoder_threads(
+    streamers: list[Streamer], tmp_path: Path
+) -> None:
+    exe = ffmpeg_exe()
+    sdp, rtp_in = rtp_to_rtsp(exe, tmp_path, streamers)
+    server = RtspServer(sdp, rtp_in)
+    try:
+        url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
+        with open_source(url, OPTIONS) as source:
+            numbers = read_numbers(source, 2 * FPS, timeout_s=8.0)
+            assert len(numbers) == 2 * FPS, numbers
+            assert numbers == sorted(set(numbers))
+            assert 0 <= streamers[-1].sent - numbers[-1] <= 8 + FOUR_THREADS_LAG
+            assert source.stats().reconnects == 0
+    finally:
+        server.close()
 
 
 def test_stalled_stream_goes_down_and_recovers_when_restarted(

@@ -4,9 +4,15 @@ On a BlueOS vehicle the camera manager owns the camera and serves H.264 over RTS
 and RTP/UDP (port 5600); netpose reads one of those instead of the device. OpenCV's FFmpeg
 backend does the demuxing and decoding. What matters for a pose estimator is latency: FFmpeg's
 default probing and buffering add frames of delay, so the capture is opened with
-`fflags;nobuffer|flags;low_delay|fpsprobesize;0` (plus `rtsp_transport;tcp` for RTSP: on a
+`fflags;nobuffer|flags;low_delay` (plus `fpsprobesize;0|rtsp_transport;tcp` for RTSP: on a
 tether, lost UDP packets smear H.264 frames for a whole GOP, TCP only delays them) and the
 grabber thread of LiveSource keeps only the newest decoded frame.
+
+The decoder runs one frame thread per core (OpenCV's choice; OpenCV 4.6 has no way to change
+it), and each thread past the first holds every frame back by one frame period: measured on
+loopback, 1 + (threads - 1) frames from the encoder to read(), i.e. 3 frame periods more on a
+four-core Pi than with one thread. The frame's time is when read() returned, so that delay is
+not in netpose's own latency figures (docs/sources.md).
 
 `sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
 payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
@@ -18,17 +24,22 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.live import LiveSource
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 
-# Low-latency demuxer/decoder flags for every network stream. fpsprobesize;0: the frame rate is
-# not probed (the frames carry their own times), which shortens an open from ~3.5 s to about
-# one key-frame interval plus 0.5 s: what decides how fast a returning camera is seen.
-LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay|fpsprobesize;0"
+# Low-latency demuxer/decoder flags for every network stream.
+LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay"
+# RTSP only: the frame rate is not probed (the frames carry their own times), which shortens an
+# open by about 0.8 s (1.8 -> 1.0 s on loopback, OpenCV 4.6 and 5.0): what decides how fast a
+# returning camera is seen. Not for MPEG-TS or raw H.264, whose parameter sets come in band:
+# together with `nobuffer`, a stream joined mid-GOP then gave 4 frames in 8 s once the decoder
+# had three or more frame threads (a Raspberry Pi 4 or 5 has four cores), and it did not shorten
+# their open (0.8-0.9 s either way, 5.8 s on OpenCV 4.6's longer probe).
+RTSP_OPTIONS = "fpsprobesize;0|rtsp_transport;tcp"
 
 
 def default_ffmpeg_options(url: str) -> str:
     """The FFmpeg capture options netpose uses for `url` (see the module docstring)."""
     options = LOW_LATENCY_OPTIONS
     if url.startswith(("rtsp://", "rtsps://")):
-        options += "|rtsp_transport;tcp"
+        options += "|" + RTSP_OPTIONS
     elif url.startswith("sdp:"):
         # An SDP file is read from disk, then points FFmpeg at UDP/RTP sockets.
         options += "|protocol_whitelist;file,udp,rtp,crypto,data"
