@@ -66,7 +66,18 @@ def _chosen_command(argv: Sequence[str] | None) -> str | None:
     return next((w for w in words if w in COMMANDS), None)
 
 
+# numpy's BLAS (OpenBLAS) sizes its thread pool when numpy is first imported, from these. The
+# frame loop is one thread on purpose, and with numpy 1.24's OpenBLAS (Debian bookworm, the Pi)
+# idle pool threads spin after each call: they burned as much CPU as the loop itself (the soak's
+# daemon at 171 % of a core instead of 73-78 %), and a Pi has three of them to spare.
+SINGLE_THREADED_NUMERICS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                            "MKL_NUM_THREADS": "1"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    # Before the command's module imports numpy; a value set by the user wins.
+    for name, value in SINGLE_THREADED_NUMERICS.items():
+        os.environ.setdefault(name, value)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(

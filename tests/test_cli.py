@@ -60,3 +60,40 @@ def test_estimate_says_net_seen_for_a_frame_too_uncertain_for_a_distance() -> No
     seen, measured = done.stdout.splitlines()
     assert "038.png: net seen, ~0." in seen and "no distance (plane too uncertain" in seen
     assert "032.png: net detected" in measured
+
+
+_FIRST_NUMPY_IMPORT = """
+import json, os, sys
+seen = {}
+class Watch:
+    def find_spec(self, name, path=None, target=None):
+        if name == "numpy" and not seen:
+            seen.update({k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")})
+        return None
+sys.meta_path.insert(0, Watch())
+from service.cli import main
+try:
+    main(["replay", "--help"])  # a command whose module imports numpy
+except SystemExit:
+    pass
+print(json.dumps(seen))
+"""
+
+
+@pytest.mark.parametrize(("preset", "expected"), [(None, "1"), ("2", "2")])
+def test_numpy_is_first_imported_with_one_blas_thread(preset: str | None, expected: str) -> None:
+    """numpy 1.24's OpenBLAS (bookworm's) sizes its pool at numpy's import and its idle
+    threads spin: the command sets one thread before any command module imports numpy, unless
+    the user chose otherwise."""
+    import json
+    import os
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    done = subprocess.run([sys.executable, "-c", _FIRST_NUMPY_IMPORT], capture_output=True,
+                          text=True, timeout=60, check=False, env=env)
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.splitlines()[-1])
+    assert seen == {"OPENBLAS_NUM_THREADS": expected, "OMP_NUM_THREADS": "1"}
