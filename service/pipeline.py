@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy.typing as npt
@@ -148,7 +148,14 @@ class Pipeline:
 
     def process(self, image: npt.NDArray[Any], t: float, index: int,
                 budget: int = 0) -> PipelineResult:
-        """One frame captured at `t`, at the estimator's work level `budget` (0 = full)."""
+        """One frame captured at `t`, at the estimator's work level `budget` (0 = full):
+        `measure`, then `inspect`."""
+        return self.inspect(image, self.measure(image, t, index, budget))
+
+    def measure(self, image: npt.NDArray[Any], t: float, index: int,
+                budget: int = 0) -> PipelineResult:
+        """The estimator and the filter on one frame: everything the autopilot is told (no net
+        inspection yet: `inspect`)."""
         estimate: NetEstimate | None = None
         failure: Exception | None = None
         t0 = time.perf_counter()
@@ -167,22 +174,29 @@ class Pipeline:
         too_close = estimate is not None and estimate.too_close
         self._too_close_frames = self._too_close_frames + 1 if too_close else 0
         track = self._tracker.step(t, estimate)
-        damage = None
-        if self._inspector is not None and budget > INSPECT_MAX_BUDGET:
-            damage = DamageReport(False, f"skipped: budget level {budget}")
-        elif self._inspector is not None:
-            # Only while the track is valid: holes are measured on a plane the filter believes.
-            try:
-                damage = self._inspector.step(image, estimate, t, index, track.valid,
-                                              estimate_ms)
-            except Exception as exc:  # inspection must never cost the distance
-                log.debug("net inspection crashed on frame %d", index, exc_info=True)
-                damage = DamageReport(False, f"inspection failed: {type(exc).__name__}: {exc}")
         return PipelineResult(
             t=t, index=index, estimate=estimate, track=track,
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
-            plane=net_plane_of(track, t), damage=damage, budget=budget,
+            plane=net_plane_of(track, t), budget=budget,
         )
+
+    def inspect(self, image: npt.NDArray[Any], measured: PipelineResult) -> PipelineResult:
+        """Net inspection of the frame `measured` came from. A separate step so that the daemon
+        sends the distance first: a hole search never delays what the autopilot is told."""
+        if self._inspector is None or measured.index is None:
+            return measured
+        if measured.budget > INSPECT_MAX_BUDGET:
+            damage = DamageReport(False, f"skipped: budget level {measured.budget}")
+        else:
+            # Only while the track is valid: holes are measured on a plane the filter believes.
+            try:
+                damage = self._inspector.step(image, measured.estimate, measured.t,
+                                              measured.index, measured.track.valid,
+                                              measured.estimate_ms)
+            except Exception as exc:  # inspection must never cost the distance
+                log.debug("net inspection crashed on frame %d", measured.index, exc_info=True)
+                damage = DamageReport(False, f"inspection failed: {type(exc).__name__}: {exc}")
+        return replace(measured, damage=damage)
 
     def tick(self, t: float) -> PipelineResult:
         """No frame by `t`: time passes for the filter, so coasting ends in LOST."""

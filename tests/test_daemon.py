@@ -500,3 +500,26 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
                 message.filtered.distance_m, abs=1e-6 + 1e-12)
             compared += 1
     assert compared >= len(rows) // 2
+
+
+def test_a_frames_distance_goes_to_the_autopilot_before_its_hole_search(
+    frames: list[Frame], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Net inspection takes about as long as the estimator (docs/inspection.md): the frame's
+    distance must not wait for it."""
+    h = make_harness(demo_config("damage.enabled=true", "damage.every_n_frames=1"),
+                     steps(frames[:12]))
+    inspector = h.daemon.pipeline.inspector
+    assert inspector is not None
+    handed_over: list[bool] = []
+    real_step = inspector.step
+
+    def step(image: Any, estimate: Any, t: float, index: int, *rest: Any) -> Any:
+        handed_over.append(bool(h.link.ranges) and h.link.ranges[-1].t_capture == t)
+        return real_step(image, estimate, t, index, *rest)
+
+    monkeypatch.setattr(inspector, "step", step)
+    h.run_script()
+    assert len(handed_over) == 12
+    assert all(handed_over)
+    assert any(r.damage is not None and r.damage.inspected for r in h.results)
