@@ -67,9 +67,9 @@ def _chosen_command(argv: Sequence[str] | None) -> str | None:
 
 
 # numpy's BLAS (OpenBLAS) sizes its thread pool when numpy is first imported, from these. The
-# frame loop is one thread on purpose, and with numpy 1.24's OpenBLAS (Debian bookworm, the Pi)
-# idle pool threads spin after each call: they burned as much CPU as the loop itself (the soak's
-# daemon at 171 % of a core instead of 73-78 %), and a Pi has three of them to spare.
+# frame loop is one thread on purpose, and the OpenBLAS of numpy 1.24's wheels (bookworm's numpy
+# version) spins its idle pool threads after each call: they burned as much CPU as the loop
+# itself (the soak's daemon at 171 % of a core instead of 80-87 %); a Pi would have three.
 SINGLE_THREADED_NUMERICS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
                             "MKL_NUM_THREADS": "1"}
 
