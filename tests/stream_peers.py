@@ -56,6 +56,8 @@ class Streamer:
             stdin=subprocess.PIPE,
         )  # fmt: skip
         self.sent = first_number
+        # When each frame was handed to the encoder (frame number -> time.monotonic()).
+        self.sent_at: dict[int, float] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._feed, name="test-streamer", daemon=True)
         self._thread.start()
@@ -69,6 +71,7 @@ class Streamer:
                     image = numbered_pattern(self.sent, *self._size)
                 else:
                     image = self._frames[self.sent % len(self._frames)]
+                self.sent_at[self.sent] = time.monotonic()
                 self._proc.stdin.write(np.ascontiguousarray(image).tobytes())
                 self._proc.stdin.flush()
                 self.sent += 1

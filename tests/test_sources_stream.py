@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from drivers.errors import SourceError
@@ -94,18 +95,24 @@ def test_h264_over_udp_gives_the_newest_frame(streamers: list[Streamer]) -> None
         assert stats.corrupt == 0 and stats.reconnects == 0
 
 
-@pytest.fixture
-def four_decoder_threads(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A Raspberry Pi 4 or 5: OpenCV's FFmpeg backend decodes with one frame thread per core,
-    four there, two on this machine. The hardware that decides it is emulated at the lowest
-    edge, the capture's open parameters."""
+_TIMEOUT_PARAMS = opencv_capture.timeout_params
+
+
+def force_decoder_threads(monkeypatch: pytest.MonkeyPatch, threads: int) -> None:
+    """The decoder's thread count, which OpenCV's FFmpeg backend sets to one per core (four on a
+    Raspberry Pi 4 or 5, two on this machine): the hardware that decides it, emulated at the
+    lowest edge, the capture's open parameters."""
     if not hasattr(cv2, "CAP_PROP_N_THREADS"):
         pytest.skip("this OpenCV cannot set the decoder's thread count (CAP_PROP_N_THREADS is "
                     "newer than OpenCV 4.6), so a four-core machine cannot be emulated")
-    plain = opencv_capture.timeout_params
     monkeypatch.setattr(opencv_capture, "timeout_params",
-                        lambda open_s, read_s: [*plain(open_s, read_s),
-                                                int(cv2.CAP_PROP_N_THREADS), 4])
+                        lambda open_s, read_s: [*_TIMEOUT_PARAMS(open_s, read_s),
+                                                int(cv2.CAP_PROP_N_THREADS), threads])
+
+
+@pytest.fixture
+def four_decoder_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    force_decoder_threads(monkeypatch, 4)
 
 
 # Each decoder frame thread past the first holds every frame back by one frame.
@@ -146,6 +153,41 @@ def test_rtsp_decodes_with_a_four_core_pi_s_decoder_threads(
             assert source.stats().reconnects == 0
     finally:
         server.close()
+
+
+def _capture_offsets(streamers: list[Streamer], count: int) -> list[float]:
+    """Frame time minus when the frame went into the encoder, for `count` frames of a fresh
+    MPEG-TS stream over UDP."""
+    exe, port = ffmpeg_exe(), free_udp_port()
+    streamer = Streamer(exe, mpegts_output(port))
+    streamers.append(streamer)
+    offsets: list[float] = []
+    with open_source(f"udp://127.0.0.1:{port}", OPTIONS) as source:
+        deadline = time.monotonic() + 15.0
+        while len(offsets) < count and time.monotonic() < deadline:
+            frame = source.read(0.5)
+            if frame is not None:
+                number = read_pattern_number(frame.image)
+                offsets.append(frame.t_monotonic - streamer.sent_at[number])
+    streamer.stop()
+    return offsets[count // 3:]  # past the rate's first estimates
+
+
+def test_a_frames_time_does_not_count_the_decoders_threads(
+    streamers: list[Streamer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Four decoder threads hold each frame back three frame periods more than one thread does
+    (120 ms at 25 frames/s); the frame's time must say when it was captured, not when the
+    decoder let it go."""
+    median = []
+    for threads in (1, 4):
+        force_decoder_threads(monkeypatch, threads)
+        offsets = _capture_offsets(streamers, 60)
+        assert len(offsets) >= 30
+        median.append(float(np.median(offsets)))
+    period = 1.0 / FPS
+    assert median[0] > -0.5 * period  # never before the frame existed
+    assert abs(median[1] - median[0]) < 0.5 * period, (median, period)
 
 
 def test_stalled_stream_goes_down_and_recovers_when_restarted(

@@ -184,6 +184,11 @@ class LiveSource(FrameSource):
         else:
             log.info("frame source %s %s: %s", redact_text(self.url), new.value, reason)
 
+    def _arrival_rate(self, now: float) -> float:
+        """Frames per second arriving from the capture (0 until measured)."""
+        with self._cond:
+            return self._rate.rate(now)
+
     def _publish(self, image: object, t_capture: float, now: float) -> bool:
         converted = split_gray_color(image, self._options.keep_color)
         if converted is None:

@@ -104,6 +104,26 @@ def open_ffmpeg_capture(
     return cap
 
 
+# Codecs whose FFmpeg decoder uses frame threads (what cameras and BlueOS stream).
+FRAME_THREADED_CODECS = frozenset({"h264", "avc1", "hevc", "hev1", "hvc1"})
+
+
+def decoder_frames_held(cap: VideoCaptureLike) -> int:
+    """How many frames FFmpeg's decoder holds back: one per frame thread past the first (it
+    returns frame n once frame n + threads - 1 has come in; measured on loopback, docs/
+    sources.md). Known only where OpenCV reports its decoder's thread count
+    (CAP_PROP_N_THREADS, newer than OpenCV 4.6) and the stream's codec; 0 otherwise."""
+    prop = getattr(cv2, "CAP_PROP_N_THREADS", None)
+    if prop is None:
+        return 0
+    try:
+        threads = int(cap.get(int(prop)))
+        codec = fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)).lower()
+    except (cv2.error, ValueError, OverflowError):
+        return 0
+    return max(0, threads - 1) if codec in FRAME_THREADED_CODECS else 0
+
+
 def fourcc_text(code: float) -> str:
     """'MJPG' from the float OpenCV returns for CAP_PROP_FOURCC ('' when unknown)."""
     value = int(code)

@@ -11,8 +11,9 @@ grabber thread of LiveSource keeps only the newest decoded frame.
 The decoder runs one frame thread per core (OpenCV's choice; OpenCV 4.6 has no way to change
 it), and each thread past the first holds every frame back by one frame period: measured on
 loopback, (1 for RTSP, 2 for MPEG-TS) + (threads - 1) frames from the encoder to read(), i.e.
-3 frame periods more on a four-core Pi than with one thread. The frame's time is when read()
-returned, so that delay is not in netpose's own latency figures (docs/sources.md).
+3 frame periods more on a four-core Pi than with one thread. Where OpenCV reports the thread
+count (newer than 4.6), a frame's time is when read() returned less that many frame periods;
+OpenCV 4.6 does not, and its frames' times are late by it (docs/sources.md).
 
 `sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
 payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
@@ -20,9 +21,15 @@ payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stre
 
 from __future__ import annotations
 
+import cv2
+
 from drivers.sources.base import SourceOptions
 from drivers.sources.live import LiveSource
-from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
+from drivers.sources.opencv_capture import (
+    VideoCaptureLike,
+    decoder_frames_held,
+    open_ffmpeg_capture,
+)
 
 # Low-latency demuxer/decoder flags for every network stream.
 LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay"
@@ -63,6 +70,7 @@ class StreamSource(LiveSource):
         self._ffmpeg_options = (
             opts.ffmpeg_options if opts.ffmpeg_options is not None else default_ffmpeg_options(url)
         )
+        self._frames_held = 0  # by the decoder of the capture open now (decoder_frames_held)
 
     @property
     def ffmpeg_options(self) -> str:
@@ -72,10 +80,24 @@ class StreamSource(LiveSource):
         opts = self._options
         # The read time limit is the stall timeout: a stream that sends nothing for that long
         # makes read() fail instead of blocking, and the grabber re-opens it.
-        return open_ffmpeg_capture(
+        cap = open_ffmpeg_capture(
             self.url,
             ffmpeg_target(self.url),
             options=self._ffmpeg_options,
             open_timeout_s=opts.open_timeout_s,
             read_timeout_s=opts.stall_timeout_s,
         )
+        self._frames_held = decoder_frames_held(cap)
+        return cap
+
+    def _capture_time(self, cap: VideoCaptureLike, received_mono: float) -> float:
+        """When read() returned, less the frames the decoder held back (frame periods at the
+        rate frames arrive, or the stream's own rate until that is measured)."""
+        if self._frames_held <= 0:
+            return received_mono
+        fps = self._arrival_rate(received_mono)
+        if not fps > 0.0:
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+        if not 0.5 <= fps <= 1000.0:
+            return received_mono  # no usable rate: the time the frame arrived
+        return received_mono - self._frames_held / fps
