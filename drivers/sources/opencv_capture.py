@@ -111,15 +111,17 @@ FRAME_THREADED_CODECS = frozenset({"h264", "avc1", "hevc", "hev1", "hvc1"})
 def decoder_frames_held(cap: VideoCaptureLike) -> int:
     """How many frames FFmpeg's decoder holds back: one per frame thread past the first (it
     returns frame n once frame n + threads - 1 has come in; measured on loopback, docs/
-    sources.md). Known only where OpenCV reports its decoder's thread count
-    (CAP_PROP_N_THREADS, newer than OpenCV 4.6) and the stream's codec; 0 otherwise."""
+    sources.md), for a codec it decodes with frame threads; 0 for any other or an unknown one.
+
+    The thread count: what OpenCV reports (CAP_PROP_N_THREADS, newer than OpenCV 4.6); an
+    OpenCV without that property gives its decoder one thread per online CPU
+    (sysconf(_SC_NPROCESSORS_ONLN) in its FFmpeg backend, whatever the process's affinity:
+    measured unchanged under `taskset`)."""
     prop = getattr(cv2, "CAP_PROP_N_THREADS", None)
-    if prop is None:
-        return 0
     try:
-        threads = int(cap.get(int(prop)))
         codec = fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)).lower()
-    except (cv2.error, ValueError, OverflowError):
+        threads = int(cap.get(int(prop))) if prop is not None else os.sysconf("SC_NPROCESSORS_ONLN")
+    except (cv2.error, ValueError, OverflowError, OSError):
         return 0
     return max(0, threads - 1) if codec in FRAME_THREADED_CODECS else 0
 
