@@ -11,9 +11,10 @@ grabber thread of LiveSource keeps only the newest decoded frame.
 The decoder runs one frame thread per core (OpenCV's choice; OpenCV 4.6 has no way to change
 it), and each thread past the first holds every frame back by one frame period: measured on
 loopback, (1 for RTSP, 2 for MPEG-TS) + (threads - 1) frames from the encoder to read(), i.e.
-3 frame periods more on a four-core Pi than with one thread. Where OpenCV reports the thread
-count (newer than 4.6), a frame's time is when read() returned less that many frame periods;
-OpenCV 4.6 does not, and its frames' times are late by it (docs/sources.md).
+3 frame periods more on a four-core Pi than with one thread. A frame's time is when read()
+returned less that many frame periods, for a codec the decoder frame-threads
+(`decoder_frames_held`; OpenCV 4.6 names no codec for MPEG-TS, whose frames stay late by it:
+docs/sources.md).
 
 `sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
 payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
