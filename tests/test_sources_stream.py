@@ -119,6 +119,15 @@ def four_decoder_threads(monkeypatch: pytest.MonkeyPatch) -> None:
 FOUR_THREADS_LAG = 3
 
 
+def _assert_steady_with_four_threads(source: FrameSource, streamer: Streamer) -> None:
+    """Two seconds of frames, each newer than the last, fresh, without a re-open."""
+    numbers = read_numbers(source, 2 * FPS, timeout_s=8.0)
+    assert len(numbers) == 2 * FPS, numbers
+    assert numbers == sorted(set(numbers))
+    assert 0 <= streamer.sent - numbers[-1] <= 8 + FOUR_THREADS_LAG
+    assert source.stats().reconnects == 0
+
+
 @pytest.mark.usefixtures("four_decoder_threads")
 def test_h264_over_udp_decodes_with_a_four_core_pi_s_decoder_threads(
     streamers: list[Streamer]
@@ -129,11 +138,7 @@ def test_h264_over_udp_decodes_with_a_four_core_pi_s_decoder_threads(
     streamer = Streamer(exe, mpegts_output(port))
     streamers.append(streamer)
     with open_source(f"udp://127.0.0.1:{port}", OPTIONS) as source:
-        numbers = read_numbers(source, 2 * FPS, timeout_s=8.0)
-        assert len(numbers) == 2 * FPS, numbers
-        assert numbers == sorted(set(numbers))
-        assert 0 <= streamer.sent - numbers[-1] <= 8 + FOUR_THREADS_LAG
-        assert source.stats().reconnects == 0
+        _assert_steady_with_four_threads(source, streamer)
 
 
 @pytest.mark.usefixtures("four_decoder_threads")
@@ -146,31 +151,32 @@ def test_rtsp_decodes_with_a_four_core_pi_s_decoder_threads(
     try:
         url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
         with open_source(url, OPTIONS) as source:
-            numbers = read_numbers(source, 2 * FPS, timeout_s=8.0)
-            assert len(numbers) == 2 * FPS, numbers
-            assert numbers == sorted(set(numbers))
-            assert 0 <= streamers[-1].sent - numbers[-1] <= 8 + FOUR_THREADS_LAG
-            assert source.stats().reconnects == 0
+            _assert_steady_with_four_threads(source, streamers[-1])
     finally:
         server.close()
 
 
+def _frame_offsets(source: FrameSource, streamer: Streamer, count: int) -> list[float]:
+    """Frame time minus when the frame went into the encoder, for up to `count` frames."""
+    offsets: list[float] = []
+    deadline = time.monotonic() + 15.0
+    while len(offsets) < count and time.monotonic() < deadline:
+        frame = source.read(0.5)
+        if frame is not None:
+            number = read_pattern_number(frame.image)
+            offsets.append(frame.t_monotonic - streamer.sent_at[number])
+    return offsets
+
+
 def _capture_offsets(streamers: list[Streamer], count: int) -> list[float]:
-    """Frame time minus when the frame went into the encoder, for `count` frames of a fresh
-    MPEG-TS stream over UDP."""
+    """`_frame_offsets` of a fresh MPEG-TS stream over UDP, past the rate's first estimates."""
     exe, port = ffmpeg_exe(), free_udp_port()
     streamer = Streamer(exe, mpegts_output(port))
     streamers.append(streamer)
-    offsets: list[float] = []
     with open_source(f"udp://127.0.0.1:{port}", OPTIONS) as source:
-        deadline = time.monotonic() + 15.0
-        while len(offsets) < count and time.monotonic() < deadline:
-            frame = source.read(0.5)
-            if frame is not None:
-                number = read_pattern_number(frame.image)
-                offsets.append(frame.t_monotonic - streamer.sent_at[number])
+        offsets = _frame_offsets(source, streamer, count)
     streamer.stop()
-    return offsets[count // 3:]  # past the rate's first estimates
+    return offsets[count // 3:]
 
 
 def test_a_frames_time_does_not_count_the_decoders_threads(
@@ -200,16 +206,10 @@ def test_an_rtsp_frames_time_leaves_out_the_decoders_threads(
     exe = ffmpeg_exe()
     sdp, rtp_in = rtp_to_rtsp(exe, tmp_path, streamers)
     server = RtspServer(sdp, rtp_in)
-    offsets: list[float] = []
     try:
         url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
         with open_source(url, OPTIONS) as source:
-            deadline = time.monotonic() + 15.0
-            while len(offsets) < 60 and time.monotonic() < deadline:
-                frame = source.read(0.5)
-                if frame is not None:
-                    number = read_pattern_number(frame.image)
-                    offsets.append(frame.t_monotonic - streamers[-1].sent_at[number])
+            offsets = _frame_offsets(source, streamers[-1], 60)
     finally:
         server.close()
     assert len(offsets) >= 40
