@@ -59,6 +59,9 @@ class PipelineResult:
     # Net inspection of this frame (None when the pipeline has no inspector).
     damage: DamageReport | None = None
     budget: int = 0  # the estimator's work level asked for (service.core.budget)
+    # Why a frame that came was not given to the estimator ("" when it was, or without a
+    # frame): the daemon paces its search in open water (service/daemon/search_pace.py).
+    unmeasured: str = ""
 
     @property
     def error(self) -> str:
@@ -197,6 +200,13 @@ class Pipeline:
                 log.debug("net inspection crashed on frame %d", measured.index, exc_info=True)
                 damage = DamageReport(False, f"inspection failed: {type(exc).__name__}: {exc}")
         return replace(measured, damage=damage)
+
+    def skip(self, t: float, index: int, why: str) -> PipelineResult:
+        """A frame captured at `t` that is not measured (`why`): for the filter, time without a
+        measurement, as for `tick`."""
+        track = self._tracker.step(t, None)
+        return PipelineResult(t=t, index=index, estimate=None, track=track,
+                              reading=self._reading(track, None, t), unmeasured=why)
 
     def tick(self, t: float) -> PipelineResult:
         """No frame by `t`: time passes for the filter, so coasting ends in LOST."""

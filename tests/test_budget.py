@@ -172,3 +172,30 @@ def test_a_lean_level_that_misses_the_net_briefly_steps_back_one_level_not_to_fu
     after_start = levels[levels.index(3):]
     assert 0 not in after_start and 1 not in after_start
     assert ctrl.level == 2 and "level 3 loses the net" in ctrl.why
+
+
+def test_frames_skipped_by_choice_are_not_taken_for_a_loop_behind_the_camera() -> None:
+    """A paced search in open water measures one frame in six and skips the others by choice
+    (service/daemon/search_pace.py). A search frame of 60 ms (two camera intervals) then costs
+    the camera nothing, so the level stays; had the gaps been the source's drops, as they are
+    without `skipped`, the loop would be behind and the level would rise."""
+    def search(mark_skips: bool) -> BudgetController:
+        ctrl = BudgetController(BudgetSettings())
+        for index in range(0, 600):
+            t = index / FPS
+            if index % 6 == 0:
+                ctrl.frame(t, index, 0.060, detected=False)
+            elif mark_skips:
+                ctrl.skipped(t, index)
+        return ctrl
+
+    paced = search(mark_skips=True)
+    assert paced.level == 0 and paced.changes == 0
+    assert paced.frame_interval_s == pytest.approx(1 / FPS)
+    assert search(mark_skips=False).level > 0
+
+
+@pytest.mark.parametrize("value", [-1.0, 0.2, 121.0, float("nan")])
+def test_search_hz_out_of_range_names_the_key(value: float) -> None:
+    with pytest.raises(ConfigError, match=r"budget\.search_hz"):
+        BudgetSettings(search_hz=value)

@@ -523,3 +523,65 @@ def test_a_frames_distance_goes_to_the_autopilot_before_its_hole_search(
     assert len(handed_over) == 12
     assert all(handed_over)
     assert any(r.damage is not None and r.damage.inspected for r in h.results)
+
+
+def test_open_water_is_searched_at_search_hz_and_a_net_in_view_on_every_frame(
+    frames: list[Frame],
+) -> None:
+    """A camera at 30 frames/s shows open water for 4 s, then the net. For the first 2 s
+    (`search_pace.HOLD_S`) every frame is measured; then `budget.search_hz` (5) frames a second,
+    every frame still read, recorded and published, as "not measured"; the status says so. The
+    net is measured at most 1/5 s after it comes into view, and from then on every frame is;
+    its distance reaches the autopilot as without pacing."""
+    from service.daemon.search_pace import HOLD_S
+
+    camera_fps, hz, water_s = 30.0, 5.0, 4.0
+    water = render_frames(URL + "&gap=0-1000", 6)
+    water_frames = [water[i % len(water)] for i in range(int(water_s * camera_fps))]
+    net_frames = [frames[i % len(frames)] for i in range(45)]
+    start = 100.0
+    seq = frames_at(water_frames + net_frames, camera_fps, start)
+    observer = RecordingObserver()
+    h = make_harness(demo_config(f"budget.search_hz={hz:g}", "service.status_interval_s=0.5"),
+                     [Step(frame=f) for f in seq], observers=(observer,))
+    h.run_script()
+    results = [r for r in h.results if r.index is not None]
+    assert [r.index for r in results] == list(range(len(seq)))
+    measured = [r.t - start for r in results if not r.unmeasured]
+    # Open water: every frame for HOLD_S, then one frame in six (a 30 frames/s camera).
+    early = [t for t in measured if t < HOLD_S]
+    assert len(early) == int(HOLD_S * camera_fps)
+    paced = [t for t in measured if HOLD_S + 0.3 < t < water_s]
+    gaps = np.diff(paced)
+    assert np.all(gaps >= 0.9 / hz - 1e-9) and np.all(gaps <= 1.0 / hz + 1.0 / camera_fps)
+    assert not any(r.detected for r in results[: int(water_s * camera_fps)])
+    # The net: measured within 1/hz of coming into view, then on every frame.
+    net = [r for r in results if r.t - start >= water_s - 1e-9]
+    first = next(k for k, r in enumerate(net) if not r.unmeasured)
+    assert net[first].t - (start + water_s) <= 1.0 / hz
+    found = next(k for k, r in enumerate(net) if r.detected)
+    assert all(not r.unmeasured for r in net[found:])
+    assert h.link.ranges[-1].status is RangeStatus.GOOD
+    # Everything read is published and recorded; the frames not measured say why.
+    assert [i for i, _ in observer.frames] == list(range(len(seq)))
+    skipped = [m for (i, m), r in zip(observer.frames, results, strict=True) if r.unmeasured]
+    assert skipped and all(m.reason.startswith("not measured: no net in view") for m in skipped)
+    # The status: the camera's rate for the source, the paced rate for the estimator.
+    in_search = [s for s in h.telemetry.statuses
+                 if HOLD_S + 0.6 < s.time_mono - start < water_s - 0.1]
+    assert in_search and all(s.estimator.searching_hz == hz for s in in_search)
+    assert all(s.frame_source.fps == pytest.approx(camera_fps, rel=0.1) for s in in_search)
+    assert all((s.estimator.fps or 0.0) <= hz * 1.25 for s in in_search)
+    assert h.telemetry.statuses[-1].estimator.searching_hz is None
+    lines = [m for m in h.notifier.messages if m.startswith("STATUS=searching at 5 frames/s")]
+    assert lines
+
+
+def test_search_hz_0_measures_every_frame_of_open_water() -> None:
+    water = render_frames(URL + "&gap=0-1000", 4)
+    seq = frames_at([water[i % len(water)] for i in range(90)], 30.0, 100.0)
+    h = make_harness(demo_config("budget.search_hz=0"), [Step(frame=f) for f in seq])
+    h.run_script()
+    results = [r for r in h.results if r.index is not None]
+    assert len(results) == 90 and not any(r.unmeasured for r in results)
+

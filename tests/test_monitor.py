@@ -3,6 +3,7 @@ Zenoh publisher on loopback (explicit endpoints, scouting off, ports chosen at r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -105,6 +106,12 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert f"{VEHICLE} live" in summary and "d 1.59+/-0.02 m" in summary and "10.0Hz" in summary
     screen = "\n".join(state.render(t))
     assert "estimate" in screen and "cam streaming" in screen and "filtered" in screen
+    assert "searching" not in screen
+    # Open water: the daemon says it searches at a paced rate, and the monitor shows it.
+    searching = dataclasses.replace(
+        status_message(), estimator=EstimatorHealth(fps=5.0, searching_hz=5.0))
+    state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(searching)), t)
+    assert "searching 5/s (no net)" in "\n".join(state.render(t))
     # After the window the stream has no rate any more.
     assert state.rate_hz(VEHICLE, "estimate", t + 6.0) == 0.0
 

@@ -63,6 +63,12 @@ class BudgetSettings:
     max_level: int = LEVELS - 1
     # Share of the camera's frame interval a frame may take before the loop counts as behind.
     load: float = 0.9
+    # While no net has been in view for a while, the estimator looks at this many frames a
+    # second at most (0: every frame). Open water costs as much CPU as a net (a cold search,
+    # 12-15 ms a frame on a desktop core, 3-5 times that on a Pi) and buys nothing but an
+    # acquisition up to 1/search_hz s sooner; the CPU is BlueOS's video stream's
+    # (service/daemon/search_pace.py).
+    search_hz: float = 5.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "fixed"):
@@ -75,6 +81,8 @@ class BudgetSettings:
             raise ConfigError("budget.level", "must not exceed budget.max_level")
         if not 0.3 <= self.load <= 1.0:
             raise ConfigError("budget.load", "must be 0.3..1.0")
+        if not (self.search_hz == 0.0 or 0.5 <= self.search_hz <= 120.0):
+            raise ConfigError("budget.search_hz", "must be 0 (every frame) or 0.5..120")
 
 
 @dataclass
@@ -142,6 +150,12 @@ class BudgetController:
         if self.settings.mode == "auto":
             self._decide(t_capture)
         return self.level
+
+    def skipped(self, t_capture: float, index: int) -> None:
+        """A frame the loop chose not to measure (service/daemon/search_pace.py): the next
+        measured frame's gap starts here, so frames skipped by choice are not taken for frames
+        the source dropped because the loop was behind."""
+        self._last = (t_capture, index)
 
     def reset(self, settings: BudgetSettings) -> None:
         """New settings (a reload): measured costs stay, the level starts over."""

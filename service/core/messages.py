@@ -145,6 +145,9 @@ class EstimateMessage(Message):
     budget_level: int = doc(
         "estimator work level of this frame: 0 full work, up to 3 the leanest (slow CPU)", 0
     )
+    measured: bool = doc(
+        "false: the frame was read but not given to the estimator (no net in view for a while:"
+        " a paced search, `budget.search_hz`)", True)
     filtered: FilteredView | None = doc("the tracking filter's view (null without a filter)", None)
     latency_ms: EstimateLatency = doc("per-stage latency", EstimateLatency())
     truth: TruthView | None = doc("ground truth of a rendered frame, else null", None)
@@ -204,8 +207,8 @@ class AutopilotHealth:
 class EstimatorHealth:
     """Processing over the last status period."""
 
-    fps: float | None = doc("frames processed per second", None)
-    frames: int = doc("frames processed in the last period", 0)
+    fps: float | None = doc("frames measured per second", None)
+    frames: int = doc("frames measured in the last period", 0)
     detected_fraction: float | None = doc("share of them with a net, 0..1", None)
     latency_ms_mean: float | None = doc("frame capture to result, mean, ms", None)
     latency_ms_max: float | None = doc("frame capture to result, max, ms", None)
@@ -216,6 +219,9 @@ class EstimatorHealth:
         " than the camera's interval)", 0)
     frame_interval_ms: float | None = doc("the camera's frame interval (median), ms", None)
     frame_work_ms: float | None = doc("the loop's time per frame at that level, ms", None)
+    searching_hz: float | None = doc(
+        "no net in view for a while: the estimator looks at this many frames a second at most"
+        " (`budget.search_hz`); null while it measures every frame", None)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -40,6 +40,7 @@ from service.daemon.ports import (
     Notifier,
     TelemetrySink,
 )
+from service.daemon.search_pace import SearchPacer
 from service.daemon.stats import LoopStats
 from service.daemon.status import ReportContext, StatusReporter
 from service.daemon.view_notices import ViewNotices
@@ -116,6 +117,7 @@ class Daemon:
                                  make_inspector(config, parts.camera))
         self.stats = LoopStats()
         self.budget = BudgetController(config.budget)
+        self.search = SearchPacer(config.budget.search_hz)
         self.problems = OnceLogger(log)
         states = StateLog()
         now = clock()
@@ -131,7 +133,7 @@ class Daemon:
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
                           self.pipeline.tracker, self.track_log, self.source_watch, self.outputs,
-                          self.budget),
+                          self.budget, self.search),
             vehicle=parts.vehicle, interval_s=config.service.status_interval_s,
             summary_interval_s=config.service.summary_interval_s, started_at=now,
             wall_clock=wall_clock, states=states,
@@ -156,11 +158,16 @@ class Daemon:
         else:
             h, w = frame.image.shape[:2]
             self.source_watch.frame(w, h, now)
-            result = self.pipeline.measure(frame.image, frame.t_monotonic, frame.index,
-                                           budget=self.budget.level)
+            if self.search.due(frame.t_monotonic):
+                result = self.pipeline.measure(frame.image, frame.t_monotonic, frame.index,
+                                               budget=self.budget.level)
+                self.search.measured(result)
+            else:
+                result = self.pipeline.skip(frame.t_monotonic, frame.index, self.search.why())
+                self.budget.skipped(frame.t_monotonic, frame.index)
             self.last_index = frame.index
         sent = self.outputs.to_autopilot(result)
-        if frame is not None:
+        if frame is not None and not result.unmeasured:
             # After the distance has gone: an inspected frame's distance waited for the hole
             # search (about 10 ms here, more on a Pi).
             result = self.pipeline.inspect(frame.image, result)
@@ -168,7 +175,8 @@ class Daemon:
         if frame is not None:
             self._note_errors(result)
             self.outputs.publish(frame, result, sent, self.clock())
-            self._account(result, self.clock() - now)
+            if not result.unmeasured:
+                self._account(result, self.clock() - now)
         self.track_log.update(result.track, now)
         self.view_notices.update(result, now)
         self.last = result.track
@@ -288,6 +296,7 @@ class Daemon:
                 self.pipeline.tracker.reconfigure(new.filter)
             if "budget" in changed:
                 self.budget.reset(new.budget)
+                self.search.search_hz = new.budget.search_hz
             if "service" in changed:
                 logging.getLogger().setLevel(new.service.log_level)
                 self.pipeline.set_autopilot_distance(new.service.autopilot_distance)

@@ -20,10 +20,11 @@ LATENCY_WINDOW = 8192
 
 @dataclass(frozen=True)
 class StatsSnapshot:
-    frames: int
-    skipped: int
+    frames: int  # measured by the estimator
+    skipped: int  # dropped before the loop could take them
     detected: int
     errors: int
+    paced: int = 0  # taken, but not measured: a paced search in open water
 
     def minus(self, earlier: StatsSnapshot) -> StatsSnapshot:
         return StatsSnapshot(
@@ -31,6 +32,7 @@ class StatsSnapshot:
             skipped=self.skipped - earlier.skipped,
             detected=self.detected - earlier.detected,
             errors=self.errors - earlier.errors,
+            paced=self.paced - earlier.paced,
         )
 
 
@@ -51,6 +53,7 @@ class LoopStats:
         self.skipped = 0
         self.detected = 0
         self.errors = 0
+        self.paced = 0
         self.last_error = ""
         self._last_index: int | None = None
         # (time the result was handed to the outputs, capture -> hand-over in ms)
@@ -64,6 +67,9 @@ class LoopStats:
         if self._last_index is not None and result.index > self._last_index + 1:
             self.skipped += result.index - self._last_index - 1
         self._last_index = result.index
+        if result.unmeasured:
+            self.paced += 1
+            return
         self.frames += 1
         self.detected += result.detected
         if result.error:
@@ -72,7 +78,7 @@ class LoopStats:
         self._latencies.append((handed_over, (handed_over - result.t) * 1e3))
 
     def snapshot(self) -> StatsSnapshot:
-        return StatsSnapshot(self.frames, self.skipped, self.detected, self.errors)
+        return StatsSnapshot(self.frames, self.skipped, self.detected, self.errors, self.paced)
 
     def latency_since(self, since: float) -> LatencyStats:
         """Latency of the frames handed over after `since` (within the kept window)."""

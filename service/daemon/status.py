@@ -32,6 +32,7 @@ from service.core.tracking import NetTracker, TrackOutput
 from service.daemon.events import SourceWatch, TrackLog
 from service.daemon.outputs import FrameOutputs
 from service.daemon.ports import AutopilotLink, FrameSource, Notifier, TelemetrySink
+from service.daemon.search_pace import SearchPacer
 from service.daemon.stats import LoopStats, StatsSnapshot
 
 log = logging.getLogger("netpose.daemon")
@@ -69,6 +70,7 @@ class ReportContext:
     source_watch: SourceWatch
     outputs: FrameOutputs
     budget: BudgetController
+    search: SearchPacer
 
 
 class StatusReporter:
@@ -151,6 +153,7 @@ class StatusReporter:
         watch = ctx.source_watch
         latency = ctx.stats.latency_since(self._mark_at)
         fps = period.frames / seconds if seconds > 0 else None
+        taken = period.frames + period.paced
         if watch.up:
             source_state = "streaming"
         else:
@@ -169,7 +172,8 @@ class StatusReporter:
             uptime_s=now - self._started_at,
             config_digest=self.config_digest,
             frame_source=FrameSourceHealth(
-                state=source_state, fps=fps, frames=ctx.stats.frames,
+                state=source_state, fps=taken / seconds if seconds > 0 else None,
+                frames=ctx.stats.frames + ctx.stats.paced,
                 dropped=ctx.stats.skipped + counters.drops, corrupt=counters.corrupt,
                 last_frame_age_s=None if watch.last_frame_at is None
                 else now - watch.last_frame_at,
@@ -184,6 +188,7 @@ class StatusReporter:
                 budget_level=ctx.budget.level,
                 frame_interval_ms=_ms(ctx.budget.frame_interval_s),
                 frame_work_ms=_ms(ctx.budget.cost_s(ctx.budget.level)),
+                searching_hz=ctx.search.search_hz if ctx.search.pacing else None,
             ),
             cpu=CpuHealth(
                 cores=os.cpu_count(), load_1m=_load_1m(),
@@ -213,6 +218,8 @@ class StatusReporter:
             head = f"estimator cannot use the frames: {self._ctx.stats.last_error}"
         elif out is None or out.distance_m is None:
             head = "searching"
+            if self._ctx.search.pacing:
+                head += f" at {self._ctx.search.search_hz:g} frames/s"
         else:
             head = f"{out.state.value} {out.distance_m:.2f} m"
             if not out.valid:
@@ -225,10 +232,11 @@ class StatusReporter:
         uptime = now - self._started_at
         latency = stats.latency_since(-float("inf"))
         log.info(
-            "%s: %.0f s up, %d frames (%.1f fps), %d skipped, %.0f%% detected, track %s, "
-            "filter accepted %d rejected %d resets %d, latency mean %s p99 %s ms",
+            "%s: %.0f s up, %d frames (%.1f fps), %d skipped, %d not measured (no net in "
+            "view), %.0f%% detected, track %s, filter accepted %d rejected %d resets %d, "
+            "latency mean %s p99 %s ms",
             "final summary" if final else "summary", uptime, stats.frames,
-            stats.frames / uptime if uptime > 0 else 0.0, stats.skipped,
+            stats.frames / uptime if uptime > 0 else 0.0, stats.skipped, stats.paced,
             100.0 * stats.detected / stats.frames if stats.frames else 0.0,
             self._ctx.track_log.state.value, tracker.accepted_total, tracker.rejected_total,
             tracker.resets_total,

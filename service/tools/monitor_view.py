@@ -297,6 +297,9 @@ def _status_text(status: Mapping[str, Any] | None) -> str:
         f" dropped {camera.get('dropped')} ap {autopilot.get('state')}"
         f" cpu {_fmt(cpu.get('process_percent'), 0)}%"
     )
+    searching = (status.get("estimator") or {}).get("searching_hz")
+    if searching:
+        text += f" searching {_fmt(searching, 0)}/s (no net)"
     if telemetry.get("queue_dropped"):
         text += f" tx-dropped {telemetry.get('queue_dropped')}"
     return text
