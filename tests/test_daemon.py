@@ -585,3 +585,50 @@ def test_search_hz_0_measures_every_frame_of_open_water() -> None:
     results = [r for r in h.results if r.index is not None]
     assert len(results) == 90 and not any(r.unmeasured for r in results)
 
+
+def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """The recorder keeps every frame of a paced search, each saying whether the vehicle
+    measured it; `netpose replay` measures the same ones, so the filter sees the same
+    measurements and its states and distances come out as on the vehicle."""
+    from drivers.recorder import Recorder, RecordingSetup
+    from service.daemon.settings_editor import tuning_toml
+
+    water = render_frames(URL + "&gap=0-1000", 4)
+    seq = frames_at([*(water[i % len(water)] for i in range(90)), *frames], 30.0, 100.0)
+    observer = RecordingObserver()
+    holder: list[Any] = []
+    cfg = demo_config("budget.search_hz=5")
+    recorder = Recorder(tmp_path / "rec", "test",
+                        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
+                                               90.0),
+                        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(observer, recorder))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    status = recorder.stop()
+    live = dict(observer.frames)
+    assert status.frames >= len(seq) - 2  # the recorder may start a frame late
+    assert any(not m.measured for m in live.values())
+    out = tmp_path / "replay"
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
+         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with (out / "estimates.csv").open() as fh:
+        rows = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    assert len(rows) == status.frames and set(rows) <= set(live)
+    assert any(row["reason"].startswith("not measured") for row in rows.values())
+    compared = 0
+    for index, row in rows.items():
+        message = live[index]
+        assert row["filter_state"] == message.filtered.state
+        assert (row["reason"].startswith("not measured")) == (not message.measured), row
+        if message.filtered.distance_m is not None:
+            assert float(row["filtered_distance_m"]) == pytest.approx(
+                message.filtered.distance_m, abs=1e-6 + 1e-12)
+            compared += 1
+    assert compared >= len(frames) // 2

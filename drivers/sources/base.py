@@ -47,6 +47,9 @@ class Frame:
     # The estimator's work level this frame got on the vehicle, when a recording says so
     # (service.core.budget): a replay gives it the same work. None: not recorded.
     budget: int | None = None
+    # False when a recording says the vehicle read this frame without measuring it (a paced
+    # search in open water, service/daemon/search_pace.py): a replay does not measure it either.
+    measured: bool = True
 
 
 class SourceState(Enum):

@@ -49,6 +49,7 @@ class MediaFrame:
     media_time_s: float
     truth: object | None = None
     budget: int | None = None  # a recording's budget level for this frame
+    measured: bool = True  # False: the recording's vehicle did not measure this frame
     skipped_before: int = 0  # unreadable frames passed over just before this one
 
 
@@ -283,5 +284,6 @@ class PacedSource(FrameSource):
                 color=converted[1],
                 truth=media.truth,
                 budget=media.budget,
+                measured=media.measured,
             )
             return media, frame

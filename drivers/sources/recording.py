@@ -48,7 +48,7 @@ class RecordingSource(PacedSource):
             raise url_error(url, "recording: needs a folder")
         super().__init__(url, options, realtime=parsed.flag("realtime", False))
         self.path = Path(parsed.path).expanduser()
-        self._entries: list[tuple[str, int, float, float, int | None]] = []
+        self._entries: list[tuple[str, int, float, float, int | None, bool]] = []
         self._position = 0
         self._camera: CameraModel | None = None
         self._period = 0.1
@@ -87,9 +87,11 @@ class RecordingSource(PacedSource):
                 row: dict[str, Any] = json.loads(line)
                 estimate = row.get("estimate") or {}
                 budget = estimate.get("budget_level") if isinstance(estimate, dict) else None
+                measured = estimate.get("measured") if isinstance(estimate, dict) else None
                 entries.append((str(row["frame"]), int(row["index"]), float(row["t_mono"]),
                                 float(row["t_unix"]),
-                                int(budget) if isinstance(budget, int) else None))
+                                int(budget) if isinstance(budget, int) else None,
+                                measured is not False))
             except (ValueError, KeyError, TypeError):
                 raise SourceError(self.url, f"{FRAMES_LOG} line {number} is damaged") from None
         if not entries:
@@ -110,12 +112,12 @@ class RecordingSource(PacedSource):
     def _next_media(self) -> MediaFrame:
         if self._position >= len(self._entries):
             raise EndOfMediaError
-        name, index, t_mono, _, budget = self._entries[self._position]
+        name, index, t_mono, _, budget, measured = self._entries[self._position]
         self._position += 1
         flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
         image: Any = cv2.imread(str(self.path / name), flags)
         return MediaFrame(image=image, number=index, media_time_s=t_mono - self._entries[0][2],
-                          budget=budget)
+                          budget=budget, measured=measured)
 
     def _skip_to(self, number: int) -> int:
         skipped = 0

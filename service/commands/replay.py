@@ -210,6 +210,7 @@ def replay_frames(
             color=frame.color,
             truth=truth_from_object(frame.truth),
             budget=frame.budget or 0,
+            measured=frame.measured,
         )
 
 

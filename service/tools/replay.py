@@ -169,6 +169,10 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
     return out
 
 
+# The reason given for a recorded frame the vehicle read but did not measure.
+NOT_MEASURED_ON_VEHICLE = "not measured on the vehicle: no net in view, a paced search"
+
+
 # -- frames -----------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class ReplayFrame:
@@ -183,6 +187,7 @@ class ReplayFrame:
     color: npt.NDArray[np.uint8] | None = None
     truth: Truth | None = None
     budget: int = 0  # the estimator's work level (a recording's, so a replay matches it)
+    measured: bool = True  # False: the recording's vehicle did not measure it (paced search)
 
 
 # -- results ----------------------------------------------------------------------------------
@@ -207,6 +212,11 @@ class FrameResult:
     @property
     def error(self) -> str:
         return self.result.error
+
+    @property
+    def reason(self) -> str:
+        """Why there is no estimate: the frame was not measured, or the estimator refused it."""
+        return self.result.unmeasured or self.result.error
 
     @property
     def detected(self) -> bool:
@@ -275,8 +285,11 @@ class ReplayRunner:
 
     def process(self, frame: ReplayFrame) -> FrameResult:
         t0 = time.perf_counter()
-        result = self._pipeline.process(frame.image, frame.t_capture, frame.index,
-                                        budget=frame.budget)
+        if frame.measured:
+            result = self._pipeline.process(frame.image, frame.t_capture, frame.index,
+                                            budget=frame.budget)
+        else:
+            result = self._pipeline.skip(frame.t_capture, frame.index, NOT_MEASURED_ON_VEHICLE)
         if result.failure is not None and not result.crashed:
             if self._processed == 0:
                 # Not even the first frame fits: the whole recording is unusable.
@@ -351,7 +364,7 @@ def csv_row(result: FrameResult) -> list[str]:
         None if e is None else len(e.rois),
         None if e is None else e.rois_used,
         None if e is None else e.level,
-        result.error if e is None else e.reason,
+        result.reason if e is None else e.reason,
         round(result.process_ms, 3),
         e is not None and e.net_seen,
         None if e is None else e.approx_range_m,
