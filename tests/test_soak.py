@@ -43,3 +43,21 @@ def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None
     # The limit holds: a quarter of a core (and the scheduler's slack), far below free.
     assert held.cpu_percent <= 25.0 + 7.0
     assert held.frames_per_s < free.frames_per_s
+
+
+def test_open_water_sends_nothing_and_is_searched_at_search_hz(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real daemon on the same scenes without the net: no DISTANCE_SENSOR at all, every
+    frame read and published, and after the first HOLD_S the estimator measures `search_hz`
+    of them a second (service/daemon/search_pace.py)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    path, calibration = soak.prepare_video(640, 360, 15.0, net=False)
+    water = soak.run_case(soak.SoakCase("open water", None, net=False), path, calibration,
+                          duration_s=12.0, extra_overrides=["budget.search_hz=5"])
+    assert water.exit_status == 0, water.notes
+    assert water.distance_messages == 0
+    assert water.detected_fraction == 0.0
+    # The steady state starts 5 s after the first frame, past the 2 s at the camera's rate.
+    assert water.frames_per_s > 10.0
+    assert 3.0 <= water.measured_per_s <= 5.5

@@ -1,5 +1,7 @@
 """`netpose bench soak`: the real daemon on a camera-like source for minutes, measured from
-outside, once with the machine to itself and once held to a quarter of a core.
+outside, once with the machine to itself and once held to a quarter of a core; then once more
+on the same scenes without the net (open water), where nothing may reach the autopilot and the
+estimator searches at `budget.search_hz`.
 
 The source is a pre-rendered 1280x720 H.264-class video (MPEG-4, rendered once and cached) of a
 net approaching and receding, played in real time at 30 frames/s and looped, so the daemon pays
@@ -59,9 +61,11 @@ TARGET_RSS_MB = 120.0
 class SoakCase:
     name: str
     cpu_share: float | None  # None: unconstrained
+    net: bool = True  # False: the same scenes without the net (open water)
 
 
-CASES = (SoakCase("unconstrained", None), SoakCase("25% of one core", 0.25))
+CASES = (SoakCase("unconstrained", None), SoakCase("25% of one core", 0.25),
+         SoakCase("open water, unconstrained", None, net=False))
 
 
 @dataclass
@@ -70,7 +74,7 @@ class CaseReport:
     how: str
     duration_s: float
     exit_status: int
-    frames_per_s: float
+    frames_per_s: float  # frames the daemon took from the source
     detected_fraction: float
     distance_rate_hz: float
     largest_gap_ms: float
@@ -83,15 +87,28 @@ class CaseReport:
     startup_s: float = math.nan
     launch_s: float = math.nan
     notes: list[str] = field(default_factory=list)
+    # Of the frames taken, those the estimator measured (a paced search in open water leaves
+    # the others: service/daemon/search_pace.py).
+    measured_per_s: float = math.nan
+    net: bool = True
+    distance_messages: int = 0  # DISTANCE_SENSOR messages in the steady state
 
     def lines(self, constrained: bool) -> list[str]:
         def mark(ok: bool) -> str:
             return "ok" if ok else "MISSED"
 
-        out = [
+        head = [
             f"{self.case} ({self.how}), {self.duration_s:.0f} s, exit status {self.exit_status}",
-            f"  frames processed {self.frames_per_s:.1f}/s, net detected in "
-            f"{100 * self.detected_fraction:.0f} %",
+            f"  frames processed {self.frames_per_s:.1f}/s ({self.measured_per_s:.1f}/s "
+            f"measured), net detected in {100 * self.detected_fraction:.0f} %",
+        ]
+        if not self.net:
+            return head + [
+                f"  DISTANCE_SENSOR messages with a distance: {self.distance_messages}",
+                f"  CPU {self.cpu_percent:.0f} % of one core, RSS {self.rss_mb:.0f} MB",
+                f"  target: no distance without a net [{mark(self.distance_messages == 0)}]",
+            ] + [f"  note: {n}" for n in self.notes]
+        out = head + [
             f"  DISTANCE_SENSOR {self.distance_rate_hz:.1f} Hz, largest gap "
             f"{self.largest_gap_ms:.0f} ms",
             f"  capture -> MAVLink arrival: median {self.latency_ms_median:.1f} ms, p99 "
@@ -124,17 +141,20 @@ def cache_dir() -> Path:
     return path
 
 
-def prepare_video(width: int, height: int, fps: float) -> tuple[Path, Path]:
-    """The looping approach video and its calibration, rendered once per size and rate."""
+def prepare_video(width: int, height: int, fps: float,
+                  net: bool = True) -> tuple[Path, Path]:
+    """The looping approach video and its calibration, rendered once per size and rate;
+    without `net`, the same scenes (water, light, fish) with no net in view."""
     folder = cache_dir()
-    video = folder / f"approach-{width}x{height}-{fps:g}.mp4"
+    video = folder / f"{'approach' if net else 'open-water'}-{width}x{height}-{fps:g}.mp4"
     calibration = folder / f"camera-{width}x{height}.yaml"
     save_camera(builtin_camera(width, height), calibration)
     if video.is_file() and video.stat().st_size > 0:
         return video, calibration
     partial = video.with_suffix(".partial.mp4")
     source = create_source(f"synthetic:?width={width}&height={height}&fps={fps:g}&realtime=0"
-                           f"&trajectory=approach&near=0.7&far=1.8&period={LOOP_S:g}&seed=2")
+                           f"&trajectory=approach&near=0.7&far=1.8&period={LOOP_S:g}&seed=2"
+                           + ("" if net else "&gap=0-1000000"))
     writer = cv2.VideoWriter(str(partial), cv2.VideoWriter.fourcc(*"mp4v"), fps,
                              (width, height))
     try:
@@ -256,6 +276,7 @@ def _report(case: SoakCase, how: str, duration_s: float, status: int,
     frames = [e for e in estimates if e.get("frame_time_mono") is not None]
     start = (min(float(e["frame_time_mono"]) for e in frames) + WARMUP_S) if frames else math.inf
     steady = [e for e in frames if float(e["frame_time_mono"]) >= start]
+    measured = [e for e in steady if e.get("measured", True)]
     span = (float(steady[-1]["frame_time_mono"]) - float(steady[0]["frame_time_mono"])
             if len(steady) > 1 else math.nan)
     sent = [a for a in arrivals if a.t_received >= start]
@@ -278,7 +299,9 @@ def _report(case: SoakCase, how: str, duration_s: float, status: int,
     return CaseReport(
         case=case.name, how=how, duration_s=duration_s, exit_status=status,
         frames_per_s=len(steady) / span if span and math.isfinite(span) else 0.0,
-        detected_fraction=sum(bool(e.get("detected")) for e in steady) / max(1, len(steady)),
+        measured_per_s=len(measured) / span if span and math.isfinite(span) else 0.0,
+        net=case.net, distance_messages=len(arrivals),
+        detected_fraction=sum(bool(e.get("detected")) for e in measured) / max(1, len(measured)),
         distance_rate_hz=(len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0,
         largest_gap_ms=float(gaps.max()),
         latency_ms_median=_percentile(latencies, 50), latency_ms_p99=_percentile(latencies, 99),
@@ -295,11 +318,13 @@ def main_soak(duration_s: float = 120.0, *, width: int = 1280, height: int = 720
     if not duration_s > WARMUP_S or not fps > 0:
         raise ConfigError("soak", f"duration must exceed the {WARMUP_S:g} s warm-up")
     t0 = time.monotonic()
-    video, calibration = prepare_video(width, height, fps)
-    print(f"netpose bench soak: {width}x{height} at {fps:g} frames/s from {video} "
+    videos = {net: prepare_video(width, height, fps, net) for net in {c.net for c in cases}}
+    print(f"netpose bench soak: {width}x{height} at {fps:g} frames/s from "
+          f"{', '.join(str(v) for v, _ in videos.values())} "
           f"(ready in {time.monotonic() - t0:.0f} s)", flush=True)
     reports = []
     for case in cases:
+        video, calibration = videos[case.net]
         report = run_case(case, video, calibration, duration_s)
         reports.append(report)
         for line in report.lines(constrained=case.cpu_share is not None):
