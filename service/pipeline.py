@@ -62,6 +62,8 @@ class PipelineResult:
     # Why a frame that came was not given to the estimator ("" when it was, or without a
     # frame): the daemon paces its search in open water (service/daemon/search_pace.py).
     unmeasured: str = ""
+    # The estimator tracked the previous frame's net (no scale search ran on this frame).
+    tracked: bool = False
 
     @property
     def error(self) -> str:
@@ -181,6 +183,7 @@ class Pipeline:
             t=t, index=index, estimate=estimate, track=track,
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
             plane=net_plane_of(track, t), budget=budget,
+            tracked=estimate is not None and not estimate.searched,
         )
 
     def inspect(self, image: npt.NDArray[Any], measured: PipelineResult) -> PipelineResult:

@@ -199,3 +199,27 @@ def test_frames_skipped_by_choice_are_not_taken_for_a_loop_behind_the_camera() -
 def test_search_hz_out_of_range_names_the_key(value: float) -> None:
     with pytest.raises(ConfigError, match=r"budget\.search_hz"):
         BudgetSettings(search_hz=value)
+
+
+def test_searched_frames_do_not_judge_the_level_but_count_for_losing_the_net() -> None:
+    """Frames without a prior (a cold search) cost what they cost whatever the level, and give
+    the autopilot nothing: however slow, they move no level; tracked frames over budget do.
+    A level that stops seeing the net is still left, searched frames included."""
+    ctrl = BudgetController(BudgetSettings())
+    t, index = 0.0, 0
+    for _ in range(60):  # 2 s of searching at 3 camera intervals a frame
+        ctrl.frame(t, index, 0.100, detected=False, tracked=False)
+        t, index = t + 4 / FPS, index + 4
+    assert ctrl.level == 0 and ctrl.changes == 0 and ctrl.cost_s(0) is None
+    for _ in range(60):  # then tracked frames of 1.5 intervals: behind
+        ctrl.frame(t, index, 0.050, tracked=True)
+        t, index = t + 2 / FPS, index + 2
+    assert ctrl.level > 0 and ctrl.cost_s(0) == pytest.approx(0.050)
+    # The leaner level loses the net: its tracked frames miss, then the searches find nothing.
+    lean = ctrl.level
+    for k in range(30):
+        ctrl.frame(t, index, 0.010, detected=False, tracked=k == 0)
+        t, index = t + 1 / FPS, index + 1
+        if ctrl.level != lean:
+            break
+    assert ctrl.level == lean - 1 and "loses the net" in ctrl.why

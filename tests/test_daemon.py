@@ -457,6 +457,36 @@ def test_a_loop_slower_than_the_camera_lowers_the_estimators_work_and_says_so(
     assert len(logged) == 1 and logged[0].startswith("budget level 0 -> 2")
 
 
+def test_a_slow_search_before_the_net_is_found_does_not_cut_the_tracking_work(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Frames searched without a prior (open water, then the net found) cost 2.5 camera
+    intervals, tracked frames a fifth of one. Only tracked frames give the autopilot a fresh
+    distance, so only they judge the budget: the level stays at full work. (Judged by the
+    search, as before, the loop cut to the least work after a second, and the cost it had
+    measured there kept it from coming back for half a minute.)"""
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+
+    class SlowSearch(SlowCpu):
+        def observe(self, frame: Frame, result: Any, message: Any) -> None:
+            self.seconds = 0.2 / FPS if result.tracked else 2.5 / FPS
+            super().observe(frame, result, message)
+
+    water = render_frames(URL + "&gap=0-1000", 3)
+    # The newest frame only: while a search frame takes 2.5 intervals, two are dropped.
+    seq = frames_at([*(water[i % 3] for i in range(45)), *frames], FPS, 100.0)
+    seq = seq[:45:3] + seq[45:]
+    slow = SlowSearch(None, 0.0)
+    h = make_harness(demo_config(), [Step(frame=f) for f in seq], observers=(slow,))
+    slow._clock = h.clock
+    h.run_script()
+    levels = [m.budget_level for _, m in slow.frames]
+    assert set(levels) == {0}
+    assert sum(m.detected for _, m in slow.frames[15:]) >= len(frames) - 2
+    assert not [r for r in caplog.records if "budget level" in r.getMessage()]
+    assert h.daemon.budget.cost_s(0) == pytest.approx(0.2 / FPS, rel=0.3)
+
+
 def test_a_recording_made_under_budget_replays_at_the_same_levels(
     frames: list[Frame], tmp_path: Path
 ) -> None:

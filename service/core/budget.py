@@ -87,8 +87,9 @@ class BudgetSettings:
 
 @dataclass
 class _Cost:
-    seconds: float
-    frames: int
+    seconds: float  # running loop time of this level's tracked frames (NaN until one came)
+    timed: int  # tracked frames measured since the level was last judged
+    frames: int  # frames of any kind since then
     last_t: float
     detected: float  # running share of this level's frames with a net
 
@@ -127,24 +128,36 @@ class BudgetController:
         return ordered[len(ordered) // 2]
 
     def cost_s(self, level: int) -> float | None:
-        """The measured loop time per frame at `level` (None if never measured)."""
+        """The measured loop time per tracked frame at `level` (None if never measured)."""
         cost = self._costs.get(level)
-        return None if cost is None else cost.seconds
+        return None if cost is None or not math.isfinite(cost.seconds) else cost.seconds
 
-    def frame(self, t_capture: float, index: int, work_s: float, detected: bool = True) -> int:
+    def frame(self, t_capture: float, index: int, work_s: float, detected: bool = True,
+              tracked: bool = True) -> int:
         """One processed frame at the current level: its capture time, the source's frame
-        number, the loop time it took and whether the estimator saw the net. Returns the level
-        for the next frame."""
+        number, the loop time it took, whether the estimator saw the net and whether it was
+        tracked (measured with the previous frame's detection as its prior). Returns the level
+        for the next frame.
+
+        Only tracked frames' times judge the level: they are the frames whose distance the
+        autopilot flies on. A cold search (the net not found yet, or found again) costs two to
+        ten times as much and gives the autopilot nothing fresh whatever the level; judged by
+        its frames, the start of `make run` dropped to the leanest level for its first 30 s on
+        a desktop core. Every frame counts for whether a level keeps seeing the net."""
         self._note_interval(t_capture, index)
         if math.isfinite(work_s) and work_s >= 0.0:
             cost = self._costs.get(self.level)
             if cost is None or t_capture - cost.last_t > COST_MEMORY_S:
-                self._costs[self.level] = _Cost(work_s, 1, t_capture, float(detected))
+                cost = _Cost(math.nan, 0, 0, t_capture, float(detected))
+                self._costs[self.level] = cost
             else:
-                cost.seconds += COST_SMOOTHING * (work_s - cost.seconds)
                 cost.detected += COST_SMOOTHING * (float(detected) - cost.detected)
-                cost.frames += 1
-                cost.last_t = t_capture
+            cost.frames += 1
+            cost.last_t = t_capture
+            if tracked:
+                cost.seconds = work_s if not math.isfinite(cost.seconds) else (
+                    cost.seconds + COST_SMOOTHING * (work_s - cost.seconds))
+                cost.timed += 1
         if self._changed_at is None:
             self._changed_at = t_capture
         if self.settings.mode == "auto":
@@ -193,6 +206,8 @@ class BudgetController:
                           f"frames, {richer.detected:.0%} at level {richer_level}); not used "
                           f"for {block:.0f} s")
                 return
+        if cost.timed < FRAMES_TO_JUDGE:
+            return  # no tracked frames at this level to judge its cost by (see `frame`)
         highest = min([self.settings.max_level]
                       + [k - 1 for k, (until, _) in self._blocked.items() if t < until])
         # Behind the camera: over budget, and the source is dropping frames for it. A source
@@ -225,7 +240,8 @@ class BudgetController:
     def _predicted(self, level: int, t: float, current_s: float) -> float:
         """A level's cost per frame: measured, when recently; else scaled from the current."""
         known = self._costs.get(level)
-        if known is not None and t - known.last_t <= COST_MEMORY_S:
+        if known is not None and t - known.last_t <= COST_MEMORY_S and math.isfinite(
+                known.seconds):
             return known.seconds
         return current_s * STEP_RATIO ** (self.level - level)
 
@@ -236,6 +252,6 @@ class BudgetController:
             # The new level is judged on its own frames only.
             stale = self._costs.get(level)
             if stale is not None:
-                stale.frames = 0
+                stale.frames = stale.timed = 0
         self.level = level
         self._changed_at = t

@@ -553,7 +553,7 @@ class NetEstimator:
                         result = _scale_proved(tracked)
                     current.lap("blind_check", t1)
         if result is None:
-            result = _scale_proved(self._cold(current, layout))
+            result = replace(_scale_proved(self._cold(current, layout)), searched=True)
         if not result.detected and not result.reason.startswith(_NOT_A_NET):
             # Not when the view was positively recognised as something else (a brick wall, a
             # checkerboard, cells of another shape): "too close" must never fire without a net.

@@ -85,6 +85,10 @@ class NetEstimate:
     # `detected`: then `range_m` holds the distance). See `net_seen`.
     approx_range_m: float | None = None
     approx_sigma_range_m: float | None = None
+    # The full scale search ran on this frame: there was no prior, or the prior plane did not
+    # hold. Such a frame costs several times a tracked one (the daemon's budget is judged on
+    # tracked frames only: service/core/budget.py).
+    searched: bool = False
 
     @property
     def net_seen(self) -> bool:

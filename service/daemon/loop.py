@@ -257,7 +257,8 @@ class Daemon:
         """The frame's loop time (and whether the net was seen) decides the next frame's budget
         level; a change is logged with its reason (changes are a second apart at least)."""
         before = self.budget.level
-        after = self.budget.frame(result.t, result.index or 0, work_s, result.detected)
+        after = self.budget.frame(result.t, result.index or 0, work_s, result.detected,
+                                  tracked=result.tracked)
         if after != before:
             log.info("budget level %d -> %d: %s", before, after, self.budget.why)
 
