@@ -8,7 +8,10 @@ on the same plane geometry as a net, so only what the pattern looks like differs
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -176,6 +179,70 @@ def test_square_tiles_are_not_a_rhombic_net(period_px: int) -> None:
     rhombic = MeshGeometry(0.025, opening_angle_deg=60.0)
     est = _grid("tiles", period_px, 10.0, mesh=rhombic)
     assert not est.detected and est.distance_m is None and not est.too_close
+
+
+# -- the video's own compression blocks ----------------------------------------------------------
+
+BLOCKS_FRAME = Path(__file__).parent / "data" / "mpeg4-open-water-blocks.png"
+
+
+def test_a_videos_compression_blocks_are_not_a_net(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real codec's blocks: the soak benchmark's open-water video (the renderer's scene
+    without a net, encoded by OpenCV's FFmpeg MPEG-4 at its default quality, 1280x720, frame 87,
+    decoded and stored losslessly). In its dark, smooth lower half the 8x8 blocks are a square
+    grid on the pixel grid, and six ROIs agreed on it: a 'net' at 2.26 m, tilt 1.4 deg,
+    sigma 3 cm, confidence 0.51. Refused for what it is; without that check it is a net."""
+    import cv2
+
+    from service.core import estimator as estimator_module
+
+    gray = cv2.imread(str(BLOCKS_FRAME), cv2.IMREAD_GRAYSCALE)
+    assert gray is not None and gray.shape == (720, 1280)
+    est = NetEstimator(CAMERA_720P, MeshGeometry(0.025)).estimate(gray)
+    assert not est.detected and est.distance_m is None and not est.too_close
+    assert "compression blocks (8 px" in est.reason
+    monkeypatch.setattr(estimator_module, "_compression_grid", lambda rois, image: "")
+    assert NetEstimator(CAMERA_720P, MeshGeometry(0.025)).estimate(gray).detected
+
+
+@pytest.mark.parametrize("jpeg_quality", [None, 60])
+def test_a_net_of_exactly_the_block_size_on_the_pixel_axes_is_still_a_net(
+    jpeg_quality: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The other way round: a net facing the camera squarely, its bars along the pixel axes
+    and 8 px apart, through a lens without distortion (so nothing but the image's own steps
+    tells it from a block grid), at 8 mesh phases, lossless and as JPEG. The block test is
+    reached on every frame, and the twine's two edges per period keep the net a net."""
+    import cv2
+
+    from service.core import estimator as estimator_module
+
+    camera = dataclasses.replace(CAMERA_720P, distortion=tuple(0.0 for _ in
+                                                               CAMERA_720P.distortion))
+    mesh = MeshGeometry(0.025)
+    range_m = camera.fx * mesh.bar_length_m / 8.0
+    renderer = NetRenderer(camera, mesh, seed=1)
+    estimator = NetEstimator(camera, mesh)
+    tested: list[bool] = []
+    real = estimator_module._block_edges
+
+    def spy(*args: Any) -> bool:
+        tested.append(real(*args))
+        return tested[-1]
+
+    monkeypatch.setattr(estimator_module, "_block_edges", spy)
+    for k in range(8):
+        pose = NetPose(range_m, 0.0, 0.0, 0.0, (k / 8, (3 * k % 8) / 8))
+        frame, _ = renderer.render(pose, np.random.default_rng(k), SceneStyle())
+        if jpeg_quality is not None:
+            _, data = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+            decoded = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+            assert decoded is not None
+            frame = np.asarray(decoded, dtype=np.uint8)
+        est = estimator.estimate(frame)
+        assert est.detected, (k, est.reason)
+        assert est.range_m is not None and abs(est.range_m / range_m - 1.0) < 0.01
+    assert len(tested) >= 8 and not any(tested)
 
 
 # -- wrong opening angle --------------------------------------------------------------------------

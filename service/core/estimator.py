@@ -39,6 +39,7 @@ import functools
 import itertools
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -950,7 +951,7 @@ class NetEstimator:
         def verdict(p: _Pass, converged: _Converged | None, failure: str,
                     settled: bool = True) -> NetEstimate:
             t1 = time.perf_counter()
-            result = self._verdict(p, converged, layout, failure, settled)
+            result = self._verdict(p, converged, layout, failure, settled, frame)
             frame.lap("proofs", t1)
             return result
 
@@ -1414,10 +1415,13 @@ class NetEstimator:
         layout: _Layout,
         failure: str,
         settled: bool = True,
+        frame: _Frame | None = None,
     ) -> NetEstimate:
         """The estimate from a pass. `converged` is the plane it settled on, or, when the
         passes went round without settling (`settled` false), the last plane with the spread
-        of the last passes as its step: then the net is at most seen, never measured."""
+        of the last passes as its step: then the net is at most seen, never measured.
+        `frame` (its full-resolution image) lets the verdict tell the video's own compression
+        blocks from a net."""
         s = self.settings
         rois = tuple(_roi_result(m, m.agrees) for m in p.rois)
         agreeing = [m for m in p.rois if m.agrees]
@@ -1433,6 +1437,8 @@ class NetEstimator:
                 failure = shape
             if not failure:
                 failure = self._profile_check(p)
+            if not failure and frame is not None:
+                failure = _compression_grid(agreeing, frame.image(0))
         if not failure and p.size / p.period_out < 5.5:
             failure = ("mesh too coarse for the ROIs: fewer than 5.5 cycles each, its scale "
                        "cannot be proved")
@@ -1502,6 +1508,111 @@ class NetEstimator:
 
 
 # -- helpers --------------------------------------------------------------------------------------
+
+
+# Block sizes of the video codecs a camera or a stream uses (JPEG/MJPEG and MPEG-4's 8x8 DCT,
+# H.264/HEVC's 8x8 transforms in 16x16 macroblocks), in source pixels.
+_CODEC_BLOCKS_PX = (8.0, 16.0)
+# A lattice is the blocks' when, in most of the agreeing ROIs, both bars lie along the
+# pixel axes and repeat at one block size, to within what a faint ROI measures (real blocks in
+# an MPEG-4 stream: 0.3 % and 0.2 deg where clear, up to 2-3 % and 2.6 deg where faint), and
+# over those ROIs the median is within 1 % and 1 deg (what clear blocks give; a rendered net of
+# 8.16 px under JPEG blocks in the integrity benchmark was refused at 2 %).
+_CODEC_PERIOD_TOLERANCE = 0.04
+_CODEC_AXIS_TOLERANCE_DEG = 3.0
+_CODEC_MEDIAN_PERIOD_TOLERANCE = 0.01
+_CODEC_MEDIAN_AXIS_TOLERANCE_DEG = 1.0
+# ... and the image's own steps between pixels are larger on the blocks' edges (columns and
+# rows 8n - 1 | 8n) than on any other column (row) of the block, by this factor, in both
+# directions: a block grid has one edge per period, a net's twine two of about the same
+# strength (its rising and its falling side), which no phase can merge. (Real MPEG-4 blocks
+# in open water: 1.33-1.47; the other phases within 0.86-1.07 of their mean.)
+_CODEC_EDGE_DOMINANCE = 1.2
+
+
+def _compression_grid(rois: Sequence[_Roi], gray: Image) -> str:
+    """Why the lattice the ROIs agree on is the video's compression blocks, not a net ("" when
+    it is not).
+
+    A lossy codec quantises each 8x8 (or 16x16) block on its own: where the picture is smooth
+    and dark (deep water, a shadow, a low bitrate) the block edges are a square grid fixed to
+    the pixel grid, 8 px apart. In a real MPEG-4 stream of open water it gave 6 ROIs agreeing on
+    a 'net' 2.3 m away, tilted 1 deg. A net shows such a lattice only by coincidence: an exact
+    block size in every ROI despite the lens's distortion and the plane's perspective, bars
+    square to the pixel axes, and twine edges on the block edges. All three are required."""
+    measured = [m for m in rois if m.reciprocal_px is not None]
+    by_block: dict[float, list[tuple[_Roi, list[tuple[float, float]]]]] = {}
+    for m in measured:
+        found = _codec_block_of(np.asarray(m.reciprocal_px, dtype=np.float64))
+        if found is not None:
+            by_block.setdefault(found[0], []).append((m, found[1]))
+    if not by_block:
+        return ""
+    block, matches = max(by_block.items(), key=lambda kv: len(kv[1]))
+    if len(matches) < 3 or 2 * len(matches) <= len(measured):
+        return ""
+    deviations = np.array([d for _, ds in matches for d in ds])  # (period share, degrees)
+    if float(np.median(np.abs(deviations[:, 0]))) > _CODEC_MEDIAN_PERIOD_TOLERANCE or float(
+            np.median(deviations[:, 1])) > _CODEC_MEDIAN_AXIS_TOLERANCE_DEG:
+        return ""
+    blocky = [m for m, _ in matches]
+    if not _block_edges(gray, [(m.geometry.center_full, m.footprint_px) for m in blocky],
+                        int(block)):
+        return ""
+    return (f"the video's compression blocks ({block:.0f} px squares on the pixel grid), not a "
+            "net: raise the stream's bitrate or quality")
+
+
+def _codec_block_of(basis: F64) -> tuple[float, list[tuple[float, float]]] | None:
+    """The block size whose pixel-aligned grid the lattice `basis` (columns k1 k2, cycles per
+    pixel) is, with each bar's deviation from it (relative period error, degrees off its
+    pixel axis); None when it is no block grid."""
+    block: float | None = None
+    deviations = []
+    for k in basis.T:
+        norm = float(np.hypot(k[0], k[1]))
+        if not norm > 0.0:
+            return None
+        off_axis = math.degrees(math.asin(min(abs(float(k[0])), abs(float(k[1]))) / norm))
+        period = 1.0 / norm
+        size = min(_CODEC_BLOCKS_PX, key=lambda b: abs(math.log(period / b)))
+        if off_axis > _CODEC_AXIS_TOLERANCE_DEG or abs(period / size - 1.0) > (
+                _CODEC_PERIOD_TOLERANCE) or (block is not None and size != block):
+            return None
+        block = size
+        deviations.append((period / size - 1.0, off_axis))
+    return (block, deviations) if block is not None else None
+
+
+def _block_edges(gray: Image, squares: Sequence[tuple[tuple[float, float], float]],
+                 block: int) -> bool:
+    """Whether, over the given squares (centre, side; full-resolution pixels), the image steps
+    between columns (and between rows) show a block grid's edges: the mean absolute step
+    across a block edge (columns block*n - 1 | block*n) exceeds that of every other phase of
+    the block by _CODEC_EDGE_DOMINANCE."""
+    h, w = gray.shape[:2]
+    sums = np.zeros((2, block))
+    counts = np.zeros((2, block))
+    for (cx, cy), side in squares:
+        half = max(side, float(block)) / 2.0
+        x0, x1 = max(int(cx - half), 0), min(int(cx + half) + 1, w)
+        y0, y1 = max(int(cy - half), 0), min(int(cy + half) + 1, h)
+        if x1 - x0 < 2 * block or y1 - y0 < 2 * block:
+            continue
+        patch = gray[y0:y1, x0:x1].astype(np.float32)
+        for axis, origin in ((1, x0), (0, y0)):
+            steps = np.abs(np.diff(patch, axis=axis)).mean(axis=1 - axis)
+            phase = (origin + np.arange(steps.size)) % block
+            sums[axis] += np.bincount(phase, weights=steps, minlength=block)
+            counts[axis] += np.bincount(phase, minlength=block)
+    for axis in (1, 0):
+        if counts[axis].min() == 0:
+            return False
+        mean = sums[axis] / counts[axis]
+        others = float(np.delete(mean, block - 1).max())
+        if not others > 0.0 or mean[block - 1] < _CODEC_EDGE_DOMINANCE * others:
+            return False
+    return True
 
 
 def _twine_profile(
