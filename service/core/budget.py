@@ -135,9 +135,9 @@ class BudgetController:
     def frame(self, t_capture: float, index: int, work_s: float, detected: bool = True,
               tracked: bool = True) -> int:
         """One processed frame at the current level: its capture time, the source's frame
-        number, the loop time it took, whether the estimator saw the net and whether it was
-        tracked (measured with the previous frame's detection as its prior). Returns the level
-        for the next frame.
+        number, the loop time it took, whether the estimator saw the net and whether it tracked
+        it (no scale search ran: `NetEstimate.searched` false). Returns the level for the next
+        frame.
 
         Only tracked frames' times judge the level: they are the frames whose distance the
         autopilot flies on. A cold search (the net not found yet, or found again) costs two to

@@ -218,7 +218,8 @@ class EstimatorHealth:
         "work per frame in use: 0 full ... 3 least (`[budget]`, lowered when frames take longer"
         " than the camera's interval)", 0)
     frame_interval_ms: float | None = doc("the camera's frame interval (median), ms", None)
-    frame_work_ms: float | None = doc("the loop's time per frame at that level, ms", None)
+    frame_work_ms: float | None = doc(
+        "the loop's time per tracked frame at that level (what judges the level), ms", None)
     searching_hz: float | None = doc(
         "no net in view for a while: the estimator looks at this many frames a second at most"
         " (`budget.search_hz`); null while it measures every frame", None)
