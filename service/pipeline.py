@@ -75,6 +75,12 @@ class PipelineResult:
         return str(self.failure)
 
     @property
+    def why_no_estimate(self) -> str:
+        """Why a frame has no estimate: it was not measured, or the estimator refused it ("" when
+        it has one, or without a frame)."""
+        return self.unmeasured or self.error
+
+    @property
     def crashed(self) -> bool:
         """The estimator raised something unexpected: a bug, not a frame it refused."""
         return self.failure is not None and not isinstance(self.failure, NetposeError)

@@ -487,22 +487,40 @@ def test_a_slow_search_before_the_net_is_found_does_not_cut_the_tracking_work(
     assert h.daemon.budget.cost_s(0) == pytest.approx(0.2 / FPS, rel=0.3)
 
 
+def _recorder(tmp_path: Path, cfg: Any, holder: list[Any]) -> Any:
+    """The web page's recorder into tmp_path/rec, taking the filter state from the harness
+    that `holder` will hold."""
+    from drivers.recorder import Recorder, RecordingSetup
+    from service.daemon.settings_editor import tuning_toml
+
+    return Recorder(tmp_path / "rec", "test",
+                    lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
+                                           90.0),
+                    1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+
+
+def _replayed_rows(tmp_path: Path, recording: str) -> dict[int, dict[str, str]]:
+    """`netpose replay --filter` of tmp_path/rec/<recording>: its CSV rows by frame number."""
+    out = tmp_path / "replay"
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / recording),
+         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with (out / "estimates.csv").open() as fh:
+        return {int(r["frame"]): r for r in csv.DictReader(fh)}
+
+
 def test_a_recording_made_under_budget_replays_at_the_same_levels(
     frames: list[Frame], tmp_path: Path
 ) -> None:
     """A slow loop's recording (the web page's recorder) keeps each frame's budget level, and
     `netpose replay` of it gives every frame the same work: the daemon's filtered distances
     again, to the 6 decimals of its messages."""
-    from drivers.recorder import Recorder, RecordingSetup
-    from service.daemon.settings_editor import tuning_toml
-
     slow = SlowCpu(None, 2.5 / FPS)
     holder: list[Any] = []
     cfg = demo_config("budget.max_level=3")
-    recorder = Recorder(tmp_path / "rec", "test",
-                        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
-                                               90.0),
-                        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    recorder = _recorder(tmp_path, cfg, holder)
     seq = frames_at([*frames, *frames, *frames], FPS, 100.0)[::3]  # the newest frame only
     h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(slow, recorder))
     holder.append(h)
@@ -512,14 +530,7 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
     status = recorder.stop()
     levels = [m.budget_level for _, m in slow.frames]
     assert max(levels) == 3 and status.frames >= len(seq) - 2
-    out = tmp_path / "replay"
-    proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
-         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    with (out / "estimates.csv").open() as fh:
-        rows = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    rows = _replayed_rows(tmp_path, status.name)
     live = dict(slow.frames)  # by the source's frame number
     compared = 0
     for index, row in rows.items():
@@ -622,18 +633,12 @@ def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
     """The recorder keeps every frame of a paced search, each saying whether the vehicle
     measured it; `netpose replay` measures the same ones, so the filter sees the same
     measurements and its states and distances come out as on the vehicle."""
-    from drivers.recorder import Recorder, RecordingSetup
-    from service.daemon.settings_editor import tuning_toml
-
     water = render_frames(URL + "&gap=0-1000", 4)
     seq = frames_at([*(water[i % len(water)] for i in range(90)), *frames], 30.0, 100.0)
     observer = RecordingObserver()
     holder: list[Any] = []
     cfg = demo_config("budget.search_hz=5")
-    recorder = Recorder(tmp_path / "rec", "test",
-                        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
-                                               90.0),
-                        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    recorder = _recorder(tmp_path, cfg, holder)
     h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(observer, recorder))
     holder.append(h)
     recorder.begin()
@@ -642,14 +647,7 @@ def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
     live = dict(observer.frames)
     assert status.frames >= len(seq) - 2  # the recorder may start a frame late
     assert any(not m.measured for m in live.values())
-    out = tmp_path / "replay"
-    proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
-         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    with (out / "estimates.csv").open() as fh:
-        rows = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    rows = _replayed_rows(tmp_path, status.name)
     assert len(rows) == status.frames and set(rows) <= set(live)
     assert any(row["reason"].startswith("not measured") for row in rows.values())
     compared = 0

@@ -10,6 +10,7 @@ each frame is; stopping the streamer or the server is a real stall.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import time
@@ -145,13 +146,18 @@ def test_h264_over_udp_decodes_with_a_four_core_pi_s_decoder_threads(
 def test_rtsp_decodes_with_a_four_core_pi_s_decoder_threads(
     streamers: list[Streamer], tmp_path: Path
 ) -> None:
-    exe = ffmpeg_exe()
-    sdp, rtp_in = rtp_to_rtsp(exe, tmp_path, streamers)
+    with _rtsp_stream(streamers, tmp_path) as url, open_source(url, OPTIONS) as source:
+        _assert_steady_with_four_threads(source, streamers[-1])
+
+
+@contextlib.contextmanager
+def _rtsp_stream(streamers: list[Streamer], tmp_path: Path) -> Iterator[str]:
+    """An RTSP server on loopback relaying a fresh H.264 stream (appended to `streamers`), as
+    BlueOS's camera manager serves one; yields its URL."""
+    sdp, rtp_in = rtp_to_rtsp(ffmpeg_exe(), tmp_path, streamers)
     server = RtspServer(sdp, rtp_in)
     try:
-        url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
-        with open_source(url, OPTIONS) as source:
-            _assert_steady_with_four_threads(source, streamers[-1])
+        yield f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
     finally:
         server.close()
 
@@ -203,15 +209,8 @@ def test_an_rtsp_frames_time_leaves_out_the_decoders_threads(
     cannot be told another): RTSP over loopback delivers a frame one frame period after it went
     into the encoder with one decoder thread, and each thread past the first adds one. The
     frame's time must leave those out (on one core there are none to leave out)."""
-    exe = ffmpeg_exe()
-    sdp, rtp_in = rtp_to_rtsp(exe, tmp_path, streamers)
-    server = RtspServer(sdp, rtp_in)
-    try:
-        url = f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
-        with open_source(url, OPTIONS) as source:
-            offsets = _frame_offsets(source, streamers[-1], 60)
-    finally:
-        server.close()
+    with _rtsp_stream(streamers, tmp_path) as url, open_source(url, OPTIONS) as source:
+        offsets = _frame_offsets(source, streamers[-1], 60)
     assert len(offsets) >= 40
     median = float(np.median(offsets[20:]))
     period = 1.0 / FPS

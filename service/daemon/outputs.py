@@ -88,8 +88,7 @@ def estimate_message(
         sigma_normal_deg=est.sigma_normal_deg if est is not None else None,
         rois=len(est.rois) if est is not None else 0,
         rois_used=est.rois_used if est is not None else 0,
-        reason=est.reason if est is not None else (
-            result.unmeasured or result.error or "estimator error"),
+        reason=est.reason if est is not None else (result.why_no_estimate or "estimator error"),
         net_seen=est is not None and est.net_seen,
         approx_range_m=est.approx_range_m if est is not None else None,
         approx_sigma_range_m=est.approx_sigma_range_m if est is not None else None,

@@ -214,11 +214,6 @@ class FrameResult:
         return self.result.error
 
     @property
-    def reason(self) -> str:
-        """Why there is no estimate: the frame was not measured, or the estimator refused it."""
-        return self.result.unmeasured or self.result.error
-
-    @property
     def detected(self) -> bool:
         return self.result.detected
 
@@ -364,7 +359,7 @@ def csv_row(result: FrameResult) -> list[str]:
         None if e is None else len(e.rois),
         None if e is None else e.rois_used,
         None if e is None else e.level,
-        result.reason if e is None else e.reason,
+        result.result.why_no_estimate if e is None else e.reason,
         round(result.process_ms, 3),
         e is not None and e.net_seen,
         None if e is None else e.approx_range_m,
