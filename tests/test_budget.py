@@ -102,11 +102,50 @@ def test_zero_measured_time_never_changes_the_level() -> None:
 
 
 @pytest.mark.parametrize("key,value", [("level", 4), ("max_level", -1), ("load", 1.5),
-                                       ("mode", "fast")])
+                                       ("mode", "fast"), ("max_cpu", 0.0), ("max_cpu", 1.5)])
 def test_bad_settings_name_their_key(key: str, value: object) -> None:
     with pytest.raises(ConfigError) as err:
         BudgetSettings(**{key: value})  # type: ignore[arg-type]
     assert err.value.key == f"budget.{key}"
+
+
+def test_a_cpu_cap_cuts_the_work_of_a_loop_that_keeps_up_and_holds_it() -> None:
+    """`max_cpu`: a loop that keeps up with the camera (no frame dropped) but would hold more
+    of a core than it was given is cut until a level is within the share (here level 1, whose
+    cost the controller predicts from level 0's, is tried for a hold first), and the richer
+    levels are not tried again while they are predicted not to fit."""
+    costs = [0.014, 0.013, 0.008, 0.005]  # level 0 is 42 % of a 30 frames/s camera's interval
+    uncapped = BudgetController(BudgetSettings())
+    levels, _, _ = run(uncapped, 20.0, costs)
+    assert set(levels) == {0}
+    capped = BudgetController(BudgetSettings(max_cpu=0.35))  # 11.7 ms of each 33.3 ms
+    times: list[float] = []
+    levels, _, _ = run(capped, 60.0, costs, times=times)
+    reached = levels.index(2)
+    assert capped.changes == 2 and set(levels[reached:]) == {2}
+    assert times[reached] == pytest.approx(2 * UP_HOLD_S, abs=2 / FPS)
+    assert "budget.max_cpu 0.35" in capped.why
+
+
+def test_a_few_misses_in_a_row_at_a_lean_level_are_not_a_loss_of_the_net() -> None:
+    """A lean level misses the net now and then where it is hard to see (the soak benchmark's
+    far end: level 2 sees 98 % of the frames, missing up to three in a row). Three misses in
+    a row every two seconds are not a loss: the level is kept, not left and blocked."""
+    ctrl = BudgetController(BudgetSettings(max_cpu=0.35))
+    costs = [0.014, 0.013, 0.008, 0.005]
+    t, index = 0.0, 0
+    levels = []
+    while t < 40.0:
+        seen = ctrl.level < 2 or (t % 2.0) >= 3.5 / FPS  # from level 2: misses 3 frames in 60
+        levels.append(ctrl.frame(t, index, costs[ctrl.level], seen))
+        t, index = t + 1 / FPS, index + 1
+    assert set(levels[levels.index(2):]) == {2} and "loses the net" not in ctrl.why
+
+
+def test_a_cpu_cap_the_leanest_level_cannot_meet_leaves_it_at_the_leanest() -> None:
+    ctrl = BudgetController(BudgetSettings(max_cpu=0.1))  # 3.3 ms per frame
+    levels, _, _ = run(ctrl, 30.0, [0.014, 0.013, 0.008, 0.005])
+    assert levels[-1] == LEVELS - 1 and ctrl.changes == 1
 
 
 def test_a_source_that_never_drops_a_frame_is_not_behind() -> None:
@@ -136,7 +175,7 @@ def test_a_level_that_loses_the_net_is_left_and_not_used_for_a_while() -> None:
 
     # Level 0 sees the net but is far too slow; every leaner level loses it.
     seen = {0: True, 1: False, 2: False, 3: False}
-    levels = frames(1.5, 0.09, seen)
+    levels = frames(2.0, 0.09, seen)
     assert max(levels) == 3  # the jump came first: only the estimates can tell
     # Left one step at a time, each level after the few frames it takes to see it lose the
     # net; then full work stays, though behind, until the blocks end.

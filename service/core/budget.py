@@ -10,12 +10,17 @@ second rectified pass, fewer ROIs, a coarser pyramid level; docs/estimator.md).
 
 "Behind" means both: a frame takes more than `load` of the camera's interval, and the source
 drops frames for it (a source that renders or reads on demand, such as `sim:`, never drops
-one; it only runs slower, and less work would buy nothing). A leaner level must keep seeing
-the net: one whose share of frames with a net falls well below a richer level's is left at
-once for the next richer level, one step (not straight back to the richer level it was judged
-against: on a CPU that could only afford the leaner level, a frame of several levels' more
-work stalls the distance for a second), and it and the leaner levels are blocked for a while
-(doubling each time it happens again). If the next level loses the net too, it steps again.
+one; it only runs slower, and less work would buy nothing). A configured CPU share
+(`max_cpu`) is a second limit: a tracked frame may take at most that share of the camera's
+interval, dropped frames or not, so the loop leaves the rest of the core to BlueOS's video
+stream.
+
+A leaner level must keep seeing the net: one whose share of frames with a net falls well
+below a richer level's is left at once for the next richer level, one step (not straight back
+to the richer level it was judged against: on a CPU that could only afford the leaner level, a
+frame of several levels' more work stalls the distance for a second), and it and the leaner
+levels are blocked for a while (doubling each time it happens again). If the next level loses
+the net too, it steps again.
 
 The controller is pure: the daemon hands it each processed frame's capture time, frame number
 and the loop time that frame took (a measurement), and uses the level it returns for the next
@@ -47,6 +52,12 @@ DOWN_MARGIN = 0.7  # a richer level must be predicted to use at most this share 
 STEP_RATIO = 1.6  # assumed cost ratio between neighbouring levels when not measured lately
 COST_MEMORY_S = 30.0  # a level's measured cost is trusted this long after it was last used
 COST_SMOOTHING = 0.25  # weight of a new frame in a level's running cost
+# Weight of a new frame in a level's running share of frames with a net: about ten frames'
+# memory. At 0.25 (four frames), three misses in a row read as a loss (0.42); a lean level
+# that saw 98 % of the soak benchmark's frames misses a few in a row where the net is far,
+# and was left and blocked for 30 s, costing a capped loop its CPU share. Five in a row
+# still read as a loss (0.59), a level that sees nothing within a quarter of a second.
+DETECTION_SMOOTHING = 0.1
 INTERVAL_WINDOW = 31  # frames over which the camera's frame interval is taken (median)
 
 
@@ -69,6 +80,11 @@ class BudgetSettings:
     # acquisition up to 1/search_hz s sooner; the CPU is BlueOS's video stream's
     # (service/daemon/search_pace.py).
     search_hz: float = 5.0
+    # Share of one CPU core the frame loop may spend on a tracked net, on average (1.0: as
+    # much as keeping up with the camera takes). Below that, the work per frame is cut until
+    # a tracked frame takes at most this share of the camera's frame interval, whether or not
+    # the loop keeps up: BlueOS's video stream and services share the Pi's cores.
+    max_cpu: float = 1.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "fixed"):
@@ -83,6 +99,8 @@ class BudgetSettings:
             raise ConfigError("budget.load", "must be 0.3..1.0")
         if not (self.search_hz == 0.0 or 0.5 <= self.search_hz <= 120.0):
             raise ConfigError("budget.search_hz", "must be 0 (every frame) or 0.5..120")
+        if not 0.05 <= self.max_cpu <= 1.0:
+            raise ConfigError("budget.max_cpu", "must be 0.05..1.0 (a share of one core)")
 
 
 @dataclass
@@ -92,6 +110,7 @@ class _Cost:
     frames: int  # frames of any kind since then
     last_t: float
     detected: float  # running share of this level's frames with a net
+    seen: int = 0  # frames with a net at this level: a yardstick must have seen the net
 
 
 # A level whose running detection share falls this far below a richer level's, while that
@@ -148,10 +167,13 @@ class BudgetController:
         if math.isfinite(work_s) and work_s >= 0.0:
             cost = self._costs.get(self.level)
             if cost is None or t_capture - cost.last_t > COST_MEMORY_S:
-                cost = _Cost(math.nan, 0, 0, t_capture, float(detected))
+                # A level new to this view is taken to see the net until its own frames say
+                # otherwise: started from its first frame alone, a level entered on a miss
+                # would read as having lost the net at once.
+                cost = _Cost(math.nan, 0, 0, t_capture, 1.0)
                 self._costs[self.level] = cost
-            else:
-                cost.detected += COST_SMOOTHING * (float(detected) - cost.detected)
+            cost.detected += DETECTION_SMOOTHING * (float(detected) - cost.detected)
+            cost.seen += int(detected)
             cost.frames += 1
             cost.last_t = t_capture
             if tracked:
@@ -190,7 +212,11 @@ class BudgetController:
         cost = self._costs.get(self.level)
         if interval is None or cost is None or cost.frames < FRAMES_TO_JUDGE:
             return
-        budget = self.settings.load * interval
+        # A tracked frame may take `load` of the camera's interval before the loop is behind,
+        # and `max_cpu` of it before the loop holds more of a core than it was given.
+        behind_at = self.settings.load * interval
+        cap = self.settings.max_cpu * interval if self.settings.max_cpu < 1.0 else math.inf
+        budget = min(behind_at, cap)
         held = t - (self._changed_at if self._changed_at is not None else t)
         # The nearest richer level measured lately: the yardstick of this one's detections.
         richer_level = next((k for k in range(self.level - 1, -1, -1)
@@ -198,7 +224,7 @@ class BudgetController:
                             None)
         if richer_level is not None:
             richer = self._costs[richer_level]
-            if (richer.detected >= MIN_DETECTED
+            if (richer.detected >= MIN_DETECTED and richer.seen >= FRAMES_TO_JUDGE
                     and cost.detected < richer.detected - DETECTION_LOSS):
                 block = self._block_from(self.level, t)
                 self._set(self.level - 1, t,
@@ -212,16 +238,20 @@ class BudgetController:
                       + [k - 1 for k, (until, _) in self._blocked.items() if t < until])
         # Behind the camera: over budget, and the source is dropping frames for it. A source
         # that renders or reads frames on demand never drops one: the loop only runs slower.
-        behind = cost.seconds > budget and sum(self._drops) > 0
-        if behind and self.level < highest:
+        behind = cost.seconds > behind_at and sum(self._drops) > 0
+        over_cap = cost.seconds > cap
+        if (behind or over_cap) and self.level < highest:
             if held >= UP_HOLD_S:
                 # Far behind (a Pi core at a quarter of its time): straight to the first level
                 # predicted to fit, not one step per second while the distance goes stale.
                 target = self.level + 1
                 while target < highest and self._predicted(target, t, cost.seconds) > budget:
                     target += 1
+                why = (f"the camera gives one every {interval * 1e3:.0f} ms" if behind else
+                       f"budget.max_cpu {self.settings.max_cpu:g} of a core allows "
+                       f"{cap * 1e3:.0f} ms of the camera's {interval * 1e3:.0f} ms")
                 self._set(target, t, f"a frame takes {cost.seconds * 1e3:.0f} ms at level "
-                          f"{self.level}, the camera gives one every {interval * 1e3:.0f} ms")
+                          f"{self.level}, {why}")
             return
         if self.level > 0 and held >= DOWN_HOLD_S and (
             self._predicted(self.level - 1, t, cost.seconds) <= DOWN_MARGIN * budget
