@@ -110,6 +110,9 @@ class Pipeline:
         self._autopilot_distance: AutopilotDistance = autopilot_distance
         self._prior: NetEstimate | None = None
         self._prior_t = math.nan  # capture time of the prior's frame
+        # The last frame missed the prior and was not searched: this one searches if it
+        # misses too.
+        self._search_deferred = False
         # Confidence of the last accepted measurement: what a coasting reading is worth.
         self._last_quality = math.nan
         self._too_close_frames = 0
@@ -135,17 +138,20 @@ class Pipeline:
         self._estimator = estimator
         self._prior = None
         self._prior_t = math.nan
+        self._search_deferred = False
 
     def set_autopilot_distance(self, which: AutopilotDistance) -> None:
         self._autopilot_distance = which
 
     def snapshot(self) -> dict[str, Any]:
         """What the next frame's result depends on besides the frame: the filter's state, the
-        prior (the last detection) and the last accepted quality, as exact JSON values."""
+        prior (the last detection), whether the last frame deferred a search, and the last
+        accepted quality, as exact JSON values."""
         return {"tracker": self._tracker.snapshot(), "prior": to_plain(self._prior),
                 "prior_t": to_plain(self._prior_t),
                 "last_quality": to_plain(self._last_quality),
-                "too_close_frames": self._too_close_frames}
+                "too_close_frames": self._too_close_frames,
+                "search_deferred": self._search_deferred}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a `snapshot`, as if the frames before it had been processed here."""
@@ -156,6 +162,7 @@ class Pipeline:
         self._prior_t = from_plain(float, state.get("prior_t", to_plain(math.nan)))
         self._last_quality = from_plain(float, state["last_quality"])
         self._too_close_frames = int(state.get("too_close_frames", 0))
+        self._search_deferred = bool(state.get("search_deferred", False))
 
     def process(self, image: npt.NDArray[Any], t: float, index: int,
                 budget: int = 0) -> PipelineResult:
@@ -172,16 +179,25 @@ class Pipeline:
         t0 = time.perf_counter()
         try:
             age = t - self._prior_t if math.isfinite(self._prior_t) else None
+            # A tracked net missed in one frame (blur, a fish, a codec glitch) is usually
+            # there in the next: the whole-frame search a miss would start costs three to ten
+            # tracked frames (a latency spike the autopilot sees as a gap), so it waits one
+            # frame, which tries the last plane again.
             estimate = self._estimator.estimate(image, prior=self._prior, budget=budget,
-                                                prior_age_s=age)
+                                                prior_age_s=age,
+                                                search=self._search_deferred)
         except NetposeError as exc:
             failure = exc
         except Exception as exc:  # a bug must cost one frame, not the service
             log.debug("estimator crashed on frame %d", index, exc_info=True)
             failure = exc
         estimate_ms = (time.perf_counter() - t0) * 1e3
-        self._prior = estimate if estimate is not None and estimate.detected else None
-        self._prior_t = t if self._prior is not None else math.nan
+        deferred = (estimate is not None and not estimate.detected and not estimate.searched
+                    and self._prior is not None and not self._search_deferred)
+        self._search_deferred = deferred
+        if not deferred:
+            self._prior = estimate if estimate is not None and estimate.detected else None
+            self._prior_t = t if self._prior is not None else math.nan
         too_close = estimate is not None and estimate.too_close
         self._too_close_frames = self._too_close_frames + 1 if too_close else 0
         track = self._tracker.step(t, estimate)

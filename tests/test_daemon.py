@@ -660,3 +660,45 @@ def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
                 message.filtered.distance_m, abs=1e-6 + 1e-12)
             compared += 1
     assert compared >= len(frames) // 2
+
+
+def test_one_missed_frame_while_tracking_defers_the_whole_frame_search() -> None:
+    """A tracked net missed in one frame is tried again in the next before the whole frame is
+    searched (service/pipeline.py): the missed frame costs a tracked pass, not a search of
+    several times that, and gives no distance. Two misses in a row search as before, and a
+    snapshot carries the deferral (replay equals the daemon)."""
+    from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+    from service.benchmarks.scenes import PAPER_MESH, bench_camera
+    from service.core.estimator import NetEstimator
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.pipeline import Pipeline
+
+    cam = bench_camera(960, 540)
+    rng = np.random.default_rng(7)
+    net, _ = NetRenderer(cam, PAPER_MESH).render(NetPose(0.9, 15.0, 30.0, 5.0), rng,
+                                                 SceneStyle())
+    blank = np.full_like(net, 90)
+    pipeline = Pipeline(NetEstimator(cam, PAPER_MESH), NetTracker(FilterSettings()))
+    sequence = [net] * 3 + [blank, net] + [blank, blank, net]
+    results = []
+    for k, image in enumerate(sequence):
+        if k == 6:  # mid-deferral: a restored pipeline continues exactly
+            state = pipeline.snapshot()
+            pipeline = Pipeline(NetEstimator(cam, PAPER_MESH), NetTracker(FilterSettings()))
+            pipeline.restore(state)
+        results.append(pipeline.measure(image, k / 10.0, k))
+    estimates = [r.estimate for r in results]
+    assert all(e is not None for e in estimates)
+    found = [(e.detected, e.searched) for e in estimates if e is not None]
+    assert found[0] == (True, True) and found[1:3] == [(True, False)] * 2
+    assert found[3] == (False, False)  # the miss: tracked only, no distance
+    assert results[3].tracked
+    assert found[4] == (True, False)  # the prior of frame 2, tracked again
+    assert found[5] == (False, False) and found[6] == (False, True)  # then searched
+    assert found[7] == (True, True)
+    missed, searched = estimates[3], estimates[6]
+    assert missed is not None and searched is not None
+    assert "scale_search" not in missed.timings_ms and "scale_search" in searched.timings_ms
+    # The work done, counted in ROI spectra rather than timed: the search did several times
+    # the deferred miss's.
+    assert sum(searched.fft_counts.values()) >= 2 * sum(missed.fft_counts.values())

@@ -502,7 +502,7 @@ class NetEstimator:
     # -- per frame -----------------------------------------------------------------------------
     def estimate(
         self, frame: Image, prior: NetEstimate | None = None, budget: int = 0,
-        prior_age_s: float | None = None,
+        prior_age_s: float | None = None, search: bool = True,
     ) -> NetEstimate:
         """Estimate the net plane in one frame (grey, or BGR/BGRA which is converted).
 
@@ -518,6 +518,12 @@ class NetEstimator:
         up: 0 is the full work; each higher level measures less (see `_Budget`). A higher level
         may detect less often or less precisely, never with a sigma that no longer covers its
         error.
+
+        `search` false: when the prior was tracked and this frame does not confirm it, the
+        frame is reported without a net instead of being searched whole (a search costs three
+        to ten tracked frames). The caller tries the prior again on the next frame, searching
+        then if that one misses too (service/pipeline.py). A scale the blind check doubts is
+        always searched.
         """
         if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or not (
             0 <= budget < BUDGET_LEVELS
@@ -553,6 +559,8 @@ class NetEstimator:
                     if self._blind_scale_agrees(tracked, current, layout):
                         result = _scale_proved(tracked)
                     current.lap("blind_check", t1)
+            elif not search:
+                result = _tracking_missed(tracked)
         if result is None:
             result = replace(_scale_proved(self._cold(current, layout)), searched=True)
         if not result.detected and not result.reason.startswith(_NOT_A_NET):
@@ -2071,6 +2079,16 @@ def _scale_proved(result: NetEstimate) -> NetEstimate:
     if not result.detected or result.range_m is None:
         return result
     return replace(result, frames_since_scale_proof=0, scale_proved_range_m=result.range_m)
+
+
+def _tracking_missed(tracked: NetEstimate) -> NetEstimate:
+    """A tracked pass that did not confirm the prior, reported as it is (with no distance) when
+    the caller defers the search: a net seen with too uncertain a plane stays seen."""
+    if not tracked.detected:
+        return tracked  # its reason as it is: callers match some reasons by their start
+    return NetEstimate(detected=False, confidence=min(tracked.confidence, 0.2),
+                       rois=tracked.rois, rois_used=tracked.rois_used, level=tracked.level,
+                       reason="tracking missed: the plane moved too far from the last one")
 
 
 def _no_net(rois: list[_Roi], level: int, reason: str) -> NetEstimate:
