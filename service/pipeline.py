@@ -6,9 +6,10 @@ Time comes from the data: `process` takes the frame's capture time, `tick` the t
 frame came; nothing here reads a clock that affects the output. The estimator's own stage
 timings are measurements only and never change a result.
 
-The previous frame's detection is fed back to the estimator as its prior (tracking skips the
-scale search). A frame the estimator cannot use gives a result with `error` set and no estimate;
-the filter still steps, so a track that stops being fed coasts and ends in LOST.
+The last detection is fed back to the estimator as its prior (tracking skips the scale
+search); after one frame that misses it, the next tries it again before the frame is searched.
+A frame the estimator cannot use gives a result with `error` set and no estimate; the filter
+still steps, so a track that stops being fed coasts and ends in LOST.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ class PipelineResult:
     # Why a frame that came was not given to the estimator ("" when it was, or without a
     # frame): the daemon paces its search in open water (service/daemon/search_pace.py).
     unmeasured: str = ""
-    # The estimator tracked the previous frame's net (no scale search ran on this frame).
+    # The estimator tracked the last detected net (no scale search ran on this frame).
     tracked: bool = False
 
     @property

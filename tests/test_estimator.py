@@ -197,6 +197,29 @@ def test_prior_gives_the_cold_answer(renderer: NetRenderer, estimator: NetEstima
     assert abs(_errors(tracked, truth)[0]) < 0.01
 
 
+def test_a_prior_the_frame_contradicts_is_a_miss_when_the_search_is_deferred(
+    renderer: NetRenderer, estimator: NetEstimator
+) -> None:
+    """With `search=False` (service/pipeline.py defers one search) a tracked pass that lands
+    on a plane far from the prior's gives no distance and no search; with the default the
+    frame is searched and measured."""
+    pose = NetPose(1.0, tilt_deg=15.0, tilt_axis_deg=20.0)
+    frame, truth = _render(renderer, pose, seed=24)
+    cold = estimator.estimate(frame)
+    assert cold.detected and cold.distance_m is not None
+    # The prior 15 % further: within the rectified pass's reach (it lands on the true plane),
+    # beyond the 8 % at which a tracked plane still counts as the prior's.
+    far = dataclasses.replace(cold, distance_m=cold.distance_m * 1.15,
+                              range_m=(cold.range_m or 0.0) * 1.15)
+    missed = estimator.estimate(frame, prior=far, search=False)
+    assert not missed.detected and not missed.searched and missed.distance_m is None
+    assert missed.reason.startswith("tracking missed") and missed.confidence <= 0.2
+    assert "scale_search" not in missed.timings_ms
+    searched = estimator.estimate(frame, prior=far)
+    assert searched.detected and searched.searched
+    assert abs(_errors(searched, truth)[0]) < 0.01
+
+
 def test_a_prior_without_detection_falls_back_to_the_search(
     renderer: NetRenderer, estimator: NetEstimator
 ) -> None:

@@ -320,7 +320,7 @@ def _report(case: SoakCase, how: str, duration_s: float, status: int,
 def main_soak(duration_s: float = 120.0, *, width: int = 1280, height: int = 720,
               fps: float = 30.0, cases: Sequence[SoakCase] = CASES,
               json_out: Path | None = None) -> int:
-    """`netpose bench soak`: both cases, printed with their targets. Exit status 0 when the
+    """`netpose bench soak`: every case, printed with its targets. Exit status 0 when the
     daemon ran and stopped cleanly in every case."""
     if not duration_s > WARMUP_S or not fps > 0:
         raise ConfigError("soak", f"duration must exceed the {WARMUP_S:g} s warm-up")

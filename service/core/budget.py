@@ -55,8 +55,10 @@ COST_SMOOTHING = 0.25  # weight of a new frame in a level's running cost
 # Weight of a new frame in a level's running share of frames with a net: about ten frames'
 # memory. At 0.25 (four frames), three misses in a row read as a loss (0.42); a lean level
 # that saw 98 % of the soak benchmark's frames misses a few in a row where the net is far,
-# and was left and blocked for 30 s, costing a capped loop its CPU share. Five in a row
-# still read as a loss (0.59), a level that sees nothing within a quarter of a second.
+# and was left and blocked for 30 s, costing a capped loop its CPU share. Against a richer
+# level that saw every frame, five misses in a row read as a loss (0.59); the price is a
+# slower exit from a level that really lost the net: five to seven frames instead of three,
+# half a second at the 11 frames/s of a quarter of a core.
 DETECTION_SMOOTHING = 0.1
 INTERVAL_WINDOW = 31  # frames over which the camera's frame interval is taken (median)
 
@@ -80,10 +82,11 @@ class BudgetSettings:
     # acquisition up to 1/search_hz s sooner; the CPU is BlueOS's video stream's
     # (service/daemon/search_pace.py).
     search_hz: float = 5.0
-    # Share of one CPU core the frame loop may spend on a tracked net, on average (1.0: as
-    # much as keeping up with the camera takes). Below that, the work per frame is cut until
-    # a tracked frame takes at most this share of the camera's frame interval, whether or not
-    # the loop keeps up: BlueOS's video stream and services share the Pi's cores.
+    # Share of one CPU core the frame loop may spend on a tracked net (1.0: as much as keeping
+    # up with the camera takes). Below that, the work per frame is cut until a tracked frame
+    # (its loop time, inspection and publishing included; searches are not capped) takes at
+    # most this share of the camera's frame interval, whether or not the loop keeps up:
+    # BlueOS's video stream and services share the Pi's cores.
     max_cpu: float = 1.0
 
     def __post_init__(self) -> None:

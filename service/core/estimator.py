@@ -2086,6 +2086,7 @@ def _tracking_missed(tracked: NetEstimate) -> NetEstimate:
     the caller defers the search: a net seen with too uncertain a plane stays seen."""
     if not tracked.detected:
         return tracked  # its reason as it is: callers match some reasons by their start
+    # Capped as every refused estimate's confidence (`_verdict`): below any detection threshold.
     return NetEstimate(detected=False, confidence=min(tracked.confidence, 0.2),
                        rois=tracked.rois, rois_used=tracked.rois_used, level=tracked.level,
                        reason="tracking missed: the plane moved too far from the last one")

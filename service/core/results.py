@@ -86,7 +86,8 @@ class NetEstimate:
     approx_range_m: float | None = None
     approx_sigma_range_m: float | None = None
     # The full scale search ran on this frame: there was no prior, or the prior plane did not
-    # hold. Such a frame costs several times a tracked one (the daemon's budget is judged on
+    # hold (and the caller did not defer the search: `NetEstimator.estimate(search=False)`).
+    # Such a frame costs several times a tracked one (the daemon's budget is judged on
     # tracked frames only: service/core/budget.py).
     searched: bool = False
 
