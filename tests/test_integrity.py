@@ -412,11 +412,17 @@ def test_short_integrity_run() -> None:
 
     1,000 frames, as the issue asks: ~450 valid outputs, so that 99 % coverage allows four
     outside 3 sigma. With 400 frames (~175 valid) one frame decides it (measured: 2 outside,
-    98.9 %, where 2,000-frame runs of seeds 5 and 11 give 99.5 %)."""
+    98.9 %, where 2,000-frame runs of seeds 5 and 11 give 99.5 %).
+
+    Each valid frame is followed by a tracked one (the next frame, that one as the prior, as
+    the daemon tracks): no gross error there either. Their sigma's coverage is reported, not
+    asserted: it falls short (98.2 % of 394 in this run; docs/estimator.md)."""
     rows = integrity.run_rows(frames=1000, seed=11, jobs=2)
-    summary = integrity.summarise(rows)
     gross = [integrity.describe_row(r) for r in rows if r.gross]
     assert not gross, "\n".join(gross)
+    tracked = integrity.summarise([r for r in rows if r.tracked])
+    assert tracked.valid >= 300
+    summary = integrity.summarise([r for r in rows if not r.tracked])
     assert summary.valid >= 350  # detection is measured by the benchmark; enough to judge sigma
     assert summary.coverage_3sigma >= integrity.TARGET_COVERAGE
     assert integrity.TARGET_Z_STD[0] <= summary.z_std <= integrity.TARGET_Z_STD[1]
