@@ -366,6 +366,49 @@ def test_open_gross_errors_give_no_distance_or_an_honest_one(
     test_former_gross_errors_give_no_distance_or_an_honest_one(seed, group, index)
 
 
+# Tracked frames (the frame after a valid one, that one as the prior: `integrity.moved_case`)
+# that gave a gross error in the first 20,000-frame run with them (seed 1, 2026-11-26): 3 among
+# 7,857 valid tracked outputs, none among the 8,507 cold ones of the same run. Two are just over
+# the 5 % in range at 3.4 and 4.0 sigma (a fouled 480x270 net with boards, ropes and a fish at
+# 0.35 m, +5.3 %; a billowing, turbid one at 0.64 m, -5.1 %), one is 11.0 deg off in the normal
+# at a sigma of 2.8 deg (a billowing 1920x1080 net at 0.92 m seen through boards and a fish).
+# In all three the prior did not hold and the frame was searched whole: they are gross errors
+# of the cold path, on frames the run's cold draw did not contain. Open (docs/benchmarks.md).
+OPEN_TRACKED_GROSS_CASES = [(1, 689, 5), (1, 715, 18), (1, 77, 19)]
+
+
+def _estimate_tracked_case(seed: int, group: int, index: int
+                           ) -> tuple[NetEstimate, GroundTruth] | None:
+    """The tracked frame after one of `netpose bench integrity`'s frames, as the benchmark
+    makes it; None when the first frame gives no distance to track from."""
+    case = integrity.build_case(seed, group, index)
+    estimator = NetEstimator(case.camera, case.mesh)
+    renderer = NetRenderer(case.camera, case.mesh)
+    frame, truth = integrity.render_case(case, renderer)
+    first = estimator.estimate(frame)
+    if not (first.detected and truth.net_present):
+        return None
+    following = integrity.moved_case(case)
+    frame, truth = integrity.render_case(following, renderer, tracked=True)
+    return estimator.estimate(frame, prior=first, prior_age_s=integrity.TRACK_FRAME_S), truth
+
+
+@pytest.mark.xfail(strict=False, reason="open gross errors of tracked frames (integrity run)")
+@pytest.mark.parametrize(("seed", "group", "index"), OPEN_TRACKED_GROSS_CASES)
+def test_open_tracked_gross_errors_give_no_distance_or_an_honest_one(
+    seed: int, group: int, index: int
+) -> None:
+    tracked = _estimate_tracked_case(seed, group, index)
+    assert tracked is not None
+    est, truth = tracked
+    if not est.detected:
+        return
+    assert est.sigma_range_m is not None and est.normal is not None
+    error = _range_error(est, truth)
+    normal_error = math.degrees(math.acos(min(1.0, float(np.dot(est.normal, truth.normal)))))
+    assert abs(error) <= GROSS and normal_error <= integrity.GROSS_NORMAL_DEG
+
+
 # Frames of a 3,000-frame run (seed 7) whose rectified passes went round between planes without
 # settling (each pass fitted to the subset of ROIs that agreed in its view), on both numeric
 # stacks: a 1920x1080 rhombic net at 2.6 m, 40 deg, 4 px periods, and a fouled 1280x720 net at

@@ -215,6 +215,7 @@ class Row:
     ms: float
     approx_z: float = math.nan  # a net seen without a distance: refused range error / its sigma
     tracked: bool = False  # the frame after a valid one, estimated with it as the prior
+    searched: bool = False  # the whole frame was searched (a tracked frame: the prior failed)
 
     @property
     def gross(self) -> bool:
@@ -255,7 +256,7 @@ def evaluate(case: Case, image: Gray, truth: GroundTruth, est: NetEstimate, ms: 
         seen=est.net_seen, confidence=est.confidence, est_range_m=est.range_m or math.nan,
         sigma_range_m=est.sigma_range_m or math.nan, range_error=rel, normal_error_deg=nerr,
         sigma_normal_deg=est.sigma_normal_deg or math.nan, reason=est.reason, ms=ms,
-        approx_z=approx_z, tracked=tracked,
+        approx_z=approx_z, tracked=tracked, searched=est.searched,
     )
 
 
@@ -422,11 +423,16 @@ def format_report(rows: list[Row], worst: int = 8) -> list[str]:
             lines.append("  " + describe_row(r))
     if following:
         t = summarise(following)
+        kept = summarise([r for r in following if not r.searched])
         lines += [
             f"tracked frames (the frame after each valid one, that one as the prior): "
             f"{t.frames}, valid {t.valid} ({t.detection:.1%}), gross errors {t.gross}, "
             f"3-sigma coverage {t.coverage_3sigma:.2%}, std(error/sigma) {t.z_std:.2f}, "
             f"net seen without a distance {t.seen_only}",
+            f"  of them the prior held (no search): {kept.frames}, valid {kept.valid}, gross "
+            f"errors {kept.gross}, 3-sigma coverage {kept.coverage_3sigma:.2%}; searched whole "
+            f"(the prior failed): {t.frames - kept.frames}, valid {t.valid - kept.valid}, gross "
+            f"errors {t.gross - kept.gross}",
         ]
         wrong = [r for r in following if r.gross]
         for r in sorted(wrong, key=lambda r: -abs(r.range_error))[:worst]:
