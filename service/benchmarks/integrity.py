@@ -33,7 +33,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,8 +56,9 @@ GROUP_SIZE = 20
 NET_FREE_FRACTION = 0.1
 GROSS_RANGE = 0.05
 GROSS_NORMAL_DEG = 10.0
-# The tracked frame's move: one frame at 30 frames/s of a vehicle closing at up to 1 m/s on a
-# net 0.3-3 m away, and turning at up to 60 deg/s.
+# The tracked frame's move in one frame at 30 frames/s: the range by up to 3 % (a closing speed
+# of up to 0.3 m/s at 0.3 m, 2.7 m/s at 3 m), tilt and roll by up to 2 deg (60 deg/s), and the
+# mesh sideways by up to a third of a cell.
 TRACK_FRAME_S = 1.0 / 30.0
 TRACK_RANGE_STEP = 0.03
 TRACK_ANGLE_STEP_DEG = 2.0
@@ -149,8 +150,6 @@ def _frame_draw(seed: int, group: int, index: int) -> tuple[NetPose, SceneStyle]
 
 def moved_case(case: Case) -> Case:
     """The tracked frame's case: the same scene one frame later, after a plausible move."""
-    from dataclasses import replace
-
     rng = np.random.default_rng([case.seed, case.group, case.index, 0x7A])
     pose = case.pose
     moved = NetPose(
