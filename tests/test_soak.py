@@ -40,9 +40,11 @@ def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None
     # Start-up: the first distance comes after the first frame, which comes after launch.
     assert 0.0 < free.startup_s < free.launch_s
     assert held.how  # cgroup quota or pinned competitors, named in the report
-    # The limit holds: a quarter of a core (and the scheduler's slack), far below free.
+    # The limit holds: a quarter of a core (and the scheduler's slack). Its frame rate is not
+    # compared with the free one: at 640x360 and 15 frames/s a quarter of a core keeps up
+    # with every frame since a missed frame no longer starts a whole-frame search at once
+    # (measured 15.2 against 15.2 frames/s).
     assert held.cpu_percent <= 25.0 + 7.0
-    assert held.frames_per_s < free.frames_per_s
 
 
 def test_open_water_sends_nothing_and_is_searched_at_search_hz(
