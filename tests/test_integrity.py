@@ -339,11 +339,17 @@ def test_former_gross_errors_give_no_distance_or_an_honest_one(
     if not est.detected:
         assert est.distance_m is None and est.reason
         return
-    assert est.sigma_range_m is not None and est.normal is not None
-    error = _range_error(est, truth)
+    assert est.sigma_range_m is not None
+    _assert_not_gross(est, truth)
+    assert abs(_range_error(est, truth)) * truth.range_m <= 3.0 * est.sigma_range_m
+
+
+def _assert_not_gross(est: NetEstimate, truth: GroundTruth) -> None:
+    """A valid output within the integrity benchmark's gross limits (range and normal)."""
+    assert est.normal is not None
     normal_error = math.degrees(math.acos(min(1.0, float(np.dot(est.normal, truth.normal)))))
-    assert abs(error) <= GROSS and normal_error <= integrity.GROSS_NORMAL_DEG
-    assert abs(error) * truth.range_m <= 3.0 * est.sigma_range_m
+    assert abs(_range_error(est, truth)) <= GROSS
+    assert normal_error <= integrity.GROSS_NORMAL_DEG
 
 
 # Gross errors that the 20,000-frame run of 2026-11-24 (seed 1) found among 8,575 valid outputs;
@@ -388,9 +394,8 @@ def _estimate_tracked_case(seed: int, group: int, index: int
     first = estimator.estimate(frame)
     if not (first.detected and truth.net_present):
         return None
-    following = integrity.moved_case(case)
-    frame, truth = integrity.render_case(following, renderer, tracked=True)
-    return estimator.estimate(frame, prior=first, prior_age_s=integrity.TRACK_FRAME_S), truth
+    _, _, truth, est, _ = integrity.estimate_tracked(case, first, renderer, estimator)
+    return est, truth
 
 
 @pytest.mark.xfail(strict=False, reason="open gross errors of tracked frames (integrity run)")
@@ -401,12 +406,8 @@ def test_open_tracked_gross_errors_give_no_distance_or_an_honest_one(
     tracked = _estimate_tracked_case(seed, group, index)
     assert tracked is not None
     est, truth = tracked
-    if not est.detected:
-        return
-    assert est.sigma_range_m is not None and est.normal is not None
-    error = _range_error(est, truth)
-    normal_error = math.degrees(math.acos(min(1.0, float(np.dot(est.normal, truth.normal)))))
-    assert abs(error) <= GROSS and normal_error <= integrity.GROSS_NORMAL_DEG
+    if est.detected:
+        _assert_not_gross(est, truth)
 
 
 # Frames of a 3,000-frame run (seed 7) whose rectified passes went round between planes without

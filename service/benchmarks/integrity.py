@@ -164,6 +164,17 @@ def moved_case(case: Case) -> Case:
     return replace(case, pose=moved)
 
 
+def estimate_tracked(case: Case, first: NetEstimate, renderer: NetRenderer,
+                     estimator: NetEstimator) -> tuple[Case, Gray, GroundTruth, NetEstimate, float]:
+    """The tracked frame after `case`, whose estimate was `first`: its case, frame, truth,
+    estimate (with `first` as the prior, one frame later) and estimator CPU time in ms."""
+    following = moved_case(case)
+    image, truth = render_case(following, renderer, tracked=True)
+    t0 = time.thread_time()
+    est = estimator.estimate(image, prior=first, prior_age_s=TRACK_FRAME_S)
+    return following, image, truth, est, (time.thread_time() - t0) * 1e3
+
+
 def build_case(seed: int, group: int, index: int) -> Case:
     camera, hfov, mesh = _group_draw(seed, group)
     pose, style = _frame_draw(seed, group, index)
@@ -278,11 +289,7 @@ def run_group(args: tuple[int, int, int]) -> list[Row]:
         ms = (time.thread_time() - t0) * 1e3
         rows.append(evaluate(case, image, truth, est, ms))
         if est.detected and truth.net_present:
-            following = moved_case(case)
-            image, truth = render_case(following, renderer, tracked=True)
-            t0 = time.thread_time()
-            est = estimator.estimate(image, prior=est, prior_age_s=TRACK_FRAME_S)
-            ms = (time.thread_time() - t0) * 1e3
+            following, image, truth, est, ms = estimate_tracked(case, est, renderer, estimator)
             rows.append(evaluate(following, image, truth, est, ms, tracked=True))
     return rows
 
