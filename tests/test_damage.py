@@ -27,6 +27,7 @@ from drivers.synthetic_damage import (
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from service.benchmarks.scenes import bench_camera
 from service.core.damage import DamageDetector, DamageScan, DamageSettings
+from service.core.damage_plan import InspectionPlanner
 from service.core.damage_track import ConfirmedHole, HoleTracker, NetInspector
 from service.core.estimator import NetEstimator
 from service.core.mesh import MeshGeometry
@@ -442,3 +443,16 @@ def test_the_phase_unwrapping_dct_is_scipys_orthonormal_dct() -> None:
         d = c2 @ a @ c1.T
         assert np.max(np.abs(d - dctn(a, type=2, norm="ortho"))) < 1e-12
         assert np.max(np.abs(c2.T @ d @ c1 - a)) < 1e-12
+
+
+def test_inspection_memory_starts_over_before_its_counter_overflows() -> None:
+    """The planner counts inspections in int32 (memory): after 2**31 of them (two years of
+    frames) it forgets what it inspected and goes on, rather than failing on the overflow."""
+    planner = InspectionPlanner(0.025)
+    view = np.ones((4, 5), dtype=bool)
+    cells = np.stack(np.meshgrid(np.arange(5) * 0.025, np.arange(4) * 0.025), axis=-1)
+    planner.choose(view, cells, 100, np.zeros((0, 2)))
+    planner._count = int(np.iinfo(np.int32).max)  # two years later
+    window = planner.choose(view, cells, 100, np.zeros((0, 2)))
+    assert (window.n1, window.n2) == (5, 4)
+    assert planner._count == 1

@@ -172,3 +172,44 @@ def test_secrets_in_the_camera_url_reach_no_log_status_or_state(
         assert secret not in caplog.text
         assert secret not in published
     assert "<redacted>" in published and "latency=20" in published
+
+
+_ARENA_PROBE = """
+import ctypes, sys, tempfile, threading
+import numpy as np
+from service.daemon.wiring import fewer_malloc_arenas
+if sys.argv[1] == "daemon":
+    fewer_malloc_arenas()
+held = []
+start = threading.Barrier(8)
+def work():
+    start.wait()
+    held.append([np.ones(4096) for _ in range(64)])  # below the mmap threshold: an arena's
+threads = [threading.Thread(target=work) for _ in range(8)]
+for t in threads: t.start()
+for t in threads: t.join()
+libc = ctypes.CDLL(None)
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = (ctypes.c_char_p, ctypes.c_char_p)
+libc.malloc_info.argtypes = (ctypes.c_int, ctypes.c_void_p)
+libc.fclose.argtypes = (ctypes.c_void_p,)
+with tempfile.NamedTemporaryFile(suffix=".xml") as f:
+    fp = libc.fopen(f.name.encode(), b"w")
+    libc.malloc_info(0, fp)
+    libc.fclose(fp)
+    print(open(f.name).read().count("<heap nr="))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or os.confstr("CS_GNU_LIBC_VERSION")
+                    is None, reason="malloc arenas are glibc's")
+def test_the_daemon_holds_its_threads_to_two_malloc_arenas() -> None:
+    """Each thread that allocates gets a glibc arena of its own (eight per core), which keeps
+    its freed memory; the daemon's process allows two. Counted by glibc's own malloc_info."""
+    def arenas(mode: str) -> int:
+        out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, mode], check=True,
+                             capture_output=True, text=True, timeout=60, cwd=REPO)
+        return int(out.stdout.strip())
+
+    assert arenas("default") > 2  # the probe sees the arenas it is meant to count
+    assert arenas("daemon") <= 2

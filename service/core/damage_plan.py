@@ -61,7 +61,9 @@ class InspectionPlanner:
         self.bin_m = float(bin_m)
         side = int(math.ceil(2.0 * MEMORY_EXTENT_M / self.bin_m))
         # Number of the inspection that last judged each bin (-1: never); inspections counted.
-        self._last = np.full((side, side), -1, dtype=np.int64)
+        # int32: at a 25 mm bar this is 480 x 480 bins, 0.9 MB of the daemon's RSS as int64,
+        # and 2**31 inspections are two years of frames (`choose` starts over before that).
+        self._last = np.full((side, side), -1, dtype=np.int32)
         self._count = 0
 
     def reset(self) -> None:
@@ -84,6 +86,8 @@ class InspectionPlanner:
         their centres on the net plane; `places`: (k, 2) open candidates' predicted places in
         the region's cell coordinates (i, j, fractional)."""
         n2, n1 = view.shape
+        if self._count >= np.iinfo(self._last.dtype).max:
+            self.reset()
         self._count += 1
         if n1 * n2 <= cap:
             self._remember(cells_xy, view, 0, 0, n1, n2)
