@@ -106,6 +106,60 @@ def test_consistent_rejects_restart_the_track_at_the_new_value() -> None:
     assert tracker.resets_total == 1
 
 
+
+@pytest.mark.parametrize("fps", [3.0, 4.0])
+def test_a_slow_loop_coasts_through_one_missed_frame_and_not_two(fps: float) -> None:
+    """A loaded CPU processes 3-4 frames a second (0.25-0.33 s apart): one frame without a net
+    keeps the distance (the prediction, report_coasting_frames = 1.5 intervals), the second
+    withdraws it. With report_coasting_s alone (0.3 s) the first miss at 3 frames/s did."""
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    for i in range(10):
+        assert tracker.step(i / fps, estimate(1.5, sd=0.01)).valid or i < 2
+    miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
+    first = tracker.step(10 / fps, miss)
+    second = tracker.step(11 / fps, miss)
+    assert first.state is TrackState.COASTING and first.valid
+    assert first.distance_m == pytest.approx(1.5, abs=0.01)
+    assert second.state is TrackState.COASTING and not second.valid
+    assert tracker.report_coasting_limit_s() == pytest.approx(1.5 / fps)
+
+
+def test_the_coasting_window_follows_processed_frames_not_ticks() -> None:
+    """At 30 frames/s the window is report_coasting_s (1.5 intervals are 50 ms); ticks of a
+    stalled source (step without an estimate) are not frames and do not stretch it."""
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    for i in range(30):
+        tracker.step(i / FPS, estimate(1.5, sd=0.01))
+    assert tracker.report_coasting_limit_s() == pytest.approx(0.3)
+    t0 = 29 / FPS
+    valid = [(k * 0.1, tracker.step(t0 + k * 0.1, None).valid) for k in range(1, 8)]
+    assert [v for dt, v in valid] == [dt <= 0.3 + 1e-9 for dt, _ in valid]
+    assert tracker.report_coasting_limit_s() == pytest.approx(0.3)
+
+
+def test_the_coasting_window_never_outlasts_the_track_and_can_be_fixed() -> None:
+    slow = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    fixed = NetTracker(FilterSettings(report_coasting_s=0.3, report_coasting_frames=0.0))
+    for i in range(6):  # one frame a second
+        slow.step(float(i), estimate(1.5, sd=0.01))
+        fixed.step(float(i), estimate(1.5, sd=0.01))
+    assert slow.report_coasting_limit_s() == pytest.approx(1.0)  # coast_timeout_s
+    assert fixed.report_coasting_limit_s() == pytest.approx(0.3)
+    with pytest.raises(ConfigError, match=r"filter\.report_coasting_frames"):
+        FilterSettings(report_coasting_frames=-1.0)
+
+
+def test_the_frame_intervals_survive_a_snapshot() -> None:
+    """A replay that starts from a saved state coasts as the run it continues would have."""
+    tracker = NetTracker(FilterSettings())
+    for i in range(8):
+        tracker.step(i / 3.0, estimate(1.5, sd=0.01))
+    copy = NetTracker(FilterSettings())
+    copy.restore(tracker.snapshot())
+    assert copy.report_coasting_limit_s() == pytest.approx(tracker.report_coasting_limit_s())
+    miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
+    assert copy.step(8 / 3.0, miss).valid == tracker.step(8 / 3.0, miss).valid
+
 def test_dropout_coasts_on_the_prediction_then_is_lost() -> None:
     s = FilterSettings(coast_timeout_s=1.0, report_coasting_s=0.3, accel_sigma_distance=0.1)
     tracker = NetTracker(s)

@@ -10,7 +10,9 @@ Validity (what decides what the autopilot is told):
   TRACKING  this frame's measurement was accepted;
   COASTING  no accepted measurement this frame, the last one less than `coast_timeout_s` ago: the
             filter predicts through the gap (the autopilot still gets the prediction for
-            `report_coasting_s`);
+            `report_coasting_s`, or for `report_coasting_frames` of the measured intervals between
+            frames when frames come slower than that allows: one missed frame must not cut the
+            distance of a loaded CPU that processes three frames a second);
   LOST      no track, or nothing accepted for `coast_timeout_s`.
 A new track starts tentative (state LOST) and becomes TRACKING after `acquire_count`
 measurements that pass the gate, so a single false detection never reaches the autopilot.
@@ -18,8 +20,10 @@ measurements that pass the gate, so a single false detection never reaches the a
 
 from __future__ import annotations
 
+import collections
 import enum
 import math
+import statistics
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +38,10 @@ FloatArray = npt.NDArray[np.float64]
 
 # Index of each tracked quantity in the state vector; its rate follows it.
 _D, _YAW, _PITCH = 0, 2, 4
+# Intervals between processed frames over which their typical value is taken (median), and how
+# many are needed before it replaces `report_coasting_s` alone.
+_INTERVAL_WINDOW = 15
+_MIN_INTERVALS = 3
 
 
 class TrackState(enum.Enum):
@@ -72,6 +80,13 @@ class FilterSettings:
     # While COASTING, the autopilot still gets the predicted distance for this long (0 = only
     # while TRACKING). Must not exceed coast_timeout_s.
     report_coasting_s: float = 0.3
+    # ... or for this many of the typical (median) intervals between processed frames, when that
+    # is longer (never beyond coast_timeout_s). 1.5 lets one missed frame pass, with room for the
+    # intervals' jitter, and not two. At 30 frames/s report_coasting_s decides; under a quarter
+    # of a core (`netpose bench soak`: 3-7 frames/s with 0.2-0.3 s between frames) a fixed 0.3 s
+    # made a single missed frame withdraw the distance, and the link's once-a-second limit on
+    # starting again turned that into a 1.1 s gap for the autopilot. 0 = report_coasting_s only.
+    report_coasting_frames: float = 1.5
     # Estimates below this confidence are treated as no detection.
     min_confidence: float = 0.3
     # Floors on the estimator's own sigmas: its uncertainty never looks better than this. The
@@ -105,6 +120,9 @@ class FilterSettings:
             value = getattr(self, name)
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f"filter.{name}", f"must be a positive number, got {value}")
+        if not (math.isfinite(self.report_coasting_frames) and self.report_coasting_frames >= 0):
+            raise ConfigError("filter.report_coasting_frames",
+                              f"must be a number >= 0, got {self.report_coasting_frames}")
         if self.max_consecutive_rejects < 1:
             raise ConfigError("filter.max_consecutive_rejects", "must be at least 1")
         if self.acquire_count < 1:
@@ -215,6 +233,9 @@ class NetTracker:
         self._t_last: float | None = None
         self._t_accepted: float | None = None
         self._facing_sign = -1.0
+        # Intervals between processed frames (steps with an estimate), for the coasting window.
+        self._intervals: collections.deque[float] = collections.deque(maxlen=_INTERVAL_WINDOW)
+        self._t_frame: float | None = None
         self.accepted_total = 0
         self.rejected_total = 0
         self.resets_total = 0
@@ -241,7 +262,8 @@ class NetTracker:
             "x": self._kf.x.tolist(), "P": self._kf.P.tolist(),
             "has_track": self._has_track, "confirmed": self._confirmed, "hits": self._hits,
             "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
-            "facing_sign": self._facing_sign,
+            "facing_sign": self._facing_sign, "intervals": list(self._intervals),
+            "t_frame": self._t_frame,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -255,6 +277,11 @@ class NetTracker:
         self._t_last = None if state["t_last"] is None else float(state["t_last"])
         self._t_accepted = None if state["t_accepted"] is None else float(state["t_accepted"])
         self._facing_sign = float(state["facing_sign"])
+        # Absent from states saved before the coasting window followed the frame rate.
+        self._intervals = collections.deque((float(v) for v in state.get("intervals", ())),
+                                            maxlen=_INTERVAL_WINDOW)
+        t_frame = state.get("t_frame")
+        self._t_frame = None if t_frame is None else float(t_frame)
 
     # -- the filter ------------------------------------------------------------------------
     def _start(self, m: Measurement, t: float) -> None:
@@ -297,8 +324,21 @@ class NetTracker:
         d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
         return z, R, math.sqrt(max(d2, 0.0))
 
+    def report_coasting_limit_s(self) -> float:
+        """How long after the last accepted measurement a coasting prediction is still given
+        (`report_coasting_s`, or `report_coasting_frames` typical frame intervals)."""
+        s = self._settings
+        limit = s.report_coasting_s
+        if s.report_coasting_frames > 0 and len(self._intervals) >= _MIN_INTERVALS:
+            limit = max(limit, s.report_coasting_frames * statistics.median(self._intervals))
+        return min(limit, s.coast_timeout_s)
+
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
+        if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
+            if self._t_frame is not None and t > self._t_frame:
+                self._intervals.append(t - self._t_frame)
+            self._t_frame = t
         m = None if estimate is None else measurement_from_estimate(estimate, s)
         if self._has_track and self._t_last is not None:
             dt = t - self._t_last
@@ -369,7 +409,7 @@ class NetTracker:
             or (
                 state is TrackState.COASTING
                 and since is not None
-                and since <= self._settings.report_coasting_s
+                and since <= self.report_coasting_limit_s()
             )
         )
         return TrackOutput(
