@@ -241,12 +241,14 @@ _MALLOC_ARENAS = 2
 def fewer_malloc_arenas() -> None:
     """Two malloc arenas for the whole process instead of glibc's eight per core.
 
-    glibc gives a thread that finds the main arena busy an arena of its own, and each keeps its
-    freed memory. The capture thread, the link threads and Zenoh's runtime each end up with one,
-    about 2.4 MB of RSS in all (`netpose bench soak`, 720p: 123 -> 121 MB), for nothing: the
-    threads that allocate (the capture thread's frames, the loop's numpy buffers) seldom do so
-    at the same moment. The same as MALLOC_ARENA_MAX=2, but it holds however the daemon is
-    started (systemd, the BlueOS container, a shell). Must run before those threads start.
+    glibc gives each thread that allocates an arena of its own while there are fewer than its
+    limit, and each arena keeps its freed memory. The capture thread, the link threads and
+    Zenoh's runtime each ended up with one: about 2.4 MB of RSS in all (`netpose bench soak`,
+    720p: 123 -> 121 MB unconstrained, 121 -> 118 MB under a quarter of a core), for nothing:
+    the threads that allocate much (the capture thread's frames, the loop's numpy buffers)
+    seldom do so at the same moment (the soak's CPU and latency did not change). The same as
+    MALLOC_ARENA_MAX=2, but it holds however the daemon is started (systemd, the BlueOS
+    container, a shell). Must run before those threads start.
     """
     if not sys.platform.startswith("linux"):
         return
