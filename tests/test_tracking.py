@@ -126,15 +126,31 @@ def test_a_slow_loop_coasts_through_one_missed_frame_and_not_two(fps: float) -> 
 
 def test_the_coasting_window_follows_processed_frames_not_ticks() -> None:
     """At 30 frames/s the window is report_coasting_s (1.5 intervals are 50 ms); ticks of a
-    stalled source (step without an estimate) are not frames and do not stretch it."""
-    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    stalled source (step without an estimate), here 0.25 s apart, are not frames and do not
+    stretch it (as frames they would make it 0.375 s)."""
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=5.0))
     for i in range(30):
         tracker.step(i / FPS, estimate(1.5, sd=0.01))
     assert tracker.report_coasting_limit_s() == pytest.approx(0.3)
     t0 = 29 / FPS
-    valid = [(k * 0.1, tracker.step(t0 + k * 0.1, None).valid) for k in range(1, 8)]
-    assert [v for dt, v in valid] == [dt <= 0.3 + 1e-9 for dt, _ in valid]
+    valid = [(k * 0.25, tracker.step(t0 + k * 0.25, None).valid) for k in range(1, 17)]
+    assert [v for _, v in valid] == [dt <= 0.3 + 1e-9 for dt, _ in valid]
     assert tracker.report_coasting_limit_s() == pytest.approx(0.3)
+
+
+def test_a_new_track_does_not_coast_on_the_search_rate_of_open_water() -> None:
+    """With no net in view the loop measures a frame every second or two (budget.search_hz);
+    once the net is found and frames come at 30 a second, a stall must not be coasted through
+    for 1.5 of those search intervals: the window is the new track's."""
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
+    for i in range(10):  # open water, one frame a second
+        tracker.step(float(i), miss)
+    for k in range(8):  # the net, at 30 frames/s
+        tracker.step(10.0 + k / FPS, estimate(1.5, sd=0.01))
+    assert tracker.report_coasting_limit_s() == pytest.approx(0.3)
+    t_last = 10.0 + 7 / FPS
+    assert not tracker.step(t_last + 0.35, None).valid
 
 
 def test_the_coasting_window_never_outlasts_the_track_and_can_be_fixed() -> None:
@@ -156,6 +172,7 @@ def test_the_frame_intervals_survive_a_snapshot() -> None:
         tracker.step(i / 3.0, estimate(1.5, sd=0.01))
     copy = NetTracker(FilterSettings())
     copy.restore(tracker.snapshot())
+    assert copy.snapshot() == tracker.snapshot()
     assert copy.report_coasting_limit_s() == pytest.approx(tracker.report_coasting_limit_s())
     miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
     assert copy.step(8 / 3.0, miss).valid == tracker.step(8 / 3.0, miss).valid

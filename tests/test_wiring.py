@@ -206,10 +206,24 @@ with tempfile.NamedTemporaryFile(suffix=".xml") as f:
 def test_the_daemon_holds_its_threads_to_two_malloc_arenas() -> None:
     """Each thread that allocates gets a glibc arena of its own (eight per core), which keeps
     its freed memory; the daemon's process allows two. Counted by glibc's own malloc_info."""
+    # The operator's own limits would decide both counts (and the daemon leaves them alone).
+    env = {k: v for k, v in os.environ.items() if k not in ("MALLOC_ARENA_MAX", "GLIBC_TUNABLES")}
+
     def arenas(mode: str) -> int:
-        out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, mode], check=True,
+        out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, mode], check=True, env=env,
                              capture_output=True, text=True, timeout=60, cwd=REPO)
         return int(out.stdout.strip())
 
-    assert arenas("default") > 2  # the probe sees the arenas it is meant to count
+    default = arenas("default")
+    if default <= 2:
+        pytest.skip(f"this machine's glibc makes {default} arenas for 8 threads anyway")
     assert arenas("daemon") <= 2
+
+
+def test_an_operators_arena_limit_is_left_alone() -> None:
+    """MALLOC_ARENA_MAX=4 set for the service: the daemon does not lower it to 2."""
+    env = dict(os.environ, MALLOC_ARENA_MAX="4")
+    env.pop("GLIBC_TUNABLES", None)
+    out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, "daemon"], check=True, env=env,
+                         capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert int(out.stdout.strip()) > 2

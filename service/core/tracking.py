@@ -233,7 +233,8 @@ class NetTracker:
         self._t_last: float | None = None
         self._t_accepted: float | None = None
         self._facing_sign = -1.0
-        # Intervals between processed frames (steps with an estimate), for the coasting window.
+        # Intervals between processed frames (steps with an estimate) while there is a track,
+        # for the coasting window.
         self._intervals: collections.deque[float] = collections.deque(maxlen=_INTERVAL_WINDOW)
         self._t_frame: float | None = None
         self.accepted_total = 0
@@ -254,6 +255,10 @@ class NetTracker:
         self._hits = 0
         self._rejects = 0
         self._t_accepted = None
+        # The coasting window follows the frame rate of a track: the search rate of open water
+        # (`budget.search_hz`, as slow as one frame in two seconds) must not stretch a new one.
+        self._intervals.clear()
+        self._t_frame = None
 
     # -- state, for recordings that start mid-dive ------------------------------------------
     def snapshot(self) -> dict[str, Any]:
@@ -336,7 +341,7 @@ class NetTracker:
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
         if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
-            if self._t_frame is not None and t > self._t_frame:
+            if self._has_track and self._t_frame is not None and t > self._t_frame:
                 self._intervals.append(t - self._t_frame)
             self._t_frame = t
         m = None if estimate is None else measurement_from_estimate(estimate, s)

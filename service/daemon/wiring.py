@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import sys
 import threading
 import time
@@ -248,10 +249,13 @@ def fewer_malloc_arenas() -> None:
     the threads that allocate much (the capture thread's frames, the loop's numpy buffers)
     seldom do so at the same moment (the soak's CPU and latency did not change). The same as
     MALLOC_ARENA_MAX=2, but it holds however the daemon is started (systemd, the BlueOS
-    container, a shell). Must run before those threads start.
+    container, a shell); an operator's MALLOC_ARENA_MAX or glibc tunable is left alone. Must run
+    before those threads start.
     """
     if not sys.platform.startswith("linux"):
         return
+    if "MALLOC_ARENA_MAX" in os.environ or "arena_max" in os.environ.get("GLIBC_TUNABLES", ""):
+        return  # the operator's own choice
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
