@@ -124,6 +124,43 @@ def test_a_slow_loop_coasts_through_one_missed_frame_and_not_two(fps: float) -> 
     assert tracker.report_coasting_limit_s() == pytest.approx(1.5 / fps)
 
 
+def test_a_miss_after_slow_frames_is_coasted_through_and_the_ticks_after_it_are_not() -> None:
+    """Under a CPU quota two tracked frames took 0.45 s each (a whole-frame search), then one
+    missed: 0.45 s after the last accepted measurement, beyond 1.5 typical intervals (0.375 s
+    at 4 frames/s), which withdrew the distance and cost the autopilot a second. One missed
+    frame is coasted through whatever its timing; ticks of a source that then stalls keep it
+    only for the usual window after that frame; a second miss withdraws it."""
+    fps = 4.0
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    for i in range(10):
+        tracker.step(i / fps, estimate(1.5, sd=0.01))
+    t = 9 / fps
+    for _ in range(2):  # two slow frames, both measured
+        t += 0.45
+        assert tracker.step(t, estimate(1.5, sd=0.01)).valid
+    window = tracker.report_coasting_limit_s()
+    assert window == pytest.approx(1.5 / fps)
+    miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
+    first = tracker.step(t + 0.45, miss)
+    assert first.state is TrackState.COASTING and first.valid
+    assert first.since_accepted_s == pytest.approx(0.45)
+    assert first.distance_m == pytest.approx(1.5, abs=0.01)
+    after_miss = tracker.snapshot()
+    assert tracker.step(t + 0.45 + 0.9 * window, None).valid
+    assert not tracker.step(t + 0.45 + 1.1 * window, None).valid
+    again = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    again.restore(after_miss)  # the count of missed frames is part of the saved state
+    assert not again.step(t + 0.45 + 0.5 * window, miss).valid  # a second miss, soon after
+
+
+def test_missed_frames_are_not_coasted_through_when_the_window_is_fixed() -> None:
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, report_coasting_frames=0.0))
+    for i in range(10):
+        tracker.step(i / 4.0, estimate(1.5, sd=0.01))
+    miss = NetEstimate(detected=False, confidence=0.0, reason="no lattice")
+    assert not tracker.step(9 / 4.0 + 0.45, miss).valid
+
+
 def test_the_coasting_window_follows_processed_frames_not_ticks() -> None:
     """At 30 frames/s the window is report_coasting_s (1.5 intervals are 50 ms); ticks of a
     stalled source (step without an estimate), here 0.25 s apart, are not frames and do not

@@ -11,8 +11,10 @@ Validity (what decides what the autopilot is told):
   COASTING  no accepted measurement this frame, the last one less than `coast_timeout_s` ago: the
             filter predicts through the gap (the autopilot still gets the prediction for
             `report_coasting_s`, or for `report_coasting_frames` of the measured intervals between
-            frames when frames come slower than that allows: one missed frame must not cut the
-            distance of a loaded CPU that processes three frames a second);
+            frames when frames come slower than that allows, and through as many missed frames
+            as that many intervals hold whatever their timing: one missed frame must not cut
+            the distance of a loaded CPU that processes three frames a second, nor of one whose
+            last frames were slow);
   LOST      no track, or nothing accepted for `coast_timeout_s`.
 A new track starts tentative (state LOST) and becomes TRACKING after `acquire_count`
 measurements that pass the gate, so a single false detection never reaches the autopilot.
@@ -85,7 +87,11 @@ class FilterSettings:
     # intervals' jitter, and not two. At 30 frames/s report_coasting_s decides; under a quarter
     # of a core (`netpose bench soak`: 3-7 frames/s with 0.2-0.3 s between frames) a fixed 0.3 s
     # made a single missed frame withdraw the distance, and the link's once-a-second limit on
-    # starting again turned that into a 1.1 s gap for the autopilot. 0 = report_coasting_s only.
+    # starting again turned that into a 1.1 s gap for the autopilot. Its whole part is also a
+    # number of missed frames coasted through whatever the time between them: the miss after
+    # two slow frames (a 0.4 s whole-frame search under the quota) came after 3 typical
+    # intervals, outlasted the window and cut the distance for a second. 0 = report_coasting_s
+    # only.
     report_coasting_frames: float = 1.5
     # Estimates below this confidence are treated as no detection.
     min_confidence: float = 0.3
@@ -237,6 +243,8 @@ class NetTracker:
         # for the coasting window.
         self._intervals: collections.deque[float] = collections.deque(maxlen=_INTERVAL_WINDOW)
         self._t_frame: float | None = None
+        # Processed frames since the last accepted measurement.
+        self._misses = 0
         self.accepted_total = 0
         self.rejected_total = 0
         self.resets_total = 0
@@ -259,6 +267,7 @@ class NetTracker:
         # (`budget.search_hz`, as slow as one frame in two seconds) must not stretch a new one.
         self._intervals.clear()
         self._t_frame = None
+        self._misses = 0
 
     # -- state, for recordings that start mid-dive ------------------------------------------
     def snapshot(self) -> dict[str, Any]:
@@ -268,7 +277,7 @@ class NetTracker:
             "has_track": self._has_track, "confirmed": self._confirmed, "hits": self._hits,
             "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
             "facing_sign": self._facing_sign, "intervals": list(self._intervals),
-            "t_frame": self._t_frame,
+            "t_frame": self._t_frame, "misses": self._misses,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -287,6 +296,7 @@ class NetTracker:
                                             maxlen=_INTERVAL_WINDOW)
         t_frame = state.get("t_frame")
         self._t_frame = None if t_frame is None else float(t_frame)
+        self._misses = int(state.get("misses", 0))
 
     # -- the filter ------------------------------------------------------------------------
     def _start(self, m: Measurement, t: float) -> None:
@@ -306,6 +316,7 @@ class NetTracker:
         self._confirmed = s.acquire_count <= 1
         self._hits = 1
         self._rejects = 0
+        self._misses = 0
         self._t_accepted = t
         self._facing_sign = m.facing_sign
 
@@ -338,6 +349,17 @@ class NetTracker:
             limit = max(limit, s.report_coasting_frames * statistics.median(self._intervals))
         return min(limit, s.coast_timeout_s)
 
+    def _coasting_reported(self, t: float, since: float) -> bool:
+        """Whether a coasting prediction still goes to the autopilot: within the window of the
+        last accepted measurement, or after no more missed frames than the window holds and
+        within the window of the newest of them (a stalled source's ticks do not stretch it)."""
+        limit = self.report_coasting_limit_s()
+        if since <= limit:
+            return True
+        allowed = math.floor(self._settings.report_coasting_frames)
+        return (0 < self._misses <= allowed and self._t_frame is not None
+                and t - self._t_frame <= limit)
+
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
         if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
@@ -366,6 +388,7 @@ class NetTracker:
                     self._rejects = 0
                     self._hits += 1
                     self._facing_sign = m.facing_sign
+                    self._misses = 0
                     if self._hits >= s.acquire_count:
                         self._confirmed = True
                     outcome = Outcome.ACCEPTED
@@ -382,6 +405,8 @@ class NetTracker:
                         self.resets_total += 1
                         outcome = Outcome.RESET
 
+        if estimate is not None and outcome not in (Outcome.ACCEPTED, Outcome.RESET):
+            self._misses += 1
         since = None if self._t_accepted is None else t - self._t_accepted
         if self._has_track and since is not None and since >= s.coast_timeout_s:
             self.reset()
@@ -393,10 +418,11 @@ class NetTracker:
             state = TrackState.TRACKING
         else:
             state = TrackState.COASTING
-        return self._output(state, outcome, maha, since)
+        return self._output(t, state, outcome, maha, since)
 
     def _output(
-        self, state: TrackState, outcome: Outcome, maha: float | None, since: float | None
+        self, t: float, state: TrackState, outcome: Outcome, maha: float | None,
+        since: float | None,
     ) -> TrackOutput:
         if not self._has_track:
             return TrackOutput(
@@ -414,7 +440,7 @@ class NetTracker:
             or (
                 state is TrackState.COASTING
                 and since is not None
-                and since <= self.report_coasting_limit_s()
+                and self._coasting_reported(t, since)
             )
         )
         return TrackOutput(
