@@ -28,3 +28,16 @@ def test_the_spread_target_is_not_measurable_without_two_steps() -> None:
     single = dataclasses.replace(SUMMARY, sequence_frame_to_frame_m=math.nan)
     assert single.targets[SPREAD] is None
     assert single.targets["all stills detected"] is True
+
+
+SEEN_SPREAD = "sequence sigma >= frame-to-frame spread, ranges measured or seen"
+
+
+def test_the_spread_of_seen_ranges_is_judged_on_its_own_sigmas() -> None:
+    """The refused ranges a pilot reads ("net seen, ~0.8 m") have sigmas too: judged against
+    their own frame-to-frame spread, whatever the measured frames' verdict."""
+    seen = dataclasses.replace(SUMMARY, sequence_seen_frame_to_frame_m=0.03,
+                               sequence_seen_sigma_median_m=0.02)
+    assert seen.targets[SEEN_SPREAD] is False
+    assert dataclasses.replace(seen, sequence_seen_sigma_median_m=0.035).targets[SEEN_SPREAD]
+    assert SUMMARY.targets[SEEN_SPREAD] is None  # no two consecutive ranges: not measurable
