@@ -12,6 +12,7 @@ from service.core.results import NetEstimate
 from service.core.tracking import (
     FilterSettings,
     NetTracker,
+    Outcome,
     TrackState,
     angles_from_normal,
     normal_from_angles,
@@ -151,6 +152,20 @@ def test_a_miss_after_slow_frames_is_coasted_through_and_the_ticks_after_it_are_
     again = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
     again.restore(after_miss)  # the count of missed frames is part of the saved state
     assert not again.step(t + 0.45 + 0.5 * window, miss).valid  # a second miss, soon after
+
+
+def test_a_rejected_measurement_after_slow_frames_is_not_coasted_through() -> None:
+    """A frame whose measurement the gate rejects is evidence against the prediction: unlike
+    a frame without a net it gets the time window only, not the missed frame's pass."""
+    fps = 4.0
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
+    for i in range(10):
+        tracker.step(i / fps, estimate(1.5, sd=0.01))
+    t = 9 / fps + 0.45
+    assert tracker.step(t, estimate(1.5, sd=0.01)).valid
+    rejected = tracker.step(t + 0.45, estimate(2.5, sd=0.01))
+    assert rejected.measurement is Outcome.REJECTED
+    assert rejected.state is TrackState.COASTING and not rejected.valid
 
 
 def test_missed_frames_are_not_coasted_through_when_the_window_is_fixed() -> None:

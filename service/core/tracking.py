@@ -352,13 +352,15 @@ class NetTracker:
     def _coasting_reported(self, t: float, since: float) -> bool:
         """Whether a coasting prediction still goes to the autopilot: within the window of the
         last accepted measurement, or after no more missed frames than the window holds and
-        within the window of the newest of them (a stalled source's ticks do not stretch it)."""
+        within the window of the newest of them (a stalled source's ticks do not stretch it).
+        A rejected measurement is no missed frame: it is evidence against the prediction, which
+        then gets the time window only."""
         limit = self.report_coasting_limit_s()
         if since <= limit:
             return True
         allowed = math.floor(self._settings.report_coasting_frames)
-        return (0 < self._misses <= allowed and self._t_frame is not None
-                and t - self._t_frame <= limit)
+        return (0 < self._misses <= allowed and self._rejects == 0
+                and self._t_frame is not None and t - self._t_frame <= limit)
 
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
