@@ -14,10 +14,9 @@ When it is sent: a new reading goes out as it arrives (the frame loop wakes the 
 through a pipe) unless the frame after it is due within the period after the last reading sent
 this way (frame times are capture times: the camera's clock, without the loop's jitter). So
 the frames sent are at most a period apart: every second one at 30 frames/s, every one at 15 or
-fewer. The newest reading is also repeated one period after the last send (aimed earlier by how
-late this thread has been running lately), which bounds the gap whatever the camera does. A
-fixed schedule alone made each reading wait up to a frame interval for its slot (issue 13's
-latency).
+fewer. The newest reading is also repeated one period after the last send, which bounds the
+gap whatever the camera does. A fixed schedule alone made each reading wait up to a frame
+interval for its slot (issue 13's latency).
 
 With no believable reading it sends nothing; ArduPilot then reports the rangefinder as "no
 data" after 500 ms, which is the protocol's own meaning of "invalid" for a MAVLink rangefinder.
@@ -73,15 +72,6 @@ _REBOOT_JUMP_S = 1.0
 # later than a period after the last reading sent, less this share of a frame interval: the
 # margin for a camera whose frame times wobble.
 _FRAME_MARGIN = 0.1
-# The newest reading is repeated a period after the last distance sent, less how late this
-# thread has been running lately: the worst of its last LATENESS_WINDOW wake-ups (a deadline or
-# a reading handed over; several seconds, as a quota's stalls are sporadic and the worst of the
-# last 32 missed them), at most half a period. On a loaded CPU the thread runs late (under a
-# cgroup quota it waits whole 10 ms CFS periods for CPU time and the GIL: 30-50 ms measured),
-# and a repeat aimed at the whole period left the autopilot 130-169 ms without a distance at
-# 10 Hz. On an idle machine the lead is about a millisecond and nothing changes.
-_LATENESS_WINDOW = 256
-_MAX_LEAD_SHARE = 0.5
 
 # MAVLink enum values used below (common.xml), spelled out to keep pymavlink out of import time.
 MAV_TYPE_ONBOARD_CONTROLLER = 18
@@ -238,7 +228,6 @@ class MavlinkLink(AutopilotLink):
         self._plane: NetPlane | None = None
         # A sendable reading arrived since the link thread last looked; the pipe wakes it.
         self._arrived = False
-        self._handed_over = -math.inf  # when the newest sendable reading was handed over
         self._wake: tuple[int, int] | None = None
         # Link state, written by the link thread, read by status().
         self._transport_up = False
@@ -274,8 +263,6 @@ class MavlinkLink(AutopilotLink):
             self._range = reading
             self._gate.observe(reading, now)
             self._arrived = reading.sendable
-            if reading.sendable:
-                self._handed_over = now
             if self._wake is not None and reading.sendable:
                 # Under the lock, as close() closes the pipe: a descriptor number freed there
                 # and reused by another file must never receive this byte. The write never
@@ -419,32 +406,24 @@ class MavlinkLink(AutopilotLink):
         next_plane = now
         last_capture_sent = -math.inf
         period = self.settings.period_s
-        lateness: collections.deque[float] = collections.deque(maxlen=_LATENESS_WINDOW)
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_heartbeat:
-                lateness.append(now - next_heartbeat)
                 self._send_heartbeat(conn)
                 next_heartbeat = _advance(next_heartbeat, HEARTBEAT_PERIOD_S, now)
             # An arrival that is not sent now is not kept for later: the next frame or the
             # repeat carries the newest reading, and a send between frames only adds latency.
-            arrived, wake = self._take_arrival(last_capture_sent, now)
-            if wake is not None:
-                lateness.append(wake)
+            arrived = self._take_arrival(last_capture_sent)
             if arrived is not None or now >= next_distance:
-                if arrived is None:
-                    lateness.append(now - next_distance)
                 self._send_distance(conn, now)
-                lead = min(max(lateness, default=0.0), _MAX_LEAD_SHARE * period)
                 if arrived is not None:
                     last_capture_sent = arrived
-                    next_distance = now + period - lead
+                    next_distance = now + period
                 else:
-                    next_distance = _advance(next_distance, period - lead, now)
+                    next_distance = _advance(next_distance, period, now)
             # The net plane keeps the fixed schedule the net-hold applet was proved with in
             # SITL (its closing-speed filter counts messages, not seconds).
             if now >= next_plane:
-                lateness.append(now - next_plane)
                 self._send_plane(conn, now)
                 self._send_texts(conn)
                 next_plane = _advance(next_plane, period, now)
@@ -458,24 +437,19 @@ class MavlinkLink(AutopilotLink):
                     break
                 self._handle(msg, self._clock())
 
-    def _take_arrival(
-        self, last_capture_sent: float, now: float
-    ) -> tuple[float | None, float | None]:
+    def _take_arrival(self, last_capture_sent: float) -> float | None:
         """The capture time of a reading that arrived since the last look and is to go out now
-        (see the module docstring), else None; and, when one arrived, how long after it was
-        handed over this thread got to it. Until the frame interval is measured, a reading half
-        a period younger than the last one sent goes."""
+        (see the module docstring), else None. Until the frame interval is measured, a reading
+        half a period younger than the last one sent goes."""
         period = self.settings.period_s
         with self._lock:
             arrived, self._arrived = self._arrived, False
             capture = self._range.t_capture
             interval = self._gate.frame_interval_s
-            handed_over = self._handed_over
         if not arrived:
-            return None, None
-        wake = max(0.0, now - handed_over)
+            return None
         spacing = 0.5 * period if interval is None else period - (1.0 + _FRAME_MARGIN) * interval
-        return (capture if capture - last_capture_sent >= spacing else None), wake
+        return capture if capture - last_capture_sent >= spacing else None
 
     def _wait(self, conn: Any, timeout: float) -> None:
         """Wait up to `timeout` for incoming data or a new reading (pymavlink's own select

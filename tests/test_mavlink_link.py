@@ -257,10 +257,8 @@ def test_stale_reading_is_not_repeated() -> None:
             time.sleep(0.8)  # far beyond max_age: the reading is stale
             status = link.status()
     sent = autopilot.received("DISTANCE_SENSOR")
-    # At 10 Hz a reading can be sent at most max_age * rate + 1 times, all within max_age (on a
-    # busy machine, whose link thread runs late, the repeat may be aimed up to half a period
-    # early: at most twice as many).
-    assert 1 <= len(sent) <= 2 * 3 + 1
+    # At 10 Hz a reading can be sent at most max_age * rate + 1 times, all within max_age.
+    assert 1 <= len(sent) <= 4
     assert sent[-1].t - t_frame <= 0.3 + 0.05
     assert status.sending_distance is False
 
@@ -303,39 +301,6 @@ def test_a_new_reading_goes_out_as_it_arrives(fps: float, frames_per_send: int) 
     gaps = [b.t - a.t for a, b in itertools.pairwise(steady)]
     # Medians: one late turn of either thread on a busy machine must not decide the test.
     assert statistics.median(gaps) == pytest.approx(frames_per_send / fps, abs=0.2 / fps)
-
-
-class _LateLink(MavlinkLink):
-    """A link thread that wakes 40 ms late every time, as under a cgroup CPU quota (it waits
-    whole 10 ms CFS periods for CPU time and the GIL)."""
-
-    LATE_S = 0.04
-
-    def _wait(self, conn: Any, timeout: float) -> None:
-        super()._wait(conn, timeout)
-        time.sleep(self.LATE_S)
-
-
-@pytest.mark.parametrize(("link_class", "late"), [(MavlinkLink, 0.0), (_LateLink, 0.04)])
-def test_a_late_link_thread_still_repeats_within_the_period(
-    link_class: type[MavlinkLink], late: float
-) -> None:
-    """Readings come 5 a second, so every other distance is a repeat of the newest. A repeat
-    aimed at a whole period (0.1 s) after the last send reached the autopilot 0.14 s after it
-    from a thread running 40 ms late (the soak's quota case: largest gaps 130-169 ms); aimed
-    that much earlier it arrives within the period (measured: largest gap 0.141 s before, 0.099
-    s after). On time, the thread repeats at the period, not sooner (no extra messages)."""
-    with FakeAutopilot(UdpServerTransport()) as autopilot:
-        link = link_class(settings(autopilot.url))
-        with link:
-            autopilot.wait_for("HEARTBEAT", count=1, where=from_link)
-            with feeding(link, period=0.2):
-                sensors = autopilot.wait_for("DISTANCE_SENSOR", count=40, where=from_link)
-    gaps = sorted(b.t - a.t for a, b in itertools.pairwise(sensors[10:]))
-    # The 90th percentile: a few late turns on a busy machine must not decide the test.
-    assert gaps[int(0.9 * len(gaps))] <= 0.115, (late, gaps)
-    if not late:
-        assert statistics.median(gaps) == pytest.approx(0.1, abs=0.015), gaps
 
 
 def test_autopilot_heartbeat_lost_and_back(caplog: pytest.LogCaptureFixture) -> None:
