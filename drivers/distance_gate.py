@@ -26,9 +26,9 @@ A reading that wavers around the limit therefore flips the output at most once a
 from __future__ import annotations
 
 import collections
-import statistics
 from dataclasses import dataclass, field
 
+from service.core.frame_intervals import FrameIntervals
 from service.core.readings import RangeReading
 
 WINDOW = 64
@@ -49,32 +49,28 @@ class DistanceGate:
     changes: int = 0
     _latencies: collections.deque[float] = field(
         default_factory=lambda: collections.deque(maxlen=WINDOW))
-    _intervals: collections.deque[float] = field(
-        default_factory=lambda: collections.deque(maxlen=WINDOW))
-    _last_capture: float | None = None
+    _intervals: FrameIntervals = field(
+        default_factory=lambda: FrameIntervals(WINDOW, MIN_INTERVALS))
     _last_change: float = -float("inf")
     _fresh_since: float | None = None
 
     def observe(self, reading: RangeReading, handed_over: float) -> None:
         """A new reading reached the link at `handed_over` (the frame loop's clock)."""
-        if self._last_capture is not None and reading.t_capture > self._last_capture:
-            self._intervals.append(reading.t_capture - self._last_capture)
-        self._last_capture = reading.t_capture
+        self._intervals.add(reading.t_capture)
         self._latencies.append(max(0.0, handed_over - reading.t_capture))
 
     @property
     def frame_interval_s(self) -> float | None:
         """The typical interval between readings (their capture times), once measured."""
-        if len(self._intervals) < MIN_INTERVALS:
-            return None
-        return statistics.median(self._intervals)
+        return self._intervals.median()
 
     @property
     def freshness_s(self) -> float:
         """The age beyond which the newest reading is not repeated."""
-        if len(self._intervals) < MIN_INTERVALS:
+        worst_interval = self._intervals.max()
+        if worst_interval is None:
             return self.ceiling_s
-        worst = max(self._latencies) + max(self._intervals)
+        worst = max(self._latencies) + worst_interval
         measured = MARGIN * worst + 2.0 * self.send_period_s
         return min(self.ceiling_s, max(self.floor_s, measured))
 

@@ -22,10 +22,8 @@ measurements that pass the gate, so a single false detection never reaches the a
 
 from __future__ import annotations
 
-import collections
 import enum
 import math
-import statistics
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +32,7 @@ import numpy.typing as npt
 
 from service.core.errors import ConfigError
 from service.core.filterpy_kalman import load_kalman_filter
+from service.core.frame_intervals import FrameIntervals
 from service.core.results import NetEstimate
 
 FloatArray = npt.NDArray[np.float64]
@@ -241,8 +240,7 @@ class NetTracker:
         self._facing_sign = -1.0
         # Intervals between processed frames (steps with an estimate) while there is a track,
         # for the coasting window.
-        self._intervals: collections.deque[float] = collections.deque(maxlen=_INTERVAL_WINDOW)
-        self._t_frame: float | None = None
+        self._frames = FrameIntervals(_INTERVAL_WINDOW, _MIN_INTERVALS)
         # Processed frames since the last accepted measurement.
         self._misses = 0
         self.accepted_total = 0
@@ -265,8 +263,7 @@ class NetTracker:
         self._t_accepted = None
         # The coasting window follows the frame rate of a track: the search rate of open water
         # (`budget.search_hz`, as slow as one frame in two seconds) must not stretch a new one.
-        self._intervals.clear()
-        self._t_frame = None
+        self._frames.clear()
         self._misses = 0
 
     # -- state, for recordings that start mid-dive ------------------------------------------
@@ -276,8 +273,8 @@ class NetTracker:
             "x": self._kf.x.tolist(), "P": self._kf.P.tolist(),
             "has_track": self._has_track, "confirmed": self._confirmed, "hits": self._hits,
             "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
-            "facing_sign": self._facing_sign, "intervals": list(self._intervals),
-            "t_frame": self._t_frame, "misses": self._misses,
+            "facing_sign": self._facing_sign, "intervals": self._frames.values(),
+            "t_frame": self._frames.last, "misses": self._misses,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -292,10 +289,7 @@ class NetTracker:
         self._t_accepted = None if state["t_accepted"] is None else float(state["t_accepted"])
         self._facing_sign = float(state["facing_sign"])
         # Absent from states saved before the coasting window followed the frame rate.
-        self._intervals = collections.deque((float(v) for v in state.get("intervals", ())),
-                                            maxlen=_INTERVAL_WINDOW)
-        t_frame = state.get("t_frame")
-        self._t_frame = None if t_frame is None else float(t_frame)
+        self._frames.restore(state.get("intervals", ()), state.get("t_frame"))
         self._misses = int(state.get("misses", 0))
 
     # -- the filter ------------------------------------------------------------------------
@@ -345,8 +339,9 @@ class NetTracker:
         (`report_coasting_s`, or `report_coasting_frames` typical frame intervals)."""
         s = self._settings
         limit = s.report_coasting_s
-        if s.report_coasting_frames > 0 and len(self._intervals) >= _MIN_INTERVALS:
-            limit = max(limit, s.report_coasting_frames * statistics.median(self._intervals))
+        typical = self._frames.median()
+        if s.report_coasting_frames > 0 and typical is not None:
+            limit = max(limit, s.report_coasting_frames * typical)
         return min(limit, s.coast_timeout_s)
 
     def _coasting_reported(self, t: float, since: float) -> bool:
@@ -359,15 +354,17 @@ class NetTracker:
         if since <= limit:
             return True
         allowed = math.floor(self._settings.report_coasting_frames)
+        newest = self._frames.last
         return (0 < self._misses <= allowed and self._rejects == 0
-                and self._t_frame is not None and t - self._t_frame <= limit)
+                and newest is not None and t - newest <= limit)
 
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
         if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
-            if self._has_track and self._t_frame is not None and t > self._t_frame:
-                self._intervals.append(t - self._t_frame)
-            self._t_frame = t
+            if self._has_track:
+                self._frames.add(t)
+            else:  # intervals are the track's only; the next one counts from this frame
+                self._frames.last = t
         m = None if estimate is None else measurement_from_estimate(estimate, s)
         if self._has_track and self._t_last is not None:
             dt = t - self._t_last
