@@ -49,7 +49,7 @@ import numpy.typing as npt
 from service.core.camera import CameraModel
 from service.core.errors import ConfigError, EstimatorInputError
 from service.core.grey import to_gray
-from service.core.lattice import LatticeFinder, LatticeFit, reduce_basis
+from service.core.lattice import LatticeFinder, LatticeFit, inverse_2x2, reduce_basis
 from service.core.mesh import MeshGeometry
 from service.core.plane import PlaneFit, axis_leverage, fit_plane, tilt_leverage
 from service.core.plane_frame import rotation_to_z
@@ -1736,9 +1736,15 @@ def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
         return strong
     if len(strong) == 0:
         return weak
-    d_plus = np.linalg.norm(weak.k[:, None, :] - strong.k[None, :, :], axis=2)
-    d_minus = np.linalg.norm(weak.k[:, None, :] + strong.k[None, :, :], axis=2)
-    new = (np.minimum(d_plus, d_minus).min(axis=1) > 0.5)
+    # Squared distances against 0.5^2: this runs once per ROI and pass, where norm()'s
+    # overhead was most of the cost.
+    dx_plus = weak.k[:, None, 0] - strong.k[None, :, 0]
+    dy_plus = weak.k[:, None, 1] - strong.k[None, :, 1]
+    dx_minus = weak.k[:, None, 0] + strong.k[None, :, 0]
+    dy_minus = weak.k[:, None, 1] + strong.k[None, :, 1]
+    nearest = np.minimum(dx_plus * dx_plus + dy_plus * dy_plus,
+                         dx_minus * dx_minus + dy_minus * dy_minus).min(axis=1)
+    new = nearest > 0.25
     if not new.any():
         return strong
     return Peaks(np.concatenate([strong.k, weak.k[new]]),
@@ -2058,7 +2064,7 @@ def _roi_result(m: _Roi, used: bool) -> RoiResult:
         return RoiResult(center_px=m.geometry.center_full, size_px=size, level=m.level,
                          detected=False, peaks=m.peaks)
     # Columns e1, e2 of the dual basis: e_i . k_j = delta_ij.
-    edges = np.asarray(np.linalg.inv(m.reciprocal_px), dtype=np.float64).T
+    edges = inverse_2x2(m.reciprocal_px).T
     return RoiResult(
         center_px=m.geometry.center_full,
         size_px=size,
@@ -2066,7 +2072,7 @@ def _roi_result(m: _Roi, used: bool) -> RoiResult:
         detected=m.valid,
         reciprocal=_mat2(m.reciprocal_px.T),
         mesh_edges=_mat2(edges.T),
-        cell_area_px=1.0 / abs(float(np.linalg.det(m.reciprocal_px))),
+        cell_area_px=abs(float(edges[0, 0] * edges[1, 1] - edges[0, 1] * edges[1, 0])),
         snr_db=10.0 / math.log(10.0) * m.fit.mean_snr,
         inlier_fraction=m.fit.inlier_weight_fraction,
         peaks=m.peaks,

@@ -125,8 +125,9 @@ def _spans_unimodular(indices: I64) -> bool:
     return bool((dets == 1).any())
 
 
-def _inv2(m: F64) -> F64:
-    """Inverse of a 2x2 matrix without LAPACK's per-call overhead (this runs per hypothesis)."""
+def inverse_2x2(m: F64) -> F64:
+    """Inverse of a 2x2 matrix without LAPACK's per-call overhead (this runs per hypothesis,
+    and per ROI)."""
     a, b, c, d = float(m[0, 0]), float(m[0, 1]), float(m[1, 0]), float(m[1, 1])
     det = a * d - b * c
     return np.array([[d / det, -b / det], [-c / det, a / det]])
@@ -189,7 +190,7 @@ def _basis_observed_many(basis: F64, k: F64, tol: F64, roi: I64, n: int
 
 
 def _assign(basis: F64, k: F64, tol: F64) -> tuple[npt.NDArray[np.bool_], I64]:
-    coords = k @ _inv2(basis).T
+    coords = k @ inverse_2x2(basis).T
     idx = np.rint(coords).astype(np.int64)
     diff = k - idx @ basis.T
     resid2 = diff[:, 0] ** 2 + diff[:, 1] ** 2
@@ -279,7 +280,7 @@ class LatticeFinder:
         ok &= np.abs(det) >= 1e-9
         bases = np.zeros((n, 2, 2))
         for j in np.nonzero(ok)[0].tolist():
-            bases[j] = reduce_basis((_inv2(normal[j]) @ moment[j]).T)
+            bases[j] = reduce_basis((inverse_2x2(normal[j]) @ moment[j]).T)
         # Inliers of each ROI's own fitted basis, and the fit's statistics.
         safe = np.where(ok[:, None, None], bases, np.eye(2))
         inv = np.linalg.inv(safe)
@@ -301,8 +302,8 @@ class LatticeFinder:
             rms = math.sqrt(float(sq[j]) / dof) if m > 2 else 0.0
             mean_snr = float(inlier_w[j]) / m
             sigma_bins = max(rms, 0.6 * math.exp(-0.5 * mean_snr), 0.05)
-            cov = _inv2(gram[j]) * sigma_bins**2
-            binv = _inv2(bases[j])
+            cov = inverse_2x2(gram[j]) * sigma_bins**2
+            binv = inverse_2x2(bases[j])
             var = float(sum(binv[:, r] @ cov @ binv[:, r] for r in range(2)))
             out[usable[j]] = LatticeFit(
                 basis=bases[j],
@@ -381,7 +382,7 @@ class LatticeFinder:
         weight = float(w[inl].sum())
         for _ in range(3):
             # All sub-lattices at once: coordinates of every peak in every candidate basis.
-            coords = _inv2(basis) @ k.T  # (2, m) in the current basis
+            coords = inverse_2x2(basis) @ k.T  # (2, m) in the current basis
             idx = np.rint(_SUBLATTICE_INV @ coords)  # (s, 2, m) in each candidate basis
             cart = (basis @ _SUBLATTICE_ARR) @ idx  # (s, 2, m) back in bins
             resid2 = ((k.T[None] - cart) ** 2).sum(axis=1)
@@ -403,7 +404,7 @@ class LatticeFinder:
         # The refined lattice must gain 20 % of weight; impossible if the outliers carry less.
         if float(w[outliers].sum()) <= 0.2 * float(w[inl].sum()):
             return basis, inl
-        coords = k @ _inv2(basis).T
+        coords = k @ inverse_2x2(basis).T
         for denom in (2, 3):
             scaled = coords * denom
             idx = np.rint(scaled).astype(np.int64)
@@ -434,7 +435,7 @@ class LatticeFinder:
             if abs(normal[0, 0] * normal[1, 1] - normal[0, 1] * normal[1, 0]) < 1e-9:
                 return None
             # Weighted least squares for B in k = B n: B^T = (N^T W N)^-1 N^T W K.
-            basis = reduce_basis((_inv2(normal) @ (nw.T @ k[inl])).T)
+            basis = reduce_basis((inverse_2x2(normal) @ (nw.T @ k[inl])).T)
         inl, idx = _assign(basis, k, tol)
         n = idx[inl].astype(np.float64)
         gram = n.T @ n
@@ -448,9 +449,9 @@ class LatticeFinder:
         # floor holds even when the fit is exact (2 peaks).
         mean_snr = float(w[inl].mean())
         sigma_bins = max(rms, 0.6 * math.exp(-0.5 * mean_snr), 0.05)
-        cov = _inv2(gram) * sigma_bins**2  # covariance of each row of B
+        cov = inverse_2x2(gram) * sigma_bins**2  # covariance of each row of B
         # d log|det B| = trace(B^-1 dB): row r of B enters through column r of B^-1.
-        binv = _inv2(basis)
+        binv = inverse_2x2(basis)
         var = float(sum(binv[:, r] @ cov @ binv[:, r] for r in range(2)))
         return LatticeFit(
             basis=basis,

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from itertools import combinations
 
 import numpy as np
 import numpy.typing as npt
@@ -179,6 +178,14 @@ def tilt_leverage(rays: F64, extent: float) -> float:
         return math.inf
 
 
+def _triples(k: int) -> npt.NDArray[np.int64]:
+    """Every (a, b, c) with a < b < c < k, in the order itertools.combinations gives them
+    (built by numpy: a Python list of them cost about as much as the RANSAC itself)."""
+    a, b, c = np.meshgrid(*(np.arange(k, dtype=np.int64),) * 3, indexing="ij")
+    ordered = (a < b) & (b < c)
+    return np.stack([a[ordered], b[ordered], c[ordered]], axis=1)
+
+
 def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Bools | None:
     """Exhaustive RANSAC over ROI triples: the plane most ROIs agree with seeds the fit.
 
@@ -186,7 +193,7 @@ def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Boo
     2^(1/3) in c, far outside the tolerance, so it cannot join a consensus of correct ROIs.
     """
     k = rays.shape[0]
-    triples = np.array(list(combinations(range(k), 3)), dtype=np.int64)
+    triples = _triples(k)
     if triples.shape[0] > max_triples:
         step = triples.shape[0] / max_triples
         triples = triples[(np.arange(max_triples) * step).astype(np.int64)]

@@ -42,10 +42,10 @@ def half_plane_power(patches: F32) -> F32:
     for i in range(n):
         cv2.dft(patches[i], packed[i])
     power = np.empty((n, size, half + 1), dtype=np.float32)
-    re, im = packed[:, :, 1 : size - 1 : 2], packed[:, :, 2 : size - 1 : 2]
-    inner_power = power[:, :, 1:half]
-    np.multiply(re, re, out=inner_power)
-    inner_power += im * im
+    # Squared in one contiguous pass, then Re^2 + Im^2 from the interleaved squares: half the
+    # time of squaring the two strided halves apart.
+    squares = np.square(packed[:, :, 1 : size - 1])
+    np.add(squares[:, :, 0::2], squares[:, :, 1::2], out=power[:, :, 1:half])
     for column, kx in ((0, 0), (size - 1, half)):
         col = packed[:, :, column]
         inner = col[:, 1 : size - 1 : 2] ** 2 + col[:, 2 : size - 1 : 2] ** 2  # ky 1 .. N/2-1
@@ -208,7 +208,9 @@ class SpectrumAnalyzer:
         # Found in the channels' own layout (a transposed mask costs nonzero() a strided walk),
         # then ordered by ROI below.
         mask = local_max & (snr_cl > self.min_snr) & self.valid[:, :, None]
-        rows, cols, roi = np.nonzero(mask)
+        # Flat indices split by hand: a 3-D nonzero() is ten times slower on a mask this sparse.
+        rows, rest = np.divmod(np.flatnonzero(mask), mask.shape[1] * mask.shape[2])
+        cols, roi = np.divmod(rest, mask.shape[2])
         strength = snr[roi, rows, cols]
         # Strongest first within each ROI, at most max_peaks each.
         order = np.lexsort((-strength, roi))
