@@ -28,6 +28,10 @@ def test_a_short_soak_measures_what_it_reports(video: tuple[Path, Path]) -> None
     for report in (free, held):
         assert report.exit_status == 0, report.notes
         assert math.isfinite(report.rss_mb)
+        # The split is of the same sample: anonymous and file pages add up to the RSS, less
+        # only shared memory (none here) and the kernel's rounding to whole pages.
+        assert report.rss_anon_mb > 0 and report.rss_file_mb > 0
+        assert abs(report.rss_anon_mb + report.rss_file_mb - report.rss_mb) <= 1.0
     # A quarter of a core may still be importing and on its first cold frames after 12 s
     # (bookworm's stack, a busy CI machine): its rates are the benchmark's, over minutes.
     assert free.frames_per_s > 0 and free.detected_fraction > 0.8 and free.budget_levels

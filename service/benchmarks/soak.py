@@ -99,6 +99,13 @@ class CaseReport:
     measured_per_s: float = math.nan
     net: bool = True
     distance_messages: int = 0  # DISTANCE_SENSOR messages in the steady state
+    # The largest RSS's split (see _Sample): anonymous and the libraries' file pages.
+    rss_anon_mb: float = math.nan
+    rss_file_mb: float = math.nan
+
+    def _memory(self) -> str:
+        return (f"RSS {self.rss_mb:.0f} MB ({self.rss_anon_mb:.0f} anonymous, "
+                f"{self.rss_file_mb:.0f} library file pages)")
 
     def lines(self, constrained: bool) -> list[str]:
         def mark(ok: bool) -> str:
@@ -112,7 +119,7 @@ class CaseReport:
         if not self.net:
             return head + [
                 f"  DISTANCE_SENSOR messages with a distance: {self.distance_messages}",
-                f"  CPU {self.cpu_percent:.0f} % of one core, RSS {self.rss_mb:.0f} MB",
+                f"  CPU {self.cpu_percent:.0f} % of one core, {self._memory()}",
                 f"  target: no distance without a net [{mark(self.distance_messages == 0)}]",
             ] + [f"  note: {n}" for n in self.notes]
         out = head + [
@@ -120,7 +127,7 @@ class CaseReport:
             f"{self.largest_gap_ms:.0f} ms",
             f"  capture -> MAVLink arrival: median {self.latency_ms_median:.1f} ms, p99 "
             f"{self.latency_ms_p99:.1f} ms",
-            f"  CPU {self.cpu_percent:.0f} % of one core, RSS {self.rss_mb:.0f} MB, budget "
+            f"  CPU {self.cpu_percent:.0f} % of one core, {self._memory()}, budget "
             f"levels {self.budget_levels or 'n/a'}",
             f"  first DISTANCE_SENSOR {self.startup_s:.2f} s after the first frame "
             f"({self.launch_s:.2f} s after the process started)",
@@ -183,6 +190,12 @@ class _Sample:
     t: float
     cpu_s: float
     rss_mb: float
+    # Of the RSS: anonymous memory (heap, frame buffers: what the daemon allocated) and file
+    # pages (the libraries' code and data, counted while they are mapped; how many depends on
+    # what the page cache held when they were touched, so the same code reads 14-43 MB of
+    # OpenCV's one library from run to run).
+    anon_mb: float = math.nan
+    file_mb: float = math.nan
 
 
 def _sample(pid: int) -> _Sample | None:
@@ -194,9 +207,13 @@ def _sample(pid: int) -> _Sample | None:
         return None
     fields = stat[stat.rindex(")") + 2:].split()
     cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    rss_kb = next((int(line.split()[1]) for line in status.splitlines()
-                   if line.startswith("VmRSS:")), 0)
-    return _Sample(time.monotonic(), cpu, rss_kb / 1024.0)
+    kb = {line.split(":")[0]: int(line.split()[1]) for line in status.splitlines()
+          if line.startswith(("VmRSS:", "RssAnon:", "RssFile:"))}
+
+    def mb(key: str) -> float:
+        return kb[key] / 1024.0 if key in kb else math.nan
+
+    return _Sample(time.monotonic(), cpu, mb("VmRSS"), mb("RssAnon"), mb("RssFile"))
 
 
 def run_case(case: SoakCase, video: Path, calibration: Path, duration_s: float,
@@ -298,6 +315,7 @@ def _report(case: SoakCase, how: str, duration_s: float, status: int,
     used = [s for s in samples if s.t >= start]
     cpu = (100.0 * (used[-1].cpu_s - used[0].cpu_s) / (used[-1].t - used[0].t)
            if len(used) > 1 else math.nan)
+    peak = max(used, key=lambda s: s.rss_mb, default=None)
     levels: dict[str, int] = {}
     for s in statuses:
         level = (s.get("estimator") or {}).get("budget_level")
@@ -312,7 +330,9 @@ def _report(case: SoakCase, how: str, duration_s: float, status: int,
         distance_rate_hz=(len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0,
         largest_gap_ms=float(gaps.max()),
         latency_ms_median=_percentile(latencies, 50), latency_ms_p99=_percentile(latencies, 99),
-        cpu_percent=cpu, rss_mb=max((s.rss_mb for s in used), default=math.nan),
+        cpu_percent=cpu, rss_mb=peak.rss_mb if peak else math.nan,
+        rss_anon_mb=peak.anon_mb if peak else math.nan,
+        rss_file_mb=peak.file_mb if peak else math.nan,
         budget_levels=levels,
     )
 
