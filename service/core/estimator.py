@@ -1236,16 +1236,14 @@ class NetEstimator:
         frame.count_fft(n, len(grid))
         normalised = _normalise_contrast_many(np.stack(patches, axis=-1), period_out)
         spectra = spectrum.analyse_many(normalised)
-        weak_peaks: list[Peaks | None] = [None] * len(grid)
+        found_peaks = [peaks for peaks, _, _ in spectra]
         if expected is not None:
             # The lattice is known roughly (the consensus of the previous pass): faint peaks
             # where it predicts them count too (looked up in all ROIs at once), and it may
             # explain a smaller share of the peaks (a board or a rope in the ROI adds its own).
-            weak_peaks = list(spectrum.peaks_near_many(
+            found_peaks = _merge_peaks_many(found_peaks, spectrum.peaks_near_many(
                 np.stack([snr for _, snr, _ in spectra]), _lattice_points(expected, order=2),
                 s.guided_snr))
-        found_peaks = [peaks if weak is None else _merge_peaks(peaks, weak)
-                       for (peaks, _, _), weak in zip(spectra, weak_peaks, strict=True)]
         fits = self._lattice.fit_many(found_peaks, expected, expected_share=0.3)
         out: list[_Roi] = []
         # Pixels -> output pixels at each ROI centre, for carrying its lattice back to pixels.
@@ -1729,26 +1727,35 @@ def _normalise_contrast_many(patches: Image, period: float) -> F32:
     return np.ascontiguousarray(detail.transpose(2, 0, 1), dtype=np.float32)
 
 
-def _merge_peaks(strong: Peaks, weak: Peaks) -> Peaks:
-    """Strong peaks plus the weak ones not already among them (within half a bin, either
-    sign)."""
-    if len(weak) == 0:
-        return strong
-    if len(strong) == 0:
-        return weak
-    # Squared distances against 0.5^2: this runs once per ROI and pass, where norm()'s
-    # overhead was most of the cost.
-    dx_plus = weak.k[:, None, 0] - strong.k[None, :, 0]
-    dy_plus = weak.k[:, None, 1] - strong.k[None, :, 1]
-    dx_minus = weak.k[:, None, 0] + strong.k[None, :, 0]
-    dy_minus = weak.k[:, None, 1] + strong.k[None, :, 1]
-    nearest = np.minimum(dx_plus * dx_plus + dy_plus * dy_plus,
-                         dx_minus * dx_minus + dy_minus * dy_minus).min(axis=1)
-    new = nearest > 0.25
-    if not new.any():
-        return strong
-    return Peaks(np.concatenate([strong.k, weak.k[new]]),
-                 np.concatenate([strong.snr, weak.snr[new]]))
+def _merge_peaks_many(strong: list[Peaks], weak: list[Peaks]) -> list[Peaks]:
+    """Each ROI's strong peaks plus its weak ones not already among them (within half a bin,
+    either sign). Every ROI's pairs are compared at once, by squared distance: per ROI, numpy's
+    overhead was most of the cost."""
+    counts_weak = [len(p) for p in weak]
+    if not any(counts_weak):
+        return list(strong)
+    counts_strong = [len(p) for p in strong]
+    wk = np.concatenate([p.k for p in weak])
+    new = np.ones(len(wk), dtype=bool)
+    if any(counts_strong):
+        sk = np.concatenate([p.k for p in strong])
+        rois = np.arange(len(strong))
+        same = np.repeat(rois, counts_weak)[:, None] == np.repeat(rois, counts_strong)[None, :]
+        dx_plus = wk[:, None, 0] - sk[None, :, 0]
+        dy_plus = wk[:, None, 1] - sk[None, :, 1]
+        dx_minus = wk[:, None, 0] + sk[None, :, 0]
+        dy_minus = wk[:, None, 1] + sk[None, :, 1]
+        d2 = np.minimum(dx_plus * dx_plus + dy_plus * dy_plus,
+                        dx_minus * dx_minus + dy_minus * dy_minus)
+        new = np.where(same, d2, np.inf).min(axis=1) > 0.25
+    out: list[Peaks] = []
+    start = 0
+    for s, w, count in zip(strong, weak, counts_weak, strict=True):
+        keep = new[start : start + count]
+        start += count
+        out.append(Peaks(np.concatenate([s.k, w.k[keep]]), np.concatenate([s.snr, w.snr[keep]]))
+                   if keep.any() else s)
+    return out
 
 
 def _aligned_many(bases: F64, ref: F64) -> F64:

@@ -133,6 +133,14 @@ def inverse_2x2(m: F64) -> F64:
     return np.array([[d / det, -b / det], [-c / det, a / det]])
 
 
+def _inverse_2x2_many(m: F64) -> F64:
+    """`inverse_2x2` of each matrix of a stack (n, 2, 2)."""
+    a, b, c, d = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    det = a * d - b * c
+    return np.stack([np.stack([d, -b], axis=1), np.stack([-c, a], axis=1)], axis=1) / det[
+        :, None, None]
+
+
 def _basis_observed(basis: F64, k: F64, tol: F64) -> bool:
     """Is k1 a peak, and is k2 (or k2 +- k1, for a rhombic mesh's weak cross term) one too?"""
 
@@ -279,8 +287,10 @@ class LatticeFinder:
         det = normal[:, 0, 0] * normal[:, 1, 1] - normal[:, 0, 1] * normal[:, 1, 0]
         ok &= np.abs(det) >= 1e-9
         bases = np.zeros((n, 2, 2))
-        for j in np.nonzero(ok)[0].tolist():
-            bases[j] = reduce_basis((inverse_2x2(normal[j]) @ moment[j]).T)
+        solvable = np.nonzero(ok)[0]
+        solved = _inverse_2x2_many(normal[solvable]) @ moment[solvable]
+        for j, b_t in zip(solvable.tolist(), solved, strict=True):
+            bases[j] = reduce_basis(b_t.T)
         # Inliers of each ROI's own fitted basis, and the fit's statistics.
         safe = np.where(ok[:, None, None], bases, np.eye(2))
         inv = np.linalg.inv(safe)
@@ -296,15 +306,19 @@ class LatticeFinder:
         ok &= (count >= 2) & (np.abs(gdet) >= 1e-9)
         sq = np.bincount(roi, resid2 * inl2, n)
         inlier_w = np.bincount(roi, w * inl2, n)
-        for j in np.nonzero(ok)[0].tolist():
+        # The relative area sigma of every ROI's fit at once: with C = (N^T N)^-1 sigma^2 the
+        # covariance of each row of B, var = sum over B^-1's columns b of b^T C b.
+        fitted = np.nonzero(ok)[0]
+        gram_inv = _inverse_2x2_many(gram[fitted])
+        basis_inv = _inverse_2x2_many(bases[fitted])
+        spread = np.einsum("jkr,jkl,jlr->j", basis_inv, gram_inv, basis_inv)
+        for j, spread_j in zip(fitted.tolist(), spread.tolist(), strict=True):
             m = int(count[j])
             dof = max(1, 2 * m - 4)
             rms = math.sqrt(float(sq[j]) / dof) if m > 2 else 0.0
             mean_snr = float(inlier_w[j]) / m
             sigma_bins = max(rms, 0.6 * math.exp(-0.5 * mean_snr), 0.05)
-            cov = inverse_2x2(gram[j]) * sigma_bins**2
-            binv = inverse_2x2(bases[j])
-            var = float(sum(binv[:, r] @ cov @ binv[:, r] for r in range(2)))
+            var = spread_j * sigma_bins**2
             out[usable[j]] = LatticeFit(
                 basis=bases[j],
                 inliers=m,
