@@ -249,16 +249,18 @@ class SpectrumAnalyzer:
         if near is None:
             return [Peaks(np.zeros((0, 2)), np.zeros(0)) for _ in range(snrs.shape[0])]
         found, centre, keep, flat, _ = near
-        out = []
-        for i in range(snrs.shape[0]):
-            sel = keep[i]
-            if not sel.any():
-                out.append(Peaks(np.zeros((0, 2)), np.zeros(0)))
-                continue
-            # Two points may land on the same bin: keep each peak once.
-            _, first = np.unique(flat[i][sel], return_index=True)
-            out.append(Peaks(found[i][sel][first].astype(np.float64), centre[i][sel][first]))
-        return out
+        n, _, cols_n = snrs.shape
+        # Two points may land on the same bin: keep each peak once, ordered by bin within its
+        # ROI (one np.unique over every ROI's (ROI, bin) key instead of one per ROI).
+        roi, point = np.nonzero(keep)
+        key = roi * (snrs.shape[1] * cols_n) + flat[roi, point]
+        _, first = np.unique(key, return_index=True)
+        roi, point = roi[first], point[first]
+        k_found = found[roi, point].astype(np.float64)
+        snr_found = centre[roi, point]
+        bounds = np.searchsorted(roi, np.arange(n + 1))
+        return [Peaks(k_found[bounds[i] : bounds[i + 1]], snr_found[bounds[i] : bounds[i + 1]])
+                for i in range(n)]
 
     def maxima_near(
         self, snrs: F32, k: npt.ArrayLike, min_snr: float
