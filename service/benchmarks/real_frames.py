@@ -24,6 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from service.benchmarks.real_stability import (
+    COPIES,
+    NOISE_GREY,
+    format_stability,
+    run_stability,
+)
 from service.core.camera import CameraModel, load_camera
 from service.core.estimator import NetEstimator
 from service.core.grey import decode_gray
@@ -235,7 +241,7 @@ def format_summary(s: RealSummary, label: str) -> list[str]:
     return lines
 
 
-def run(data_dir: Path | None, verbose: bool = True) -> int:
+def run(data_dir: Path | None, verbose: bool = True, copies: int = COPIES) -> int:
     import cv2
 
     cv2.setNumThreads(1)
@@ -262,5 +268,10 @@ def run(data_dir: Path | None, verbose: bool = True) -> int:
                            else "met" if met else "MISSED")
                 print(f"  target: {name}: {verdict}")
                 ok &= met is True
+    if copies > 0:
+        rows = run_stability(frames, copies, NOISE_GREY)
+        for line in format_stability(rows, copies, NOISE_GREY):
+            print(line)
+        ok &= all(r.stable for r in rows if r.judged)
     print("RESULT:", "all targets met" if ok else "some targets missed")
     return 0 if ok else 1

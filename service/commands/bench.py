@@ -45,6 +45,8 @@ def add_parser(subparsers: Any) -> None:
     real.add_argument("--data", type=Path, default=None,
                       help="the shared data folder holding real-field/ (default: shared/data "
                       "beside the checkout, or NETPOSE_SHARED_DATA)")
+    real.add_argument("--copies", type=int, default=10,
+                      help="noisy copies of each net frame for the stability figure (0: skip)")
     real.set_defaults(handler=_real)
 
     dmg = sub.add_parser("damage", help="net inspection: holes found and measured, false "
@@ -93,7 +95,7 @@ def _integrity(args: argparse.Namespace) -> int:
 def _real(args: argparse.Namespace) -> int:
     from service.benchmarks import real_frames
 
-    return real_frames.run(args.data)
+    return real_frames.run(args.data, copies=args.copies)
 
 
 def _damage(args: argparse.Namespace) -> int:
