@@ -67,3 +67,52 @@ def test_the_clear_real_net_frame_is_stable_under_sub_grey_level_noise() -> None
     row = frame_stability(frame, estimator, 4, 0.6, np.random.default_rng(3))
     assert row.valid == row.tries == 5
     assert row.stable and row.range_z < 1.0 and row.normal_z < 1.0
+
+
+def _noisy(gray: np.ndarray, seed: int) -> np.ndarray:
+    """The noisy copy the case below was found with (float64 noise, as the search drew it)."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(np.rint(np.clip(gray.astype(np.float32) + rng.normal(0.0, 0.6, gray.shape),
+                                      0, 255)), dtype=np.uint8)
+
+
+def _real_frame_estimator(name: str) -> tuple[np.ndarray, NetEstimator]:
+    from service.core.grey import decode_gray
+
+    frame = next(f for f in real_field_frames(REAL) if f.name == name)
+    gray, _ = decode_gray(frame.image.read_bytes())
+    return gray, NetEstimator(load_camera(frame.calibration), frame.mesh)
+
+
+# Open (docs/benchmarks.md, `netpose bench real`, stability): valid outputs of one real view,
+# under less than a grey level of noise, more than 3 sigma apart.
+# - Sequence frame 004, noise seed 82: five faint ROIs, two of them on a marker board whose ArUco
+#   grid repeats at 1.65 times the net's period, tilt the plane to 18 deg and give 0.599 +- 0.010
+#   m; seed 5 gives 0.781 +- 0.007 m at 9.5 deg (15 sigma apart). Found on numpy 2 / OpenCV 5;
+#   on bookworm's stack one of the two copies gives no distance (the xfail is not strict).
+# - The fouled-seam still, the bench's own copies: tilts 2.3-14.2 deg to opposite sides at
+#   claimed +-1.3-3.9 deg (the ROIs left out of the plane change with the noise).
+@pytest.mark.skipif(not (REAL / "real-field").is_dir(),
+                    reason=f"real-field not found under {REAL} (set NETPOSE_SHARED_DATA)")
+@pytest.mark.xfail(strict=False, reason="open: the sigma does not cover which ROIs were kept")
+@pytest.mark.parametrize(("name", "seeds"), [("2024-08-22_142905/004", (82, 5))])
+def test_two_noisy_copies_of_a_real_view_agree_within_their_sigmas(
+    name: str, seeds: tuple[int, int]
+) -> None:
+    gray, estimator = _real_frame_estimator(name)
+    estimates = [estimator.estimate(_noisy(gray, seed)) for seed in seeds]
+    assert all(e.detected for e in estimates)  # both give a distance: the case as found
+    range_z, normal_z = disagreement(estimates)
+    assert range_z <= 3.0 and normal_z <= 3.0
+
+
+@pytest.mark.skipif(not (REAL / "real-field").is_dir(),
+                    reason=f"real-field not found under {REAL} (set NETPOSE_SHARED_DATA)")
+@pytest.mark.xfail(strict=False, reason="open: the sigma does not cover which ROIs were kept")
+def test_the_fouled_seams_valid_outputs_agree_within_their_sigmas() -> None:
+    frame = next(f for f in real_field_frames(REAL) if f.name == "ni_fouled_seam")
+    estimator = NetEstimator(load_camera(frame.calibration), frame.mesh)
+    index = [f.name for f in real_field_frames(REAL) if f.kind in ("still", "sequence")].index(
+        "ni_fouled_seam")
+    row = frame_stability(frame, estimator, 10, 0.6, np.random.default_rng([1, index]))
+    assert row.valid >= 2 and row.stable
