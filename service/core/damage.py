@@ -840,10 +840,13 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
         gaps.append(np.asarray(strongest[..., third].mean(axis=2) - background,
                                dtype=np.float64))
         steps.append(np.abs(np.asarray(right - left, dtype=np.float64)))
-    whole = [_judged_against_neighbours(c, ok, step, min_snr)
-             for c, ok, step in zip(contrasts, (ok1, ok2), steps, strict=True)]
-    middle = [_judged_against_neighbours(c, ok, step, min_snr)
-              for c, ok, step in zip(gaps, (ok1, ok2), steps, strict=True)]
+    # Both families' bars, whole and middle thirds, judged as four channels of one stack: the
+    # arrays are a few hundred cells, so each filter call's overhead was most of the cost.
+    ref, sigma, usable = _judged_against_neighbours(
+        np.stack(contrasts + gaps, axis=-1), np.stack((ok1, ok2, ok1, ok2), axis=-1),
+        np.stack(steps + steps, axis=-1), min_snr)
+    whole = [(ref[..., i], sigma[..., i], usable[..., i]) for i in (0, 1)]
+    middle = [(ref[..., i], sigma[..., i], usable[..., i]) for i in (2, 3)]
     return _Bars(contrast=(contrasts[0], contrasts[1]), ref=(whole[0][0], whole[1][0]),
                  sigma=(whole[0][1], whole[1][1]), usable=(whole[0][2], whole[1][2]),
                  gap=(gaps[0], gaps[1]), gap_ref=(middle[0][0], middle[1][0]),
@@ -855,7 +858,8 @@ def _judged_against_neighbours(c: F64, ok: npt.NDArray[np.bool_], step: F64, min
                                ) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Bar contrasts `c` in units of their neighbours': the local reference (robust mean of
     the family within 3 cells), the uncertainty of a bar's contrast against it, and where the
-    neighbours stand out of the openings by `min_snr` times their spread."""
+    neighbours stand out of the openings by `min_snr` times their spread. Arrays of cells
+    (rows, columns), or stacks of them as channels (rows, columns, n) judged each on its own."""
     ref, spread = _local_level(c, ok, 7)
     # The background's step across the bar: where it lies between the two sides is unknown
     # (a fish's edge behind the net), so it blurs what the bar's contrast means.
@@ -928,7 +932,9 @@ def _box_sum(a: F64, size: int) -> F64:
 
 
 def _local_level(c: F64, ok: npt.NDArray[np.bool_], size: int) -> tuple[F64, F64]:
-    """Robust local mean and spread (1 sigma) of `c` over size x size windows of valid values.
+    """Robust local mean and spread (1 sigma) of `c` over size x size windows of valid values
+    (each channel of a stack (rows, columns, n) on its own: every step is per element or a box
+    filter, which OpenCV applies to each channel alike).
 
     Mean: a plain mean, then one without the values beyond 2.5 mean deviations (missing bars,
     a seam). Spread: from the differences between neighbouring bars (|a - b| / sqrt 2, trimmed
