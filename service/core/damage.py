@@ -833,8 +833,9 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
         k = np.where(flat.any(axis=2), np.argmax(flat, axis=2) + 1, half)
         signed = rows * sign[..., None, None]
         strongest = signed[..., half - 1 : half + 2].max(axis=3)  # (n2, n1, rows)
-        left = np.take_along_axis(signed.mean(axis=2), (half - k)[..., None], axis=2)[..., 0]
-        right = np.take_along_axis(signed.mean(axis=2), (half + k)[..., None], axis=2)[..., 0]
+        across = signed.mean(axis=2)  # the profile across the bar, along its middle half
+        left = np.take_along_axis(across, (half - k)[..., None], axis=2)[..., 0]
+        right = np.take_along_axis(across, (half + k)[..., None], axis=2)[..., 0]
         background = 0.5 * (left + right)
         contrasts.append(np.asarray(strongest.mean(axis=2) - background, dtype=np.float64))
         gaps.append(np.asarray(strongest[..., third].mean(axis=2) - background,
