@@ -93,22 +93,33 @@ class RealResult:
     cpu_ms: float
 
 
+class RealEstimators:
+    """The estimator of a real frame: one per calibration file and mesh, each calibration
+    loaded once."""
+
+    def __init__(self) -> None:
+        self._cameras: dict[Path, CameraModel] = {}
+        self._estimators: dict[tuple[Path, MeshGeometry], NetEstimator] = {}
+
+    def __call__(self, frame: RealFrame) -> NetEstimator:
+        key = (frame.calibration, frame.mesh)
+        if key not in self._estimators:
+            if frame.calibration not in self._cameras:
+                self._cameras[frame.calibration] = load_camera(frame.calibration)
+            self._estimators[key] = NetEstimator(self._cameras[frame.calibration], frame.mesh)
+        return self._estimators[key]
+
+
 def run_frames(frames: list[RealFrame], tracking: bool = False) -> Iterator[RealResult]:
     """Estimate every frame on its own (cold); with `tracking`, sequence frames get the previous
     detection as prior, as the daemon does."""
-    estimators: dict[tuple[Path, MeshGeometry], NetEstimator] = {}
-    cameras: dict[Path, CameraModel] = {}
+    estimator_for = RealEstimators()
     prior: NetEstimate | None = None
     for frame in frames:
-        if frame.calibration not in cameras:
-            cameras[frame.calibration] = load_camera(frame.calibration)
-        key = (frame.calibration, frame.mesh)
-        if key not in estimators:
-            estimators[key] = NetEstimator(cameras[frame.calibration], frame.mesh)
         gray, _ = decode_gray(frame.image.read_bytes())
         use_prior = prior if tracking and frame.kind == "sequence" else None
         t0 = time.thread_time()
-        est = estimators[key].estimate(gray, prior=use_prior)
+        est = estimator_for(frame).estimate(gray, prior=use_prior)
         cpu = (time.thread_time() - t0) * 1e3
         prior = est if est.detected else None
         yield RealResult(frame, est, cpu)
@@ -269,7 +280,7 @@ def run(data_dir: Path | None, verbose: bool = True, copies: int = COPIES) -> in
                 print(f"  target: {name}: {verdict}")
                 ok &= met is True
     if copies > 0:
-        rows = run_stability(frames, copies, NOISE_GREY)
+        rows = run_stability(frames, RealEstimators(), copies, NOISE_GREY)
         for line in format_stability(rows, copies, NOISE_GREY):
             print(line)
         ok &= all(r.stable for r in rows if r.judged)

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from service.core.camera import load_camera
 from service.core.estimator import NetEstimator
 from service.core.grey import decode_gray
 from service.core.results import NetEstimate
@@ -96,17 +95,15 @@ def frame_stability(frame: RealFrame, estimator: NetEstimator, copies: int, nois
                           range_z, normal_z)
 
 
-def run_stability(frames: list[RealFrame], copies: int = COPIES, noise_grey: float = NOISE_GREY,
-                  seed: int = 1) -> list[FrameStability]:
-    """Every real net frame (stills and sequence), each with its own seeded noise."""
-    estimators: dict[tuple[object, object], NetEstimator] = {}
+def run_stability(frames: list[RealFrame], estimator_for: Callable[[RealFrame], NetEstimator],
+                  copies: int = COPIES, noise_grey: float = NOISE_GREY, seed: int = 1
+                  ) -> list[FrameStability]:
+    """Every real net frame (stills and sequence), each with its own seeded noise, measured by
+    `estimator_for(frame)` (`real_frames.RealEstimators`)."""
     out = []
     for index, frame in enumerate(f for f in frames if f.kind in ("still", "sequence")):
-        key = (frame.calibration, frame.mesh)
-        if key not in estimators:
-            estimators[key] = NetEstimator(load_camera(frame.calibration), frame.mesh)
         rng = np.random.default_rng([seed, index])
-        out.append(frame_stability(frame, estimators[key], copies, noise_grey, rng))
+        out.append(frame_stability(frame, estimator_for(frame), copies, noise_grey, rng))
     return out
 
 
