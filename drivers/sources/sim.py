@@ -57,12 +57,12 @@ from drivers.sources.base import (
     SourceStats,
     wall_time_of,
 )
-from drivers.sources.synthetic import builtin_camera
+from drivers.sources.synthetic import rendered_camera
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
 from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from drivers.vehicle_pose import PoseFeedSettings, PoseSource, VehiclePoseFeed
-from service.core.camera import CameraModel, load_camera
-from service.core.errors import CalibrationError, ConfigError
+from service.core.camera import CameraModel
+from service.core.errors import ConfigError
 from service.core.mesh import MeshGeometry
 
 log = logging.getLogger(__name__)
@@ -196,7 +196,7 @@ class SimSource(FrameSource):
         super().__init__(url)
         parsed, self.scene, self._feed_settings = parse_sim_url(url)
         self._options = options or SourceOptions()
-        self._camera = self._make_camera(parsed)
+        self._camera = rendered_camera(parsed, (640, 360))
         self._feed: VehiclePoseFeed | None = None
         self._renderer: NetRenderer | None = None
         self._style = SceneStyle()
@@ -208,21 +208,6 @@ class SimSource(FrameSource):
         self._drops = 0
         self._rate = RateMeter()
         self._stale_since: float | None = None
-
-    @staticmethod
-    def _make_camera(parsed: SourceUrl) -> CameraModel:
-        width = parsed.integer("width", None, 64, 8192)
-        height = parsed.integer("height", None, 64, 8192)
-        if (width is None) != (height is None):
-            raise url_error(parsed.raw, "give both width and height, or neither")
-        calibration = parsed.options.get("calibration")
-        if calibration:
-            camera = load_camera(calibration)
-            return camera if width is None or height is None else camera.scaled_to(width, height)
-        try:
-            return builtin_camera(width or 640, height or 360)
-        except CalibrationError as exc:
-            raise url_error(parsed.raw, f"the built-in camera is 16:9 ({exc})") from None
 
     @property
     def rendered(self) -> bool:

@@ -74,6 +74,23 @@ def builtin_camera(width: int, height: int) -> CameraModel:
     return BUILTIN_CAMERA.scaled_to(width, height)
 
 
+def rendered_camera(parsed: SourceUrl, default_size: tuple[int, int]) -> CameraModel:
+    """The camera a rendering source's URL asks for: its calibration file (scaled to width and
+    height when they are given), else the built-in camera at that size or `default_size`."""
+    width = parsed.integer("width", None, 64, 8192)
+    height = parsed.integer("height", None, 64, 8192)
+    if (width is None) != (height is None):
+        raise url_error(parsed.raw, "give both width and height, or neither")
+    calibration = parsed.options.get("calibration")
+    if calibration:
+        camera = load_camera(calibration)  # CalibrationError names the file
+        return camera if width is None or height is None else camera.scaled_to(width, height)
+    try:
+        return builtin_camera(width or default_size[0], height or default_size[1])
+    except CalibrationError as exc:
+        raise url_error(parsed.raw, f"the built-in camera is 16:9 ({exc})") from None
+
+
 class Trajectory:
     """Pose of the net as a function of time, from the synthetic URL's options."""
 
@@ -130,25 +147,10 @@ class SyntheticSource(PacedSource):
             self.mesh = MeshGeometry(bar, angle)
         except ConfigError as exc:
             raise url_error(url, exc.problem) from None
-        self._camera = self._make_camera(parsed)
+        self._camera = rendered_camera(parsed, (960, 540))
         self._renderer: NetRenderer | None = None
         self._style: SceneStyle | None = None
         self._number = 0
-
-    @staticmethod
-    def _make_camera(parsed: SourceUrl) -> CameraModel:
-        width = parsed.integer("width", None, 64, 8192)
-        height = parsed.integer("height", None, 64, 8192)
-        if (width is None) != (height is None):
-            raise url_error(parsed.raw, "give both width and height, or neither")
-        calibration = parsed.options.get("calibration")
-        if calibration:
-            camera = load_camera(calibration)  # CalibrationError names the file
-            return camera if width is None or height is None else camera.scaled_to(width, height)
-        try:
-            return builtin_camera(width or 960, height or 540)
-        except CalibrationError as exc:
-            raise url_error(parsed.raw, f"the built-in camera is 16:9 ({exc})") from None
 
     @property
     def rendered(self) -> bool:
