@@ -114,21 +114,15 @@ class SpectrumAnalyzer:
         self._kernel = np.ones((3, 3), np.uint8)
 
     def index_of(self, k: npt.ArrayLike) -> tuple[int, int]:
-        """(row, column) of the bin nearest wave vector k (bins) in `log_power`'s array."""
+        """(row, column) of the bin nearest wave vector k (bins) in a spectrum of `analyse`."""
         kx, ky = (float(v) for v in np.asarray(k, dtype=np.float64).ravel()[:2])
         if kx < 0 or (kx == 0 and ky < 0):
             kx, ky = -kx, -ky  # the stored half plane holds k or its conjugate -k
         return round(ky) + self._row0, round(kx) + self._col0
 
-    def log_power(self, patch: F32) -> F32:
-        """Log power of the windowed, mean-free patch on the half plane kx >= -MARGIN.
-
-        Rows are ky + size/2, columns kx + MARGIN.
-        """
-        return self._log_power_many(patch[None])[0]
-
     def _log_power_many(self, patches: F32) -> F32:
-        """`log_power` of each patch of a stack (n, size, size): one stacked real FFT."""
+        """Log power of each windowed, mean-free patch of a stack (n, size, size) on the half
+        plane kx >= -MARGIN, one stacked real FFT: rows ky + size/2, columns kx + MARGIN."""
         import cv2
 
         p = patches.astype(np.float32, copy=False)
@@ -146,24 +140,6 @@ class SpectrumAnalyzer:
         flat = full.reshape(n * rows, cols + m)
         cv2.log(flat, flat)
         return full
-
-    def background(self, logp: F32) -> F32:
-        """Mean log power over a ring (11x11 box minus the 5x5 core) around each bin."""
-        return self._background_many(logp[None])[0]
-
-    @staticmethod
-    def _background_many(logp: F32) -> F32:
-        """`background` of a stack (n, rows, cols): OpenCV filters the ROIs as channels of one
-        image, one call for all of them."""
-        import cv2
-
-        channels = np.ascontiguousarray(logp.transpose(1, 2, 0))
-        outer = cv2.boxFilter(channels, -1, (11, 11), normalize=False,
-                              borderType=cv2.BORDER_REFLECT)
-        inner = cv2.boxFilter(channels, -1, (5, 5), normalize=False,
-                              borderType=cv2.BORDER_REFLECT)
-        ring = (outer - inner) * np.float32(1.0 / (121.0 - 25.0))
-        return np.asarray(ring.reshape(channels.shape).transpose(2, 0, 1), dtype=np.float32)
 
     def peaks(self, patch: F32) -> Peaks:
         return self.analyse(patch)[0]
@@ -196,13 +172,9 @@ class SpectrumAnalyzer:
 
         n = patches.shape[0]
         logp = self._log_power_many(np.asarray(patches, dtype=np.float32))
+        # The ROIs as channels of one image: OpenCV filters them all in one call.
         channels = np.ascontiguousarray(logp.transpose(1, 2, 0))
-        outer = cv2.boxFilter(channels, -1, (11, 11), normalize=False,
-                              borderType=cv2.BORDER_REFLECT)
-        inner = cv2.boxFilter(channels, -1, (5, 5), normalize=False,
-                              borderType=cv2.BORDER_REFLECT)
-        background = (outer - inner) * np.float32(1.0 / (121.0 - 25.0))
-        snr_cl = (channels - background.reshape(channels.shape)).reshape(channels.shape)
+        snr_cl = channels - _ring_mean(channels)
         local_max = channels >= cv2.dilate(channels, self._kernel).reshape(channels.shape)
         snr = np.ascontiguousarray(snr_cl.transpose(2, 0, 1))
         # Found in the channels' own layout (a transposed mask costs nonzero() a strided walk),
@@ -332,3 +304,16 @@ def _parabolic(left: npt.ArrayLike, centre: F64, right: npt.ArrayLike) -> F64:
     denom = lv - 2.0 * centre + rv
     safe = np.where(np.abs(denom) > 1e-12, denom, -1e-12)
     return np.clip(0.5 * (lv - rv) / safe, -0.5, 0.5)
+
+
+def _ring_mean(channels: F32) -> F32:
+    """Mean over a ring (11x11 box minus the 5x5 core) around each bin of an image of stacked
+    spectra (rows, cols, n), every channel alike: the local background a peak stands out of."""
+    import cv2
+
+    outer = cv2.boxFilter(channels, -1, (11, 11), normalize=False,
+                          borderType=cv2.BORDER_REFLECT)
+    inner = cv2.boxFilter(channels, -1, (5, 5), normalize=False,
+                          borderType=cv2.BORDER_REFLECT)
+    ring = (outer - inner) * np.float32(1.0 / (121.0 - 25.0))
+    return np.asarray(ring.reshape(channels.shape), dtype=np.float32)
