@@ -72,7 +72,9 @@ class RecorderError(DriverError):
     """A recording cannot be started (already running, no space, folder not writable)."""
 
 
-class RecordedFrame(Protocol):
+class ObservedFrame(Protocol):
+    """What an observer of the frame loop (the recorder, the web page) reads of a frame."""
+
     @property
     def image(self) -> npt.NDArray[Any]: ...
     @property
@@ -234,7 +236,7 @@ class Recorder(Closeable):
     def start(self) -> None:
         """Nothing runs until a recording is started."""
 
-    def observe(self, frame: RecordedFrame, result: object, message: EstimateMessage) -> None:
+    def observe(self, frame: ObservedFrame, result: object, message: EstimateMessage) -> None:
         session = self._session  # one read: the loop never takes the lock
         if session is None:
             return

@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 from aiohttp import BodyPartReader, WSCloseCode, WSMsgType, web
 
-from drivers.recorder import Recorder, RecorderError
+from drivers.recorder import ObservedFrame, Recorder, RecorderError
 from drivers.web.live import ClientSlots, LiveFeed, PlotHistory
 from drivers.web.security import TOKEN_HEADER, origin_allowed, token_ok
 from drivers.web.settings import WebSettings
@@ -53,17 +53,6 @@ PENDING_CALIBRATIONS = 4
 MAX_HOLES = 20  # confirmed holes listed on the page (newest first)
 
 R = TypeVar("R")
-
-
-class LiveFrame(Protocol):
-    @property
-    def image(self) -> npt.NDArray[Any]: ...
-    @property
-    def index(self) -> int: ...
-    @property
-    def t_monotonic(self) -> float: ...
-    @property
-    def t_wall(self) -> float: ...
 
 
 class SettingsBackend(Protocol):
@@ -144,7 +133,7 @@ class WebPage(Generic[R]):
         self._thread.start()
         self._started.wait(5.0)
 
-    def observe(self, frame: LiveFrame, result: R, message: EstimateMessage) -> None:
+    def observe(self, frame: ObservedFrame, result: R, message: EstimateMessage) -> None:
         self._feed.put_frame(frame, result, message)
 
     def observe_status(self, message: StatusMessage) -> None:
