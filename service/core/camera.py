@@ -182,17 +182,7 @@ def camera_from_ros_dict(doc: Mapping[str, Any], source: str = "calibration") ->
         ) else np.zeros(5)
         if dist.size == 0:
             dist = np.zeros(5)
-        return CameraModel(
-            width=width,
-            height=height,
-            fx=float(k[0, 0]),
-            fy=float(k[1, 1]),
-            cx=float(k[0, 2]),
-            cy=float(k[1, 2]),
-            skew=float(k[0, 1]),
-            distortion=tuple(float(v) for v in dist),
-            name=str(doc.get("camera_name", "camera")),
-        )
+        return _from_matrix(k, dist, width, height, str(doc.get("camera_name", "camera")))
     except CalibrationError as exc:
         raise CalibrationError(f"{source}: {exc}") from None
 
@@ -210,19 +200,26 @@ def _load_opencv_storage(path: Path) -> CameraModel:
         if w_node.empty() or h_node.empty():
             raise CalibrationError(f"{path}: missing key 'image_width'/'image_height'")
         dist = np.zeros(5) if d is None else np.asarray(d, dtype=np.float64).ravel()
-        return CameraModel(
-            width=int(w_node.real()),
-            height=int(h_node.real()),
-            fx=float(k[0, 0]),
-            fy=float(k[1, 1]),
-            cx=float(k[0, 2]),
-            cy=float(k[1, 2]),
-            skew=float(k[0, 1]),
-            distortion=tuple(float(v) for v in dist),
-            name=path.stem,
-        )
+        return _from_matrix(k, dist, int(w_node.real()), int(h_node.real()), path.stem)
     finally:
         fs.release()
+
+
+def _from_matrix(k: npt.NDArray[Any], dist: npt.NDArray[Any], width: int,
+                 height: int, name: str) -> CameraModel:
+    """The model of a camera matrix K and its distortion coefficients, as both file formats
+    store them."""
+    return CameraModel(
+        width=width,
+        height=height,
+        fx=float(k[0, 0]),
+        fy=float(k[1, 1]),
+        cx=float(k[0, 2]),
+        cy=float(k[1, 2]),
+        skew=float(k[0, 1]),
+        distortion=tuple(float(v) for v in dist),
+        name=name,
+    )
 
 
 def load_camera(path: str | Path) -> CameraModel:
