@@ -51,7 +51,13 @@ from service.core.errors import ConfigError, EstimatorInputError
 from service.core.grey import to_gray
 from service.core.lattice import LatticeFinder, LatticeFit, inverse_2x2, reduce_basis
 from service.core.mesh import MeshGeometry
-from service.core.plane import PlaneFit, axis_leverage, fit_plane, tilt_leverage
+from service.core.plane import (
+    CONSENSUS_TOLERANCE,
+    PlaneFit,
+    axis_leverage,
+    fit_plane,
+    tilt_leverage,
+)
 from service.core.plane_frame import rotation_to_z
 from service.core.results import Mat2, NetEstimate, RoiResult
 from service.core.spectrum import Peaks, SpectrumAnalyzer
@@ -240,6 +246,9 @@ class _Pass:
     plane: PlaneFit | None
     level: int
     note: str = ""
+    # The ROIs whose lattice is the consensus, before the plane chose among them (`agrees` is
+    # then the plane's choice): the ones it left out show the net too.
+    on_lattice: list[_Roi] = field(default_factory=list)
     # Computed once per pass for the proofs: the agreeing ROIs' mean whitened spectrum and
     # mean log power (by `power`), and the whitened mean's noise level and spread.
     means: dict[bool, tuple[F32, int] | None] = field(default_factory=dict)
@@ -1103,6 +1112,7 @@ class NetEstimator:
                 note = f"{sum(m.valid for m in rois)} of {len(rois)} ROIs show a lattice, " \
                        "no lattice shared by enough of them"
         plane = None
+        agreeing: list[_Roi] = []
         if consensus is not None:
             agreeing = [m for m in rois if m.agrees]
             if len(agreeing) >= s.min_rois:
@@ -1119,7 +1129,7 @@ class NetEstimator:
                     note = "ROI lattices agree but not on one plane"
             else:
                 note = f"only {len(agreeing)} ROIs share one lattice"
-        return _Pass(rois, rotation, size, period_out, consensus, plane, level, note)
+        return _Pass(rois, rotation, size, period_out, consensus, plane, level, note, agreeing)
 
     def _rect_maps(
         self, geoms: list[_Geometry], rotation: F64, distance_m: float, size: int,
@@ -1479,14 +1489,22 @@ class NetEstimator:
                              change[0] * range_m, deformation * range_m, _MODEL_FLOOR * range_m)
         sigma_n = math.hypot(plane.sigma_normal_deg * inflation, change[1], deformation_tilt,
                              0.2)
+        # The ROI on the optical axis measures the range there itself, whatever ROIs the plane
+        # kept: a plane that disagrees with it does not describe the net at the axis.
+        off_axis = _axis_disagreement(p, self.mesh.cell_area_m2, math.hypot(
+            sigma_r / range_m, _MODEL_FLOOR))
+        sigma_d = math.hypot(sigma_d, off_axis * d_new)
+        sigma_r = math.hypot(sigma_r, off_axis * range_m)
         too_uncertain = (sigma_r > s.max_sigma_range_fraction * range_m
                          or sigma_n > s.max_sigma_normal_deg)
         if too_uncertain or not settled:
             # Every proof passed: it is the net, at a range known only roughly. Said so (for
             # the pilot), never given as a distance.
             seen = confidence >= s.min_confidence
-            why = ("the ROIs that see the net do not span the view" if settled else
-                   "the passes do not settle on one plane")
+            why = ("the passes do not settle on one plane" if not settled else
+                   f"the net on the optical axis is {off_axis:.0%} off the plane of the ROIs "
+                   "around it" if off_axis > 0.0 else
+                   "the ROIs that see the net do not span the view")
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
                 rois_used=len(agreeing), level=p.level, measured_opening_deg=opening,
@@ -2016,6 +2034,44 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     tilt = math.degrees(math.sqrt(seen**2 * pinned
                                   + _UNSEEN_TILT**2 * max(0.0, pinned - whole)))
     return relative, tilt
+
+
+def _axis_disagreement(p: _Pass, cell_area_m2: float, plane_sigma: float) -> float:
+    """How far, relative to the range, the plane misses the range that the ROI on the optical
+    axis measures, when it clearly misses it (below); else 0.
+
+    A ROI's cell area at ray r says c = (a / A)^(1/3) = r . m, so with the plane's normal kept
+    the ROI alone puts the net at the plane's distance times (c_plane / c)^(3/2): on the axis,
+    the range itself, hardly dependent on the tilt. The plane is fitted to the ROIs that agree
+    with most others, and on a curved net (a real net billows, and bulges between its ropes)
+    the ROIs around the view can agree on a plane that the one in the middle contradicts: the
+    plane's range on the axis is then extrapolated from the sides, and its own sigma, made of
+    the residuals of the ROIs it kept, does not see that. The ROI covering the axis (its
+    rectified footprint holds the axis) is looked at whether the plane kept it or not; when it
+    disagrees beyond the noise of both, and beyond what the plane itself counts as agreeing
+    (`CONSENSUS_TOLERANCE` in c: a real net's cells differ a little from place to place), the
+    reported range is uncertain by that disagreement.
+    """
+    plane = p.plane
+    if plane is None or not p.on_lattice:
+        return 0.0
+    axis = p.rotation @ np.array([0.0, 0.0, 1.0])
+    # Each ROI's offset from the axis where the rays cross z = 1 (its footprint is a square).
+    offsets = [float(np.max(np.abs(m.ray[:2] / m.ray[2] - axis[:2] / axis[2])))
+               for m in p.on_lattice]
+    offset, nearest = min(zip(offsets, p.on_lattice, strict=True), key=lambda om: om[0])
+    half = 0.5 * p.size / p.period_out * math.sqrt(cell_area_m2) / plane.distance_m
+    if nearest.fit is None or offset > half:
+        return 0.0
+    m_plane = plane.normal_away / plane.distance_m ** (2.0 / 3.0)
+    c = math.cbrt(nearest.area_norm / cell_area_m2)
+    predicted = float(nearest.ray @ m_plane)
+    if c <= 0.0 or predicted <= 0.0:
+        return 0.0
+    miss = abs((predicted / c) ** 1.5 - 1.0)
+    own = 1.5 * math.hypot(nearest.fit.relative_area_sigma / 3.0, 0.002)
+    agreeing = (1.0 + CONSENSUS_TOLERANCE) ** 1.5 - 1.0
+    return miss if miss > max(3.0 * math.hypot(plane_sigma, own), agreeing) else 0.0
 
 
 def _overlap(rois: list[_Roi]) -> float:

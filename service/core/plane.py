@@ -32,6 +32,9 @@ Bools = npt.NDArray[np.bool_]
 # docstring): about what a fit with four residuals says about its own scatter. Larger trusts the
 # model more; zero is the residual-only scatter, which is undefined without residuals.
 PRIOR_DOF = 4.0
+# How far (relative, in c) a ROI may sit off a plane and still agree with it: real nets' cells
+# differ a little from place to place, so agreement is never judged tighter than this.
+CONSENSUS_TOLERANCE = 0.02
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,7 @@ def fit_plane(
     min_rois: int = 4,
     outlier_sigma: float = 3.5,
     min_relative_tolerance: float = 0.01,
-    consensus_tolerance: float = 0.02,
+    consensus_tolerance: float = CONSENSUS_TOLERANCE,
 ) -> PlaneFit | None:
     """Robust weighted plane fit; None when too few consistent ROIs or a degenerate layout."""
     if rays.shape[0] < min_rois:
