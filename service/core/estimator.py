@@ -56,6 +56,7 @@ from service.core.plane import (
     PlaneFit,
     axis_leverage,
     fit_plane,
+    relative_sigma_c,
     tilt_leverage,
 )
 from service.core.plane_frame import rotation_to_z
@@ -2017,13 +2018,11 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     assert p.plane is not None
     if not agreeing:
         return 0.0, 0.0
-    expected = [(m.fit.relative_area_sigma / 3.0) ** 2 + 0.002**2
+    expected = [float(relative_sigma_c(m.fit.relative_area_sigma)) ** 2
                 for m in agreeing if m.fit is not None]
     noise_rms2 = float(np.mean(expected)) if expected else 0.0
     seen = math.sqrt(max(0.0, p.plane.relative_rms**2 - noise_rms2))
-    # Each ROI covers a square of `size` rectified pixels; `period_out` of them are one mesh
-    # period, sqrt(cell area) / distance in the virtual camera's normalised units.
-    extent = p.size / p.period_out * math.sqrt(cell_area_m2) / p.plane.distance_m
+    extent = _footprint(p, cell_area_m2)
     rays = np.array([m.ray for m in agreeing])
     lever = axis_leverage(rays, p.rotation @ np.array([0.0, 0.0, 1.0]), extent)
     relative = math.sqrt(seen**2 * (1.0 + lever) + _UNSEEN_DEFORMATION**2 * lever)
@@ -2034,6 +2033,13 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     tilt = math.degrees(math.sqrt(seen**2 * pinned
                                   + _UNSEEN_TILT**2 * max(0.0, pinned - whole)))
     return relative, tilt
+
+
+def _footprint(p: _Pass, cell_area_m2: float) -> float:
+    """Side of a rectified ROI in the virtual camera's normalised units: `size` rectified
+    pixels, `period_out` of them one mesh period, sqrt(cell area) / distance."""
+    assert p.plane is not None
+    return p.size / p.period_out * math.sqrt(cell_area_m2) / p.plane.distance_m
 
 
 def _axis_disagreement(p: _Pass, cell_area_m2: float, plane_sigma: float) -> float:
@@ -2060,16 +2066,14 @@ def _axis_disagreement(p: _Pass, cell_area_m2: float, plane_sigma: float) -> flo
     offsets = [float(np.max(np.abs(m.ray[:2] / m.ray[2] - axis[:2] / axis[2])))
                for m in p.on_lattice]
     offset, nearest = min(zip(offsets, p.on_lattice, strict=True), key=lambda om: om[0])
-    half = 0.5 * p.size / p.period_out * math.sqrt(cell_area_m2) / plane.distance_m
-    if nearest.fit is None or offset > half:
+    if nearest.fit is None or offset > 0.5 * _footprint(p, cell_area_m2):
         return 0.0
-    m_plane = plane.normal_away / plane.distance_m ** (2.0 / 3.0)
     c = math.cbrt(nearest.area_norm / cell_area_m2)
-    predicted = float(nearest.ray @ m_plane)
+    predicted = plane.c_at(nearest.ray)
     if c <= 0.0 or predicted <= 0.0:
         return 0.0
     miss = abs((predicted / c) ** 1.5 - 1.0)
-    own = 1.5 * math.hypot(nearest.fit.relative_area_sigma / 3.0, 0.002)
+    own = 1.5 * float(relative_sigma_c(nearest.fit.relative_area_sigma))
     agreeing = (1.0 + CONSENSUS_TOLERANCE) ** 1.5 - 1.0
     return miss if miss > max(3.0 * math.hypot(plane_sigma, own), agreeing) else 0.0
 

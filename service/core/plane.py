@@ -37,6 +37,13 @@ PRIOR_DOF = 4.0
 CONSENSUS_TOLERANCE = 0.02
 
 
+def relative_sigma_c(relative_area_sigma: F64 | float) -> F64:
+    """Relative sigma of a ROI's c = (a / A)^(1/3): one third of its cell area's relative
+    sigma (c ~ a^(1/3)), with a model floor for net deformation and the perspective chirp inside
+    a ROI."""
+    return np.sqrt((np.asarray(relative_area_sigma, dtype=np.float64) / 3.0) ** 2 + 0.002**2)
+
+
 @dataclass(frozen=True)
 class PlaneFit:
     normal_away: F64  # unit normal, camera -> net
@@ -49,6 +56,10 @@ class PlaneFit:
     relative_rms: float  # rms of (c_fit - c) / c over used ROIs
     # Degrees of freedom of the pooled variance behind the sigmas: PRIOR_DOF + used ROIs - 3.
     sigma_dof: float = PRIOR_DOF
+
+    def c_at(self, ray: F64) -> float:
+        """The plane's c = r . m at a ray (m = n / d^(2/3)): what a ROI there should show."""
+        return float(ray @ self.normal_away) / self.distance_m ** (2.0 / 3.0)
 
 
 def fit_plane(
@@ -65,9 +76,7 @@ def fit_plane(
     if rays.shape[0] < min_rois:
         return None
     c = np.cbrt(cell_area_norm / mesh_cell_area_m2)
-    # sigma of c: one third of the relative area sigma (c ~ a^(1/3)), with a model floor for
-    # net deformation and the perspective chirp inside a ROI.
-    rel_sigma_c = np.sqrt((relative_area_sigma / 3.0) ** 2 + 0.002**2)
+    rel_sigma_c = relative_sigma_c(relative_area_sigma)
     # A ROI joins the consensus within 3 sigma of its own measurement, but never tighter than
     # `consensus_tolerance`: weak lattices (few cycles, faint peaks) are known less well.
     used = _consensus(rays, c, np.maximum(consensus_tolerance, 3.0 * rel_sigma_c))
