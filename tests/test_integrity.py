@@ -138,6 +138,45 @@ def test_a_range_that_drifted_from_the_proved_one_is_proved_again() -> None:
     assert sum(e.frames_since_scale_proof == 0 for e in estimates) >= 3
 
 
+def test_a_tracked_frame_keeps_the_priors_proof_of_twine_only_while_it_holds() -> None:
+    """A tracked frame spares itself the proofs its prior made (the scale check, the twine
+    profile) only while they hold: a proof of this age, at a range the net cannot have left by
+    a harmonic factor since. Shown on a 16 px checkerboard, which every proof-checking path
+    refuses, tracked from priors that claim a proof at the range its lattice (the squares'
+    diagonal) gives: only the prior whose proof holds is believed. Only a frame that passed the
+    proofs gives such a prior; a forged one shows where the proofs are carried and no further."""
+    from service.core.estimator import MAX_TRACKED_SCALE_STEP
+
+    renderer = NetRenderer(CAMERA_720P, SQUARE_25)
+    frame, _ = renderer.render(
+        NetPose(1.0, 0.0, 30.0, 10.0), np.random.default_rng(3),
+        SceneStyle(pattern="checkerboard", pattern_size_m=16.0 / CAMERA_720P.fx,
+                   grout_fraction=0.08))
+    estimator = NetEstimator(CAMERA_720P, SQUARE_25)
+    every = estimator.settings.scale_proof_frames
+    lattice_range = math.sqrt(2.0) * SQUARE_25.bar_length_m * CAMERA_720P.fx / 16.0
+
+    def tracked(proved_range: float, age_s: float | None, since_proof: int = 0) -> NetEstimate:
+        prior = NetEstimate(
+            detected=True, confidence=0.9, normal=(0.0, 0.0, -1.0), distance_m=lattice_range,
+            range_m=lattice_range, sigma_range_m=0.01 * lattice_range,
+            sigma_distance_m=0.01 * lattice_range, sigma_normal_deg=1.0,
+            scale_proved_range_m=proved_range, frames_since_scale_proof=since_proof)
+        return estimator.estimate(frame, prior=prior, prior_age_s=age_s)
+
+    held = tracked(lattice_range, 1.0 / 30.0)
+    assert held.detected and held.range_m == pytest.approx(lattice_range, rel=0.01)
+    not_held = [
+        tracked(lattice_range, None),  # an unknown time since the prior
+        tracked(lattice_range, 0.5),  # long enough to come nearer by a harmonic factor
+        tracked(lattice_range, 1.0 / 30.0, since_proof=every - 1),  # due for renewal
+        tracked(lattice_range * MAX_TRACKED_SCALE_STEP * 1.05, 1.0 / 30.0),  # drifted from it
+    ]
+    for est in not_held:
+        assert not est.detected and est.distance_m is None
+        assert "checkerboard" in est.reason, est.reason
+
+
 # -- grids that are not nets ----------------------------------------------------------------------
 
 

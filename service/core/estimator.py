@@ -261,6 +261,23 @@ _Converged = tuple[F64, float, tuple[F64, float] | None, tuple[float, float]]
 
 
 @dataclass(frozen=True)
+class _HeldProof:
+    """A tracked prior's proofs that its lattice is the net's at its true scale (the scale
+    check, the twine profile), carried to the next frame. They hold there at any range the net
+    cannot have reached by a harmonic factor: a sub-lattice or a checkerboard instead of the
+    proved net would have to appear at the prior's period and plane within one frame (the
+    tracked pass refuses any other, `_agrees` any other plane)."""
+
+    proved_range_m: float  # the range the proofs were made at
+    reach_m: float  # how far the net can have moved since the prior's frame
+
+    def holds_at(self, range_m: float) -> bool:
+        return (self.reach_m <= (1.0 - 1.0 / MAX_TRACKED_SCALE_STEP) * range_m
+                and abs(math.log(range_m / self.proved_range_m))
+                < math.log(MAX_TRACKED_SCALE_STEP))
+
+
+@dataclass(frozen=True)
 class _Budget:
     """What one work level may spend on a frame (docs/estimator.md, "Budget levels").
 
@@ -558,7 +575,8 @@ class NetEstimator:
             # that came closer shows harmonics at the old scale that no check can tell from it.
             tracked = self._refine(prior, current, layout, prior.level,
                                    self._prior_rois(prior, layout),
-                                   passes=current.budget.tracking_passes)
+                                   passes=current.budget.tracking_passes,
+                                   held=self._proof_may_hold(prior, prior_age_s))
             if tracked.detected and _agrees(tracked, prior):
                 if self._scale_still_proved(tracked, prior, prior_age_s):
                     result = replace(
@@ -637,6 +655,23 @@ class NetEstimator:
         period = side / math.sqrt(fit.det)
         return period, focal * math.sqrt(self.mesh.cell_area_m2) / period
 
+    def _proof_may_hold(
+        self, prior: NetEstimate, prior_age_s: float | None
+    ) -> _HeldProof | None:
+        """The prior's proofs of scale and of a net, while the next frame may keep them: the
+        proof is recent (renewed every `scale_proof_frames` frames) and the net cannot have
+        moved by a harmonic factor of its range since the prior's frame. None otherwise."""
+        s = self.settings
+        proved = prior.scale_proved_range_m
+        if prior_age_s is None or proved is None or prior.range_m is None:
+            return None
+        if not (math.isfinite(prior_age_s) and prior_age_s >= 0.0) or (
+            prior.frames_since_scale_proof + 1 >= s.scale_proof_frames
+        ):
+            return None
+        held = _HeldProof(proved, s.max_closing_speed_m_s * prior_age_s)
+        return held if held.holds_at(prior.range_m) else None
+
     def _scale_still_proved(
         self, tracked: NetEstimate, prior: NetEstimate, prior_age_s: float | None
     ) -> bool:
@@ -647,20 +682,9 @@ class NetEstimator:
         also follows a net that changes scale gradually; the proof is renewed every
         `scale_proof_frames` frames and once the range has drifted that step from the proved
         one, so the blind check still runs a few times a second."""
-        s = self.settings
-        proved = prior.scale_proved_range_m
-        if prior_age_s is None or proved is None or prior.range_m is None or (
-            tracked.range_m is None
-        ):
-            return False
-        if not (math.isfinite(prior_age_s) and prior_age_s >= 0.0) or (
-            prior.frames_since_scale_proof + 1 >= s.scale_proof_frames
-        ):
-            return False
-        reach = s.max_closing_speed_m_s * prior_age_s
-        if reach > (1.0 - 1.0 / MAX_TRACKED_SCALE_STEP) * min(prior.range_m, tracked.range_m):
-            return False
-        return abs(math.log(tracked.range_m / proved)) < math.log(MAX_TRACKED_SCALE_STEP)
+        held = self._proof_may_hold(prior, prior_age_s)
+        return held is not None and tracked.range_m is not None and held.holds_at(
+            tracked.range_m)
 
     def _blind_scale_agrees(
         self, result: NetEstimate, frame: _Frame, layout: _Layout
@@ -949,10 +973,12 @@ class NetEstimator:
         level: int,
         seed_rois: list[_Roi] | None = None,
         passes: int = 6,
+        held: _HeldProof | None = None,
     ) -> NetEstimate:
         """Rectified passes until one lands on the plane it was rectified with; then the checks
         that prove the scale and the net, and the verdict. `seed_rois` (the ROIs the seed came
-        from) guide the first pass."""
+        from) guide the first pass. `held` (a tracked prior's proofs) spares a pass those
+        checks while its range is one the proofs hold at."""
         assert seed.normal is not None and seed.distance_m is not None
         normal = np.asarray(seed.normal, dtype=np.float64)
         distance = float(seed.distance_m)
@@ -967,9 +993,9 @@ class NetEstimator:
         planed: _Pass | None = None  # the pass that gave the last of them
 
         def verdict(p: _Pass, converged: _Converged | None, failure: str,
-                    settled: bool = True) -> NetEstimate:
+                    settled: bool = True, proofs_held: bool = False) -> NetEstimate:
             t1 = time.perf_counter()
-            result = self._verdict(p, converged, layout, failure, settled, frame)
+            result = self._verdict(p, converged, layout, failure, settled, frame, proofs_held)
             frame.lap("proofs", t1)
             return result
 
@@ -1001,8 +1027,9 @@ class NetEstimator:
             n_new /= np.linalg.norm(n_new)
             d_new = p.plane.distance_m
             # Proof of scale: coarser-mesh lattice points must be empty in the averaged spectrum.
+            proofs_held = held is not None and held.holds_at(d_new / float(-n_new[2]))
             t1 = time.perf_counter()
-            factor = self._scale_check(p)
+            factor = None if proofs_held else self._scale_check(p)
             frame.lap("proofs", t1)
             if factor is not None:
                 if corrected >= 2:
@@ -1026,7 +1053,7 @@ class NetEstimator:
             # second order, so the pass measured the plane without the chirp already.
             rel_sigma, sigma_n = _plane_sigmas(p)
             if step[0] < max(0.05, 1.5 * rel_sigma) and step[1] < max(1.5, 1.5 * sigma_n):
-                return verdict(p, (n_new, d_new, previous, step), "")
+                return verdict(p, (n_new, d_new, previous, step), "", proofs_held=proofs_held)
             previous = (normal, distance)
             normal, distance = n_new, d_new
         assert last is not None
@@ -1433,12 +1460,15 @@ class NetEstimator:
         failure: str,
         settled: bool = True,
         frame: _Frame | None = None,
+        proofs_held: bool = False,
     ) -> NetEstimate:
         """The estimate from a pass. `converged` is the plane it settled on, or, when the
         passes went round without settling (`settled` false), the last plane with the spread
         of the last passes as its step: then the net is at most seen, never measured.
         `frame` (its full-resolution image) lets the verdict tell the video's own compression
-        blocks from a net."""
+        blocks from a net. `proofs_held`: the tracked prior's proof that this is twine holds
+        for this pass (`_HeldProof`); the mesh's shape and the blocks are checked anyway (the
+        blocks of a dark, smooth view can take over from a net that left it)."""
         s = self.settings
         rois = tuple(_roi_result(m, m.agrees) for m in p.rois)
         agreeing = [m for m in p.rois if m.agrees]
@@ -1452,7 +1482,7 @@ class NetEstimator:
             opening, shape = self._mesh_check(p)
             if not failure and shape:
                 failure = shape
-            if not failure:
+            if not failure and not proofs_held:
                 failure = self._profile_check(p)
             if not failure and frame is not None:
                 failure = _compression_grid(agreeing, frame.image(0))
