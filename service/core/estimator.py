@@ -49,7 +49,7 @@ import numpy.typing as npt
 from service.core.camera import CameraModel
 from service.core.errors import ConfigError, EstimatorInputError
 from service.core.grey import to_gray
-from service.core.lattice import LatticeFinder, LatticeFit, inverse_2x2, reduce_basis
+from service.core.lattice import LatticeFinder, LatticeFit, reduce_basis
 from service.core.mesh import MeshGeometry
 from service.core.plane import (
     CONSENSUS_TOLERANCE,
@@ -60,7 +60,7 @@ from service.core.plane import (
     tilt_leverage,
 )
 from service.core.plane_frame import rotation_to_z
-from service.core.results import Mat2, NetEstimate, RoiResult
+from service.core.results import NetEstimate, RoiResult
 from service.core.spectrum import Peaks, SpectrumAnalyzer
 
 F32 = npt.NDArray[np.float32]
@@ -231,8 +231,8 @@ class _Roi:
         ~2.8 in log power over the background; 6 is unmistakable)."""
         if self.fit is None:
             return 0.0
-        return float(self.fit.inlier_weight_fraction * np.clip(
-            (self.fit.mean_snr - 2.0) / 4.0, 0.1, 1.0))
+        clear = min(max((float(self.fit.mean_snr) - 2.0) / 4.0, 0.1), 1.0)
+        return float(self.fit.inlier_weight_fraction) * clear
 
 
 @dataclass
@@ -2048,9 +2048,9 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     assert p.plane is not None
     if not agreeing:
         return 0.0, 0.0
-    expected = [float(relative_sigma_c(m.fit.relative_area_sigma)) ** 2
-                for m in agreeing if m.fit is not None]
-    noise_rms2 = float(np.mean(expected)) if expected else 0.0
+    expected = relative_sigma_c(np.array([m.fit.relative_area_sigma for m in agreeing
+                                          if m.fit is not None])) ** 2
+    noise_rms2 = float(np.mean(expected)) if expected.size else 0.0
     seen = math.sqrt(max(0.0, p.plane.relative_rms**2 - noise_rms2))
     extent = _footprint(p, cell_area_m2)
     rays = np.array([m.ray for m in agreeing])
@@ -2155,25 +2155,24 @@ def _as_gray(frame: Image) -> Image:
     return arr
 
 
-def _mat2(m: F64) -> Mat2:
-    return ((float(m[0, 0]), float(m[0, 1])), (float(m[1, 0]), float(m[1, 1])))
-
-
 def _roi_result(m: _Roi, used: bool) -> RoiResult:
     size = round(m.footprint_px) if m.footprint_px > 0 else m.size * 2**m.level
     if m.fit is None or m.reciprocal_px is None:
         return RoiResult(center_px=m.geometry.center_full, size_px=size, level=m.level,
                          detected=False, peaks=m.peaks)
-    # Columns e1, e2 of the dual basis: e_i . k_j = delta_ij.
-    edges = inverse_2x2(m.reciprocal_px).T
+    # Columns e1, e2 of the dual basis: e_i . k_j = delta_ij, the inverse's rows (in floats:
+    # this runs for every ROI of every frame, and numpy's cost per call is the most of it).
+    (a, b), (c, d) = m.reciprocal_px.tolist()
+    det = a * d - b * c
+    e00, e01, e10, e11 = d / det, -c / det, -b / det, a / det  # edges[i, j]
     return RoiResult(
         center_px=m.geometry.center_full,
         size_px=size,
         level=m.level,
         detected=m.valid,
-        reciprocal=_mat2(m.reciprocal_px.T),
-        mesh_edges=_mat2(edges.T),
-        cell_area_px=abs(float(edges[0, 0] * edges[1, 1] - edges[0, 1] * edges[1, 0])),
+        reciprocal=((a, c), (b, d)),
+        mesh_edges=((e00, e10), (e01, e11)),
+        cell_area_px=abs(e00 * e11 - e01 * e10),
         snr_db=10.0 / math.log(10.0) * m.fit.mean_snr,
         inlier_fraction=m.fit.inlier_weight_fraction,
         peaks=m.peaks,
