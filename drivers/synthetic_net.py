@@ -124,6 +124,12 @@ class SceneStyle:
     # (fine texture around the twine), fouled patches that fill the cells; fouled twine is light.
     fouling: float = 0.0
     seams: int = 0  # seams: a mesh row of much thicker twine
+    # The net's own identity: with a seed, its fouling (thickness, fouled patches, pale growth)
+    # and its seams are drawn from it at the net's lattice coordinates, so they stay at their
+    # place on the net from frame to frame, as on a real net an ROV passes along. Without one
+    # they are drawn anew for every frame, over the view (the integrity benchmark's independent
+    # frames). The fine fuzz, ropes, boards, billows and fish are drawn per frame either way.
+    net_seed: int | None = None
     ropes: int = 0  # ropes lying on the net, at any angle
     boards: int = 0  # marker boards (dark panel, white fiducial) in front of the net
     # Net billowing: displacement along the normal, amplitude as a fraction of the distance, with
@@ -446,11 +452,20 @@ class NetRenderer:
         width = style.twine_fraction * L if style.twine_fraction > 0 else style.twine_width_m
         half: float | FloatMap = 0.5 * width / (L * math.sin(alpha))
         fouling = style.fouling if rng is not None else 0.0
+        seed = style.net_seed
+
+        def field(tag: int, cells: float, across_view: int) -> FloatMap:
+            """Smooth unit noise: fixed on the net (features of `cells` mesh cells) when the
+            net has a seed, else drawn for this frame (`across_view` features across it)."""
+            assert rng is not None
+            if seed is None:
+                return self._smooth_field(rng, across_view)
+            return _net_field(seed, tag, s1, s2, cells)
+
         if fouling > 0 and rng is not None:
             # Fouled twine: up to ~3x thicker, uneven along the bars (a smooth field over the
             # view plus a finer one), never closing the cells.
-            uneven = 0.5 + 0.5 * np.tanh(self._smooth_field(rng, 10)) + 0.35 * np.abs(
-                self._smooth_field(rng, 45))
+            uneven = 0.5 + 0.5 * np.tanh(field(1, 6.0, 10)) + 0.35 * np.abs(field(2, 1.5, 45))
             half = np.minimum(np.asarray(half) * (1.0 + 3.0 * fouling * uneven), 0.42)
         pulses1, pulses2 = _box_filtered_pulses(s1, half), _box_filtered_pulses(s2, half)
         if damage is not None:
@@ -468,11 +483,11 @@ class NetRenderer:
             hair = np.asarray(cv2.GaussianBlur(hair, (0, 0), 0.7), dtype=np.float64)
             cover = np.clip(cover + fouling * 1.4 * fuzz * (hair - 0.3), 0.0, 1.0)
             # Fouled patches: growth that fills the cells over part of the net.
-            patch = self._smooth_field(rng, 5)
+            patch = field(3, 10.0, 5)
             patch_mask = fouling * np.clip((patch - 0.3) / 0.6, 0.0, 1.0)
             cover = cover + patch_mask * (1.0 - cover) * (0.3 + 0.6 * hair)
             # Growth is pale (hydroids, algae): fouled twine turns lighter, unevenly.
-            colour_field = (1.0 + 0.25 * self._smooth_field(rng, 20)) * (
+            colour_field = (1.0 + 0.25 * field(4, 3.0, 20)) * (
                 1.0 + fouling * (0.75 / max(style.twine_level, 0.05) - 1.0) * 0.6)
         if style.seams > 0 and rng is not None:
             cover = np.maximum(cover, self._seams(s1, s2, style, rng))
@@ -492,10 +507,15 @@ class NetRenderer:
         """Seams: a mesh row (or column) sewn with much thicker twine."""
         h, w = s1.shape
         cover = np.zeros_like(s1)
+        # A net with a seed has its seams at fixed rows of its lattice (near its origin, where a
+        # pass starts); otherwise each frame draws them near the view's centre.
+        fixed = style.net_seed is not None
+        draw = rng if style.net_seed is None else np.random.default_rng([style.net_seed, 5])
         for _ in range(style.seams):
-            coord = s1 if rng.random() < 0.5 else s2
-            centre = math.floor(float(coord[h // 2, w // 2])) + int(rng.integers(-4, 5))
-            half = float(rng.uniform(0.06, 0.16)) * (1.0 + style.fouling)
+            coord = s1 if draw.random() < 0.5 else s2
+            base = 0 if fixed else math.floor(float(coord[h // 2, w // 2]))
+            centre = base + int(draw.integers(-4, 5))
+            half = float(draw.uniform(0.06, 0.16)) * (1.0 + style.fouling)
             gy, gx = np.gradient(coord)
             foot = np.maximum(np.abs(gx) + np.abs(gy), 1e-6)
             dist = np.abs(coord - centre)
@@ -646,6 +666,21 @@ class NetRenderer:
             if ok:
                 frame = np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
         return frame
+
+
+def _net_field(seed: int, tag: int, s1: FloatMap, s2: FloatMap, cells: float) -> FloatMap:
+    """A smooth random field fixed on the net: unit normal noise on a grid of one node per
+    `cells` mesh cells (64 x 64 nodes, repeating beyond), cubic between them, looked up at the
+    lattice coordinates (s1, s2). The same place of the net reads the same value in every frame,
+    from any pose."""
+    import cv2
+
+    nodes = 64
+    grid = np.random.default_rng([seed, tag]).standard_normal((nodes, nodes)).astype(np.float32)
+    mx = np.mod(s1 / cells, nodes).astype(np.float32)
+    my = np.mod(s2 / cells, nodes).astype(np.float32)
+    out = cv2.remap(grid, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_WRAP)
+    return np.asarray(out, dtype=np.float64)
 
 
 def _box_filtered_pulses(s: FloatMap, half_width: float | FloatMap) -> FloatMap:
