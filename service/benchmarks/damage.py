@@ -119,7 +119,10 @@ def draw_pass(seed: int, index: int, width: int = 1280, height: int = 720,
     alpha = math.radians(opening)
     s2 = dv / (bar * math.sin(alpha))
     drift = (du / bar - s2 * math.cos(alpha), s2)
-    style = SceneStyle.realistic(rng, net_present=True)
+    # One net per pass, its fouling and seams fixed on it (a real net keeps them while the ROV
+    # passes), drawn from its own seed so the pass's other draws are those of before.
+    net_seed = int(np.random.default_rng([seed, index, 0x4E]).integers(2**31))
+    style = SceneStyle.realistic(rng, net_present=True, net_seed=net_seed)
     damaged = bool(index % 2) if damaged is None else damaged
     holes: tuple[Hole, ...] = ()
     if damaged:
