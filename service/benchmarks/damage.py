@@ -55,7 +55,11 @@ from service.pipeline import Pipeline
 
 Gray = npt.NDArray[np.uint8]
 
-FRAMES_PER_PASS = 12
+# Inspected frames per pass, 10 a second: 3.6 s along the net. A place of a real net stays in
+# a forward camera's view for 4-17 s at 0.1-0.4 m/s (a view 1.7 m wide at 1 m), and a hole is
+# confirmed by being found again where it was; passes of 12 frames (1.2 s, before 2026-11-26)
+# left a candidate too few looks to be confirmed or rejected (docs/inspection.md).
+FRAMES_PER_PASS = 36
 FRAME_DT_S = 0.1
 # Frames before the pass is scored: the ROV has been following the net already (the filter
 # needs a few accepted measurements before its track is valid).
@@ -104,7 +108,7 @@ class PassCase:
 
 
 def draw_pass(seed: int, index: int, width: int = 1280, height: int = 720,
-              damaged: bool | None = None) -> PassCase:
+              damaged: bool | None = None, frames: int = FRAMES_PER_PASS) -> PassCase:
     rng = np.random.default_rng([seed, index, 0xDA])
     camera = bench_camera(width, height)
     bar = float(rng.uniform(0.015, 0.03))
@@ -126,8 +130,8 @@ def draw_pass(seed: int, index: int, width: int = 1280, height: int = 720,
     damaged = bool(index % 2) if damaged is None else damaged
     holes: tuple[Hole, ...] = ()
     if damaged:
-        middle = replace(pose, phase=(pose.phase[0] + drift[0] * FRAME_DT_S * FRAMES_PER_PASS / 2,
-                                      pose.phase[1] + drift[1] * FRAME_DT_S * FRAMES_PER_PASS / 2))
+        middle = replace(pose, phase=(pose.phase[0] + drift[0] * FRAME_DT_S * frames / 2,
+                                      pose.phase[1] + drift[1] * FRAME_DT_S * frames / 2))
         for _ in range(20):
             pixel = (float(rng.uniform(0.2, 0.8) * width), float(rng.uniform(0.2, 0.8) * height))
             cell = cell_at_pixel(camera, middle, mesh, pixel)
@@ -135,7 +139,7 @@ def draw_pass(seed: int, index: int, width: int = 1280, height: int = 720,
                 kind = str(rng.choice(["cut_bar", "missing_knot", "torn"], p=[0.3, 0.2, 0.5]))
                 holes = (random_hole(rng, cell, int(rng.integers(2, 11)), kind),)
                 break
-    return PassCase(seed, index, camera, mesh, pose, drift, style, holes)
+    return PassCase(seed, index, camera, mesh, pose, drift, style, holes, frames)
 
 
 @dataclass
@@ -341,6 +345,7 @@ class BenchSpec:
     width: int = 1280
     height: int = 720
     keep_misses: bool = False
+    frames: int = FRAMES_PER_PASS
 
 
 def _run_chunk(args: tuple[BenchSpec, list[int]]) -> list[PassResult]:
@@ -352,7 +357,7 @@ def _run_chunk(args: tuple[BenchSpec, list[int]]) -> list[PassResult]:
     base = NetRenderer(bench_camera(spec.width, spec.height), MeshGeometry(0.02))
     out = []
     for index in indices:
-        case = draw_pass(spec.seed, index, spec.width, spec.height)
+        case = draw_pass(spec.seed, index, spec.width, spec.height, frames=spec.frames)
         renderer = copy.copy(base)
         renderer.mesh = case.mesh
         out.append(run_pass(case, renderer, settings, spec.keep_misses))
@@ -646,10 +651,10 @@ def write_misses(results: list[PassResult], path: Path, limit: int = 24) -> int:
 
 
 def run(passes: int, seed: int, jobs: int, out: Path | None, width: int = 1280,
-        height: int = 720, real: bool = True) -> int:
+        height: int = 720, real: bool = True, frames: int = FRAMES_PER_PASS) -> int:
     jobs = jobs or min(2, os.cpu_count() or 1)
-    spec = BenchSpec(passes, seed, width, height, keep_misses=out is not None)
-    print(f"netpose bench damage: {passes} passes of {FRAMES_PER_PASS} frames ({width}x{height}),"
+    spec = BenchSpec(passes, seed, width, height, keep_misses=out is not None, frames=frames)
+    print(f"netpose bench damage: {passes} passes of {frames} frames ({width}x{height}),"
           f" seed {seed}, {jobs} worker processes")
     start = time.monotonic()
     done = [0]

@@ -4,6 +4,7 @@ by."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +58,8 @@ def add_parser(subparsers: Any) -> None:
     dmg.add_argument("--jobs", type=int, default=0,
                      help="worker processes (default: up to 2, the machine's cores)")
     dmg.add_argument("--size", default="1280x720", help="frame size (default 1280x720)")
+    dmg.add_argument("--frames", type=int, default=None,
+                     help="inspected frames per pass, 10 a second (default 36)")
     dmg.add_argument("--out", type=Path, default=Path("bench/out"),
                      help="folder for damage-misses.png (default bench/out)")
     dmg.add_argument("--no-real", action="store_true", help="skip the real frames")
@@ -102,8 +105,12 @@ def _damage(args: argparse.Namespace) -> int:
     from service.benchmarks import damage
 
     width, _, height = args.size.partition("x")
+    frames = damage.FRAMES_PER_PASS if args.frames is None else args.frames
+    if frames < 1:
+        print("netpose bench damage: --frames must be at least 1", file=sys.stderr)
+        return 2
     return damage.run(args.passes, args.seed, args.jobs, args.out, width=int(width),
-                      height=int(height), real=not args.no_real)
+                      height=int(height), real=not args.no_real, frames=frames)
 
 
 def _soak(args: argparse.Namespace) -> int:
