@@ -100,6 +100,11 @@ class DamageSettings:
     hole_sigmas: float = 5.0
     # The bars around a hole: at least this share of them intact (ratio >= 0.6).
     min_ring_intact: float = 0.85
+    # ... and at full strength together: their median contrast at least this share of their
+    # neighbours'. A cut leaves the bars beside it whole; a patch of fouling fades out over
+    # cells, so the bars around its dimmest part are dimmed too (median 0.5-0.8 on the
+    # benchmark's patches, 0.83-1.3 around its holes).
+    min_ring_ratio: float = 0.8
     # A hole merges at most this many cells and is at most this long (cells, either way).
     max_cells: int = 16
     max_extent_cells: int = 7
@@ -141,6 +146,8 @@ class DamageSettings:
             raise bad("max_view_angle_deg", "must be 20..80 deg")
         if not 0.0 < self.missing_ratio < 0.6:
             raise bad("missing_ratio", "must be between 0 and 0.6")
+        if not 0.0 <= self.min_ring_ratio < 1.0:
+            raise bad("min_ring_ratio", "must be in [0, 1)")
         if not 0.0 < self.max_cost_fraction <= 1.0:
             raise bad("max_cost_fraction", "must be in (0, 1]")
         if self.every_n_frames < 0:
@@ -614,6 +621,10 @@ class DamageDetector:
         intact = 1.0 - len(broken) / max(len(ring), 1)
         if intact < st.min_ring_intact:
             return f"the bars around it are not intact ({intact:.0%})"
+        ring_ratio = float(np.median([bars.ratio(*b) for b in sorted(ring)]))
+        if ring_ratio < st.min_ring_ratio:
+            return f"the bars around it are dimmed ({ring_ratio:.2f} of their neighbours'): " \
+                "fouling fading out, not a cut"
         # One cell further out: no bar missing there either (a streak of light or a rope
         # crossing parallel bars leaves a row of them; a hole is alone).
         near = {(i + di, j + dj) for i, j in cells for di in (-1, 0, 1) for dj in (-1, 0, 1)}
@@ -651,7 +662,8 @@ class DamageDetector:
         worst = float(min(bars.ratio(*b) for b in sorted(ring | outer)))
         gone_ratio = float(max(bars.ratio(*b) for b in gone))
         return _HoleStats(missing_bars=len(gone), significance=sig, ring_intact=intact,
-                          opening_difference=diff, around_ratio=around_ratio,
+                          ring_ratio=ring_ratio, opening_difference=diff,
+                          around_ratio=around_ratio,
                           worst_around=worst, gone_ratio=gone_ratio)
 
     def _candidate(self, gray: Image, cam: CameraModel, lat: _Lattice, net: NetFrame,
@@ -690,6 +702,7 @@ class _HoleStats:
     missing_bars: int
     significance: float
     ring_intact: float
+    ring_ratio: float = 1.0
     opening_difference: float = 0.0
     around_ratio: float = 1.0
     worst_around: float = 1.0
