@@ -335,6 +335,17 @@ def test_confirmation_settings_are_checked(hits: int, looks: int, key: str) -> N
     assert info.value.key == key
 
 
+@pytest.mark.parametrize("ratio", [-0.1, 1.0, 1.5])
+def test_the_rings_strength_setting_is_checked(ratio: float) -> None:
+    """A ring at full strength reads about 1 of its neighbours: a limit of 1 or more would
+    refuse every hole, a negative one is a typing error."""
+    from service.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        DamageSettings(min_ring_ratio=ratio)
+    assert info.value.key == "damage.min_ring_ratio"
+
+
 def test_inspection_runs_only_while_tracking_and_within_its_budget(
         renderer: NetRenderer, estimator: NetEstimator) -> None:
     pose = NetPose(1.0, 10.0, 0.0, 10.0)
