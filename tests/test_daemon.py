@@ -250,9 +250,12 @@ def test_unreachable_outputs_do_not_stall_the_loop(caplog: pytest.LogCaptureFixt
     caplog.set_level(logging.INFO, logger="netpose.daemon")
     assert daemon.run(duration_s=3.0) == 0
     # 5 frames/s for 3 s: the loop took (nearly) every frame the camera produced; none went
-    # stale waiting for an output.
+    # stale waiting for an output. An output that blocked the loop would cost a TCP connect or
+    # a Zenoh open (a second or more: five frames or more each time); a busy CI machine can
+    # delay the loop by one or two frame periods (two drops seen once, on bookworm's stack
+    # beside other jobs).
     assert daemon.stats.frames >= 0.8 * 5 * 3, daemon.stats.frames
-    assert source.stats().drops <= 1, source.stats()
+    assert source.stats().drops <= 2, source.stats()
     assert "MAVLink link waiting" in caplog.text
     assert not parts.telemetry.online
     assert math.isfinite(daemon.stats.latency_since(-math.inf).p99_ms or math.nan)
