@@ -110,8 +110,8 @@ def test_a_fouled_patch_that_dims_the_bars_around_it_is_not_a_hole() -> None:
     case = damage.draw_pass(1, 76)
     assert not case.holes and case.style.fouling > 0.2 and case.style.net_seed is not None
     k = 13
-    rng = np.random.default_rng([case.seed, case.index, k + damage.WARM_UP_FRAMES, 0x5E])
-    image, _ = NetRenderer(case.camera, case.mesh).render(case.pose_at(k), rng, case.style)
+    image, _ = NetRenderer(case.camera, case.mesh).render(case.pose_at(k), case.frame_rng(k),
+                                                          case.style)
     estimate = NetEstimator(case.camera, case.mesh).estimate(image)
     assert estimate.detected, estimate.reason
     patch = (973.0, 240.0)  # where the benchmark confirmed it

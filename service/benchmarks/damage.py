@@ -106,6 +106,10 @@ class PassCase:
         return replace(self.pose, phase=(self.pose.phase[0] + self.drift[0] * t,
                                          self.pose.phase[1] + self.drift[1] * t))
 
+    def frame_rng(self, k: int) -> np.random.Generator:
+        """The noise of frame k; the same for the damaged and the intact render of a frame."""
+        return np.random.default_rng([self.seed, self.index, k + WARM_UP_FRAMES, 0x5E])
+
 
 def draw_pass(seed: int, index: int, width: int = 1280, height: int = 720,
               damaged: bool | None = None, frames: int = FRAMES_PER_PASS) -> PassCase:
@@ -207,15 +211,13 @@ def run_pass(case: PassCase, renderer: NetRenderer, settings: DamageSettings,
     cnrs: list[list[float]] = [[] for _ in case.holes]
     for k in range(-WARM_UP_FRAMES, case.frames):
         pose = case.pose_at(k)
-        rng = np.random.default_rng([case.seed, case.index, k + WARM_UP_FRAMES, 0x5E])
-        image, truth = renderer.render(pose, rng, case.style, damage=damage)
+        image, truth = renderer.render(pose, case.frame_rng(k), case.style, damage=damage)
         res = pipeline.process(image, (k + WARM_UP_FRAMES) * FRAME_DT_S, k)
         if k < 0:
             continue
         intact = None
         if case.holes:
-            rng = np.random.default_rng([case.seed, case.index, k + WARM_UP_FRAMES, 0x5E])
-            intact, _ = renderer.render(pose, rng, case.style)
+            intact, _ = renderer.render(pose, case.frame_rng(k), case.style)
         rep = res.damage
         inspect_ms = rep.inspect_ms if rep is not None else 0.0
         scan = rep.scan if rep is not None else None
