@@ -1257,22 +1257,23 @@ class NetEstimator:
             return []
         maps = self._rect_maps(grid, rotation, distance_m, size, period_out)
         levels: list[int] = []
-        patches: list[Image] = []
-        for full, _, step, _, _ in maps:
+        # Warped straight into one stack (the source's type: 8 or 16 bit, or float).
+        patches = np.empty((len(maps), n, n), dtype=frame.image(0).dtype)
+        for (full, _, step, _, _), patch in zip(maps, patches, strict=True):
             level = min(max(math.floor(math.log2(max(step, 1.0))), 0), s.levels - 1)
             scale = 2**level
             to_level = np.array(
                 [[1 / scale, 0, -(scale - 1) / (2 * scale)],
                  [0, 1 / scale, -(scale - 1) / (2 * scale)], [0, 0, 1]]
             )
-            patches.append(cv2.warpPerspective(
-                frame.image(level), to_level @ full, (n, n),
+            cv2.warpPerspective(
+                frame.image(level), to_level @ full, (n, n), dst=patch,
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
-            ))
+            )
             levels.append(level)
         spectrum = self._spectra[n]
         frame.count_fft(n, len(grid))
-        normalised = _normalise_contrast_many(np.stack(patches, axis=-1), period_out)
+        normalised = _normalise_contrast_many(patches, period_out)
         spectra = spectrum.analyse_many(normalised)
         found_peaks = [peaks for peaks, _, _ in spectra]
         if expected is not None:
@@ -1741,9 +1742,9 @@ def _consensus(rois: list[_Roi], tolerance: float) -> F64 | None:
 
 
 def _normalise_contrast_many(patches: Image, period: float) -> F32:
-    """Local contrast normalisation of ROIs stacked as channels (rows, cols, n): each patch minus
-    its local mean, over its local standard deviation (box windows of about one and two mesh
-    periods); returned as a stack (n, rows, cols).
+    """Local contrast normalisation of a stack of ROIs (n, rows, cols): each patch minus its
+    local mean, over its local standard deviation (box windows of about one and two mesh
+    periods).
 
     Real views put high-contrast things beside a faint net: marker boards with white fiducials,
     ropes, fish. Their edges would dominate the spectrum by sheer amplitude; normalised, every
@@ -1752,28 +1753,28 @@ def _normalise_contrast_many(patches: Image, period: float) -> F32:
     """
     import cv2
 
-    stack = np.asarray(patches, dtype=np.float32)
-    shape = stack.shape
+    detail = np.array(patches, dtype=np.float32)  # a copy: normalised in place
     # Box filters of about one and two periods (cheaper than Gaussians, and just as smooth on
-    # the scale of the ROI's spectral resolution). OpenCV filters every channel alike.
+    # the scale of the ROI's spectral resolution), one patch at a time: each patch and its
+    # scratch stay in the cache, and the stack needs no channel-last copy for OpenCV.
     k1 = max(3, int(round(1.6 * period)) | 1)
     k2 = max(3, int(round(3.2 * period)) | 1)
-    mean = cv2.blur(stack, (k1, k1), borderType=cv2.BORDER_REFLECT).reshape(shape)
-    # In place from here on: each temporary of this size is a megabyte the kernel must map
-    # and clear, which costs about what the arithmetic does.
-    detail = stack if stack is not patches else stack.copy()
-    np.subtract(detail, mean, out=detail)
-    np.multiply(detail, detail, out=mean)
-    var = cv2.blur(mean, (k2, k2), borderType=cv2.BORDER_REFLECT).reshape(shape)
+    var = np.empty_like(detail)
+    work = np.empty_like(detail[0])
+    for d, v in zip(detail, var, strict=True):
+        cv2.blur(d, (k1, k1), dst=work, borderType=cv2.BORDER_REFLECT)
+        np.subtract(d, work, out=d)
+        np.multiply(d, d, out=work)
+        cv2.blur(work, (k2, k2), dst=v, borderType=cv2.BORDER_REFLECT)
     # The floor is a regulariser: the median of every fourth row and column of the (box-
     # smoothed, so slowly varying) variance is as good, and a full median of every ROI's
     # pixels was the costliest step of the rectified pass.
-    median = np.median(np.ascontiguousarray(var[::4, ::4]).reshape(-1, shape[2]), axis=0)
+    median = np.median(var[:, ::4, ::4].reshape(var.shape[0], -1), axis=1)
     floor = (1e-3 + 0.1 * median.astype(np.float64)).astype(np.float32)
-    np.add(var, floor, out=var)
+    np.add(var, floor[:, None, None], out=var)
     np.sqrt(var, out=var)
     np.divide(detail, var, out=detail)
-    return np.ascontiguousarray(detail.transpose(2, 0, 1), dtype=np.float32)
+    return detail
 
 
 def _merge_peaks_many(strong: list[Peaks], weak: list[Peaks]) -> list[Peaks]:
