@@ -440,6 +440,21 @@ def test_the_detector_keeps_a_bounded_set_of_dct_matrices() -> None:
     assert np.array_equal(detector._dct(5), _dct_matrix(5))
 
 
+def test_a_cell_is_inspected_only_where_all_its_samples_are_valid() -> None:
+    """One invalid sample (outside the frame, another pyramid level's border) takes its whole
+    cell out of the judgement, and only that cell."""
+    from service.core.damage import _cells_valid
+
+    n2, n1, s = 5, 7, 4
+    valid = np.ones((n2 * s, n1 * s), dtype=bool)
+    assert _cells_valid(valid, n1, n2, s).all()
+    valid[2 * s + 3, 4 * s] = False  # the last row, first column of cell (i=4, j=2)
+    valid[0, n1 * s - 1] = False  # the first row, last column of cell (i=6, j=0)
+    cells = _cells_valid(valid, n1, n2, s)
+    assert cells.shape == (n2, n1)
+    assert sorted(zip(*np.nonzero(~cells), strict=True)) == [(0, 6), (2, 4)]
+
+
 def test_the_phase_unwrapping_dct_is_scipys_orthonormal_dct() -> None:
     """The phase is unwrapped with a DCT written as matrix products (no scipy in the frame
     loop): it must be scipy's orthonormal 2D DCT-II and its inverse, to rounding."""
