@@ -1142,10 +1142,8 @@ def _consensus(bases: list[F64], weights: list[float]) -> F64 | None:
     order = sorted(range(len(bases)), key=lambda k: -weights[k])[:5]
     # The votes for every reference at once: one evaluation of the stacks costs what one
     # reference at a time did.
-    cands = _candidate_vectors(stack)
     refs = stack[order]  # (r, 2, 2)
-    dist = np.linalg.norm(cands[None, :, :, None, :] - refs.transpose(0, 2, 1)[:, None, None],
-                          axis=4)  # (r, k, 8, 2)
+    dist = _distances_to_columns(_candidate_vectors(stack), refs)  # (r, k, 8, 2)
     same = (dist.min(axis=2) <= ALIGN_TOLERANCE * np.linalg.norm(refs, axis=1)[:, None, :])
     votes = same.all(axis=2).sum(axis=1)
     best = order[int(np.argmax(votes))]
@@ -1161,13 +1159,21 @@ def _candidate_vectors(bases: F64) -> F64:
     return np.stack([a, -a, b, -b, a + b, -a - b, a - b, b - a], axis=1)
 
 
+def _distances_to_columns(cands: F64, refs: F64) -> F64:
+    """(r, k, 8, 2): how far each candidate vector (k, 8, 2) lies from each column of each
+    reference basis (r, 2, 2)."""
+    return np.asarray(np.linalg.norm(
+        cands[None, :, :, None, :] - refs.transpose(0, 2, 1)[:, None, None], axis=4),
+        dtype=np.float64)
+
+
 def _aligned_all(bases: F64, ref: F64, tol: float = ALIGN_TOLERANCE
                  ) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Each basis of `bases` (k, 2, 2; columns) rewritten as the vectors closest to ref's
     columns (among +-a, +-b, +-(a +- b)), and whether it is the same lattice as `ref` within
     `tol` (relative)."""
     cands = _candidate_vectors(bases)
-    dist = np.linalg.norm(cands[:, :, None, :] - ref.T[None, None, :, :], axis=3)  # (k, 8, 2)
+    dist = _distances_to_columns(cands, ref[None])[0]  # (k, 8, 2)
     pick = np.argmin(dist, axis=1)  # (k, 2)
     rows = np.arange(len(bases))[:, None]
     ok = (dist[rows, pick, np.arange(2)[None, :]] <= tol * np.linalg.norm(ref, axis=0)).all(
