@@ -222,3 +222,61 @@ def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Boo
     # Among the largest consensus sets, the one with the smallest total residual.
     best = int(np.argmin(np.where(counts == counts.max(), (rel * inliers).sum(axis=1), np.inf)))
     return np.asarray(inliers[best], dtype=bool)
+
+
+@dataclass(frozen=True)
+class RangeWithoutPlane:
+    """The range along an axis to a net whose ROIs do not pin its plane down, and its sigma."""
+
+    range_m: float
+    sigma_range_m: float
+    sigma_dof: float
+
+
+def range_with_tilt_prior(
+    rays: F64,
+    cell_area_norm: F64,
+    relative_area_sigma: F64,
+    mesh_cell_area_m2: float,
+    axis: F64,
+    tilt_sigma_rad: float,
+) -> RangeWithoutPlane | None:
+    """The range along the optical axis `axis` (unit, in the frame of the rays) from ROIs that
+    see the net but cannot fit a plane alone (all in a row, or bunched on one side of a board):
+    the fit c = r . m of `fit_plane` with a Gaussian prior on the net's tilt, zero (facing the
+    camera, normal along `axis`) with sigma `tilt_sigma_rad`, and none on its distance.
+
+    Where the ROIs span the view the data outweigh the prior; along a direction they do not
+    span, the tilt stays as uncertain as the prior says, and the range on the axis, away from
+    the ROIs, carries that uncertainty times how far the axis is from them. The variance is
+    pooled with the residuals as in `fit_plane`. None when fewer than two ROIs or the scale is
+    degenerate."""
+    if rays.shape[0] < 2:
+        return None
+    c = np.cbrt(cell_area_norm / mesh_cell_area_m2)
+    rel = relative_sigma_c(relative_area_sigma)
+    a = rays / (rel * c)[:, None]
+    b = 1.0 / rel
+    # |m| (the scale the tilt prior is relative to), from the ROIs as if the net faced them.
+    scale_m = float(np.median(c / (rays @ axis)))
+    if not scale_m > 0.0:
+        return None
+    # A tilt by angle t moves m off the axis by about t |m|.
+    across = np.eye(3) - np.outer(axis, axis)
+    info = a.T @ a + across / (tilt_sigma_rad * scale_m) ** 2
+    if np.linalg.cond(info) > 1e12:
+        return None
+    m = np.linalg.solve(info, a.T @ b)
+    # Residual degrees of freedom as if the tilt were free too (the prior fits a little).
+    dof = max(0, rays.shape[0] - 3)
+    chi2 = float(((a @ m - b) ** 2).sum())
+    cov = np.linalg.inv(info) * max(1.0, (PRIOR_DOF + chi2) / (PRIOR_DOF + dof))
+    norm = float(np.linalg.norm(m))
+    along = float(m @ axis)
+    if norm <= 0.0 or along <= 0.0:
+        return None
+    rng = norm**-0.5 / along
+    grad = -0.5 * norm**-2.5 * m / along - norm**-0.5 / along**2 * axis
+    return RangeWithoutPlane(range_m=rng,
+                             sigma_range_m=math.sqrt(max(0.0, float(grad @ cov @ grad))),
+                             sigma_dof=PRIOR_DOF + dof)
