@@ -8,13 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.core.plane import (
-    PRIOR_DOF,
-    axis_leverage,
-    fit_plane,
-    range_with_tilt_prior,
-    tilt_leverage,
-)
+from service.core.plane import PRIOR_DOF, axis_leverage, fit_plane, tilt_leverage
 
 F64 = npt.NDArray[np.float64]
 CELL_M2 = 0.015**2
@@ -247,64 +241,3 @@ def test_tilt_leverage_says_how_far_an_error_common_to_one_side_tilts_the_plane(
     # One row of ROIs leaves the tilt across it unpinned but for the ROIs' own extent.
     row = rays[np.isclose(rays[:, 1], 0.0)]
     assert tilt_leverage(row, 0.2) > 20 * tilt_leverage(rays, 0.2)
-
-
-AXIS = np.array([0.0, 0.0, 1.0])
-
-
-def _tilted(tilt_deg: float, azimuth_deg: float) -> F64:
-    t, a = math.radians(tilt_deg), math.radians(azimuth_deg)
-    return np.array([math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t)])
-
-
-def test_rois_spanning_the_view_give_the_plane_fits_range_despite_the_tilt_prior() -> None:
-    """Where the ROIs pin the plane down, the data outweigh the prior on its tilt: a 40 deg
-    net (outside the prior's 1 sigma of 30 deg) gets the plane fit's range."""
-    normal, distance = POSES[2]
-    rays = _rays()
-    areas = _areas(rays, normal, distance)
-    noise = np.full(len(rays), 0.01)
-    plane = fit_plane(rays, areas, noise, CELL_M2)
-    got = range_with_tilt_prior(rays, areas, noise, CELL_M2, AXIS, math.radians(30.0))
-    assert plane is not None and got is not None
-    assert got.range_m == pytest.approx(distance / normal[2], rel=0.01)
-    assert got.range_m == pytest.approx(plane.range_m, rel=0.01)
-    assert got.sigma_range_m < 1.2 * plane.sigma_range_m
-
-
-@pytest.mark.parametrize("row_y", [0.15, 0.4])
-def test_a_row_of_rois_gives_a_range_whose_sigma_covers_the_unseen_tilt(row_y: float) -> None:
-    """ROIs in one row (a strip of net between boards) cannot fit a plane (see
-    test_rois_on_one_line_cannot_fix_a_plane). Nets drawn with the prior's own tilt
-    distribution (30 deg, any direction) and 1 % noise in the areas: the range on the axis is
-    within 3 sigma in >= 97 % of draws and error/sigma has a spread near one (the estimate is
-    honest about the tilt it could not see), and a row further from the axis is less sure."""
-    rays = _rays(cols=6, rows=1, half_y=0.0)
-    rays[:, 1] = row_y
-    rng = np.random.default_rng(7)
-    z, rel_sigma = [], []
-    for _ in range(400):
-        normal = _tilted(abs(rng.normal(0.0, 30.0)), rng.uniform(0.0, 360.0))
-        if float((rays @ normal).min()) < 0.3:
-            continue  # the net would be seen edge-on (or not at all) at some ROIs
-        distance = rng.uniform(0.5, 2.0)
-        areas = _areas(rays, normal, distance) * (1 + rng.normal(0.0, 0.01, len(rays)))
-        got = range_with_tilt_prior(rays, areas, np.full(len(rays), 0.01), CELL_M2, AXIS,
-                                    math.radians(30.0))
-        assert got is not None
-        truth = distance / normal[2]
-        z.append((got.range_m - truth) / got.sigma_range_m)
-        rel_sigma.append(got.sigma_range_m / got.range_m)
-    z_arr = np.array(z)
-    assert len(z_arr) > 300
-    assert np.mean(np.abs(z_arr) <= 3.0) >= 0.97
-    assert 0.5 < float(np.std(z_arr)) < 1.5
-    # The tilt about the row moves the axis's range by about tan(tilt) * row_y.
-    assert float(np.median(rel_sigma)) == pytest.approx(math.tan(math.radians(30.0)) * row_y,
-                                                        rel=0.5)
-
-
-def test_fewer_than_two_rois_give_no_range() -> None:
-    rays = _rays(cols=1, rows=1)
-    areas = _areas(rays, AXIS, 1.0)
-    assert range_with_tilt_prior(rays, areas, np.full(1, 0.01), CELL_M2, AXIS, 0.5) is None

@@ -56,7 +56,6 @@ from service.core.plane import (
     PlaneFit,
     axis_leverage,
     fit_plane,
-    range_with_tilt_prior,
     relative_sigma_c,
     tilt_leverage,
 )
@@ -820,14 +819,14 @@ class NetEstimator:
                                    self._facing_seed(rois, level)) if sd is not None]
             if not seeds:
                 result = _no_net(rois, level, self._count_reason(rois))
-                if best is None or _more_telling(result, best):
+                if best is None or result.confidence > best.confidence:
                     best = result
                 continue
             for seed in seeds:
                 refined = attempt(seed, level, rois)
                 if refined is None:
                     continue
-                if best is None or refined.detected or _more_telling(refined, best):
+                if best is None or refined.detected or refined.confidence > best.confidence:
                     best = refined
                 if refined.detected:
                     return refined
@@ -993,18 +992,10 @@ class NetEstimator:
         planes: list[tuple[F64, float]] = []  # each pass's plane over this frame, in order
         planed: _Pass | None = None  # the pass that gave the last of them
 
-        # The pass where most ROIs agreed on a lattice without a plane (a strip of net between
-        # boards): if no pass gives a plane, the net may still be seen there.
-        planeless: _Pass | None = None
-
         def verdict(p: _Pass, converged: _Converged | None, failure: str,
                     settled: bool = True, proofs_held: bool = False) -> NetEstimate:
             t1 = time.perf_counter()
             result = self._verdict(p, converged, layout, failure, settled, frame, proofs_held)
-            if converged is None and planeless is not None and not result.net_seen and not (
-                result.reason.startswith(_NOT_A_NET)
-            ):
-                result = self._seen_without_plane(planeless, layout, frame) or result
             frame.lap("proofs", t1)
             return result
 
@@ -1019,10 +1010,6 @@ class NetEstimator:
             rectified_once = True
             frame.lap("rectified", t0)
             last = p
-            if p.consensus is not None and p.plane is None and len(p.on_lattice) >= (
-                self.settings.min_rois
-            ) and (planeless is None or len(p.on_lattice) > len(planeless.on_lattice)):
-                planeless = p
             if p.consensus is not None and p.plane is None and (
                 hints is None or footprint_scale == 1.0
             ):
@@ -1464,46 +1451,6 @@ class NetEstimator:
             return ""
         return _twine_profile(self._spectra[p.size], stacked[0], power[0], p.consensus,
                               stacked[1], self._pass_null(p, stacked[0]))
-
-    def _seen_without_plane(
-        self, p: _Pass, layout: _Layout, frame: _Frame
-    ) -> NetEstimate | None:
-        """The net seen, without a distance, by a pass whose ROIs agree on its lattice but
-        cannot fit a plane (they lie in a row, or bunched between boards), when that lattice
-        passes every proof the verdict asks of a plane's: the configured mesh's shape and
-        twine, not the video's blocks, and its scale (no coarser mesh between its peaks).
-        The range on the optical axis comes from those ROIs with the net's tilt unknown to
-        within `_UNSEEN_TILT_SIGMA_DEG` where they do not pin it (`range_with_tilt_prior`):
-        a strip of net off the axis gives the range there within a tenth or two, said so."""
-        s = self.settings
-        assert p.consensus is not None
-        agreeing = p.on_lattice  # without a plane, the ROIs on the consensus lattice agree
-        confidence = 1.0 - math.exp(-float(sum(m.weight for m in agreeing)) / 2.0)
-        if confidence < s.min_confidence or p.size / p.period_out < 5.5:
-            return None
-        opening, shape = self._mesh_check(p)
-        if shape or self._profile_check(p) or _compression_grid(agreeing, frame.image(0)) or (
-            self._scale_check(p) is not None
-        ):
-            return None
-        axis = p.rotation @ np.array([0.0, 0.0, 1.0])
-        got = range_with_tilt_prior(
-            np.array([m.ray for m in agreeing]), np.array([m.area_norm for m in agreeing]),
-            np.array([m.fit.relative_area_sigma for m in agreeing if m.fit is not None]),
-            self.mesh.cell_area_m2, axis, math.radians(_UNSEEN_TILT_SIGMA_DEG))
-        if got is None:
-            return None
-        sigma = got.sigma_range_m * _t_factor(got.sigma_dof) * math.sqrt(_overlap(agreeing))
-        sigma = math.hypot(sigma, _MODEL_FLOOR * got.range_m)
-        return NetEstimate(
-            detected=False, confidence=min(confidence, 0.2),
-            rois=tuple(_roi_result(m, m.agrees) for m in p.rois), rois_used=len(agreeing),
-            level=p.level, measured_opening_deg=opening,
-            reason=(f"plane too uncertain (range +- {sigma / got.range_m:.0%}): the "
-                    f"{len(agreeing)} ROIs that see the net do not fit a plane (the net is "
-                    "hidden in most of the view)"),
-            approx_range_m=got.range_m, approx_sigma_range_m=sigma,
-        )
 
     # -- the verdict ---------------------------------------------------------------------------
     def _verdict(
@@ -2023,9 +1970,6 @@ _UNSEEN_DEFORMATION = 0.005
 # billowing nets stayed short (97.5 % within 3 sigma).
 _UNSEEN_TILT = 0.0025
 _MODEL_FLOOR = 0.001
-# What the tilt of a net is known to be when the ROIs that see it cannot tell (1 sigma, about
-# facing the camera): a pilot inspecting a net faces it roughly; 60 deg is then 2 sigma.
-_UNSEEN_TILT_SIGMA_DEG = 30.0
 
 
 def _inflation(p: _Pass) -> float:
@@ -2242,20 +2186,6 @@ def _scale_proved(result: NetEstimate) -> NetEstimate:
     if not result.detected or result.range_m is None:
         return result
     return replace(result, frames_since_scale_proof=0, scale_proved_range_m=result.range_m)
-
-
-def _more_telling(a: NetEstimate, b: NetEstimate) -> bool:
-    """Of two searches that gave no distance, is `a` the one to report? A net seen beats
-    none (it passed every proof), the surer range of two seen nets the other; else the higher
-    confidence, the first on a tie."""
-    if a.net_seen != b.net_seen:
-        return a.net_seen
-    if a.approx_range_m is not None and b.approx_range_m is not None and (
-        a.approx_sigma_range_m is not None and b.approx_sigma_range_m is not None
-    ):
-        return (a.approx_sigma_range_m / a.approx_range_m
-                < b.approx_sigma_range_m / b.approx_range_m)
-    return a.confidence > b.confidence
 
 
 def _tracking_missed(tracked: NetEstimate) -> NetEstimate:
