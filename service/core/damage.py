@@ -528,7 +528,7 @@ class DamageDetector:
                ) -> tuple[int, F64]:
         """Twine polarity (+1 light, -1 dark, 0 none) and, per cell, where the knots are
         relative to the nominal lattice (cells, each family), unwrapped over the region."""
-        carrier = np.exp(-2j * np.pi * np.arange(s) / s).astype(np.complex64)
+        carrier = _carrier(s)
         block = lat.reshape(n2, s, n1, s)
         ok = _cells_valid(valid, n1, n2, s)
         across = block @ carrier  # (n2, s, n1): each row of a cell at family 1's carrier
@@ -797,6 +797,15 @@ def _across_bars(lat: F32, n1: int, n2: int, s: int) -> tuple[F32, F32]:
     a1 = np.concatenate([np.roll(m1, 1, axis=1)[..., half:], m1[..., : half + 1]], axis=3)
     a2 = np.concatenate([np.roll(m2, 1, axis=0)[..., half:], m2[..., : half + 1]], axis=3)
     return np.asarray(a1, dtype=np.float32), np.asarray(a2, dtype=np.float32)
+
+
+@functools.cache
+def _carrier(s: int) -> npt.NDArray[np.complex64]:
+    """exp(-2 pi i q / s) for q < s: a cell's first harmonic over its s samples (built once
+    per sample count, not per inspection). Read-only: it is shared."""
+    carrier = np.exp(-2j * np.pi * np.arange(s) / s).astype(np.complex64)
+    carrier.flags.writeable = False
+    return carrier
 
 
 def _cells_valid(valid: npt.NDArray[np.bool_], n1: int, n2: int, s: int
@@ -1136,20 +1145,25 @@ ALIGN_TOLERANCE = 0.12
 
 def _consensus(bases: list[F64], weights: list[float]) -> F64 | None:
     """The lattice most ROIs agree on: each basis expressed in the frame of the reference (of
-    the five clearest ROIs, the one most others agree with; the first of equals), then the
-    median."""
+    the five clearest ROIs, the one most others agree with; the first of equals), as the
+    vectors closest to its columns among +-a, +-b, +-(a +- b), then the median of those that
+    are the same lattice within `ALIGN_TOLERANCE`."""
     stack = np.stack(bases)
     order = sorted(range(len(bases)), key=lambda k: -weights[k])[:5]
-    # The votes for every reference at once: one evaluation of the stacks costs what one
-    # reference at a time did.
+    # Every reference at once: one evaluation of the stacks costs what one reference at a time
+    # did, and the chosen reference's distances are then at hand for the alignment.
     refs = stack[order]  # (r, 2, 2)
-    dist = _distances_to_columns(_candidate_vectors(stack), refs)  # (r, k, 8, 2)
+    cands = _candidate_vectors(stack)  # (k, 8, 2)
+    dist = _distances_to_columns(cands, refs)  # (r, k, 8, 2)
     same = (dist.min(axis=2) <= ALIGN_TOLERANCE * np.linalg.norm(refs, axis=1)[:, None, :])
-    votes = same.all(axis=2).sum(axis=1)
-    best = order[int(np.argmax(votes))]
-    aligned, ok = _aligned_all(stack, stack[best])
+    agrees = same.all(axis=2)  # (r, k)
+    best = int(np.argmax(agrees.sum(axis=1)))
+    ok = agrees[best]
     if not ok.any():
         return None
+    pick = np.argmin(dist[best], axis=1)  # (k, 2)
+    rows = np.arange(len(bases))[:, None]
+    aligned = np.transpose(cands[rows, pick], (0, 2, 1))  # columns: the picked vectors
     return np.asarray(np.median(aligned[ok], axis=0), dtype=np.float64)
 
 
@@ -1165,18 +1179,3 @@ def _distances_to_columns(cands: F64, refs: F64) -> F64:
     return np.asarray(np.linalg.norm(
         cands[None, :, :, None, :] - refs.transpose(0, 2, 1)[:, None, None], axis=4),
         dtype=np.float64)
-
-
-def _aligned_all(bases: F64, ref: F64, tol: float = ALIGN_TOLERANCE
-                 ) -> tuple[F64, npt.NDArray[np.bool_]]:
-    """Each basis of `bases` (k, 2, 2; columns) rewritten as the vectors closest to ref's
-    columns (among +-a, +-b, +-(a +- b)), and whether it is the same lattice as `ref` within
-    `tol` (relative)."""
-    cands = _candidate_vectors(bases)
-    dist = _distances_to_columns(cands, ref[None])[0]  # (k, 8, 2)
-    pick = np.argmin(dist, axis=1)  # (k, 2)
-    rows = np.arange(len(bases))[:, None]
-    ok = (dist[rows, pick, np.arange(2)[None, :]] <= tol * np.linalg.norm(ref, axis=0)).all(
-        axis=1)
-    aligned = np.transpose(cands[rows, pick], (0, 2, 1))  # columns: the picked vectors
-    return np.asarray(aligned, dtype=np.float64), np.asarray(ok, dtype=bool)
