@@ -117,6 +117,7 @@ class Pipeline:
         # Confidence of the last accepted measurement: what a coasting reading is worth.
         self._last_quality = math.nan
         self._too_close_frames = 0
+        self._too_close_t = math.nan  # capture time of the last frame that was too close
 
     @property
     def estimator(self) -> NetEstimator:
@@ -152,6 +153,7 @@ class Pipeline:
                 "prior_t": to_plain(self._prior_t),
                 "last_quality": to_plain(self._last_quality),
                 "too_close_frames": self._too_close_frames,
+                "too_close_t": to_plain(self._too_close_t),
                 "search_deferred": self._search_deferred}
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -163,6 +165,7 @@ class Pipeline:
         self._prior_t = from_plain(float, state.get("prior_t", to_plain(math.nan)))
         self._last_quality = from_plain(float, state["last_quality"])
         self._too_close_frames = int(state.get("too_close_frames", 0))
+        self._too_close_t = from_plain(float, state.get("too_close_t", to_plain(math.nan)))
         self._search_deferred = bool(state.get("search_deferred", False))
 
     def process(self, image: npt.NDArray[Any], t: float, index: int,
@@ -201,6 +204,13 @@ class Pipeline:
             self._prior_t = t if self._prior is not None else math.nan
         too_close = estimate is not None and estimate.too_close
         self._too_close_frames = self._too_close_frames + 1 if too_close else 0
+        if too_close:
+            self._too_close_t = t
+        if self._too_close_frames == TOO_CLOSE_FRAMES:
+            # The net came nearer than the filter's track can follow: its prediction is from
+            # before, and must not be coasted on once the net is out of "too close" again
+            # (a frame with no net, a stall). A new track earns trust from new detections.
+            self._tracker.reset()
         track = self._tracker.step(t, estimate)
         return PipelineResult(
             t=t, index=index, estimate=estimate, track=track,
@@ -245,11 +255,14 @@ class Pipeline:
     ) -> RangeReading:
         if track.measurement in (Outcome.ACCEPTED, Outcome.RESET) and estimate is not None:
             self._last_quality = estimate.confidence
-        if estimate is not None and self._too_close_frames >= TOO_CLOSE_FRAMES:
+        if self._too_close_frames >= TOO_CLOSE_FRAMES:
             # Nearer than the mesh can be resolved: the autopilot must see "below minimum"
             # (OutOfRangeLow), not the silence of open water, and not a coasting prediction
-            # from before the net came this close.
-            return RangeReading(RangeStatus.TOO_CLOSE, t_capture=t)
+            # from before the net came this close. Without a new frame (a tick, a skipped
+            # frame) that is still the last word, stamped with the frame that said it, so the
+            # link stops repeating it once it is stale rather than falling back to the filter.
+            return RangeReading(RangeStatus.TOO_CLOSE,
+                                t_capture=t if estimate is not None else self._too_close_t)
         if not track.valid or track.distance_m is None:
             return RangeReading.none(t)
         distance = track.distance_m

@@ -9,6 +9,7 @@ of the real drivers' threads.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import math
 import subprocess
@@ -302,6 +303,33 @@ def test_a_net_too_close_to_measure_is_told_to_the_autopilot_and_the_pilot(
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "net too close to measure" in warnings[0]
     assert any("net too close to measure ended" in r.getMessage() for r in caplog.records)
+
+
+def test_after_too_close_the_old_distance_is_never_sent_again(frames: list[Frame]) -> None:
+    """The net came too close to measure, then the camera stalled, then the view showed no
+    net: none of that may bring back the filter's distance from before the net came close
+    (a coasting window of 0.8 s has not run out when the stall and the blank frames come).
+    During the stall the autopilot keeps hearing "too close", stamped with the frame that
+    said it, so the link drops it once it is stale; then nothing."""
+    close = render_frames(CLOSE_URL, 3)
+    good = frames_at(frames[:15], FPS, 100.0)
+    close_at = frames_at(close, FPS, 101.5)
+    blank = [dataclasses.replace(f, image=np.full_like(f.image, 90))
+             for f in frames_at(frames[:4], FPS, 102.0)]
+    script = [*(Step(frame=f) for f in [*good, *close_at]), Step(wait_s=0.2),
+              *(Step(frame=f) for f in blank)]
+    h = make_harness(demo_config("filter.report_coasting_s=0.8"), script)
+    h.run_script()
+    ranges = h.link.ranges
+    statuses = [r.status for r in ranges]
+    assert statuses[14] is RangeStatus.GOOD
+    first_close = statuses.index(RangeStatus.TOO_CLOSE)
+    assert first_close == 16  # the second too-close frame
+    after = ranges[first_close:]
+    assert RangeStatus.GOOD not in [r.status for r in after]
+    stalled = [r for r in after if r.status is RangeStatus.TOO_CLOSE]
+    assert max(r.t_capture for r in stalled) == close_at[-1].t_monotonic
+    assert statuses[-len(blank):] == [RangeStatus.NONE] * len(blank)
 
 
 def test_a_net_of_another_opening_angle_gives_no_distance_and_says_the_angle(
