@@ -309,6 +309,12 @@ def test_a_bad_setting_names_the_key_and_changes_nothing(daemon: WebDaemon) -> N
         "mesh.colour": ("red", "configuration error: mesh.colour: unknown key"),
         "web.token": ("", "configuration error: web.token: [web] is changed in the "
                           "configuration file only"),
+        # Valid as settings, refused by the parts a restart builds from them: saved, they
+        # would stop the service on the restart the page then offers.
+        "camera.url": ("synthetic:?foo=1", "configuration error: camera.url: "),
+        "mavlink.signing_key_file": (str(daemon.folder / "absent.key"),
+                                     "configuration error: mavlink.signing_key_file: cannot "
+                                     "read"),
     }
     for key, (value, error) in cases.items():
         status, reply = daemon.request("POST", "/api/settings", {"changes": {key: value}},

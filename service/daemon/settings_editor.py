@@ -3,7 +3,8 @@
 `SettingsEditor` is what the page's driver calls (drivers.web.page.SettingsBackend, structurally).
 A change `{"mesh.bar_length_m": 0.03}` is written into the TOML text with tomlkit (comments and
 layout kept), the whole new file is validated exactly as `netpose run` validates it (the same
-loader, the calibration file loaded too), and only then replaces the old file (atomic rename).
+loader, the calibration file loaded and the parts built as `netpose run --check` builds them),
+and only then replaces the old file (atomic rename).
 The running daemon re-reads it through its ordinary reload (the flag SIGHUP sets), and the
 editor waits for the outcome. A change the running parts cannot take live (camera, MAVLink,
 telemetry) is saved and reported as needing a restart; `restart()` restarts the daemon's parts

@@ -150,10 +150,19 @@ def build_parts(config: Config, notifier: Notifier,
 def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
     """`netpose run --check`: the same loading and building as `run`, stopping before anything
     is opened; raises ConfigError/CalibrationError."""
+    config = checked_config(config_path, overrides)
+    return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
+
+
+def checked_config(config_path: str | None, overrides: Iterable[str] = ()) -> Config:
+    """The configuration, and every part `run` builds from it (source, camera, MAVLink link,
+    telemetry) built once as a check, nothing opened or kept: a file saved from the web page
+    must start the daemon it restarts, or the service would exit on an error only the page
+    could have fixed."""
     config = load_daemon_config(config_path, overrides)
     parts = build_parts(config, NullNotifier())
     parts.source.close()
-    return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
+    return config
 
 
 def main(
@@ -179,7 +188,7 @@ def main(
 
             editor = SettingsEditor(
                 config.path, overrides,
-                lambda path: load_daemon_config(str(path), overrides),
+                lambda path: checked_config(str(path), overrides),
                 flags.reload.set, request_restart)
             running: list[Daemon] = []
             started = time.monotonic()
@@ -202,7 +211,7 @@ def main(
                     config, problem = ready, None
                     continue
                 daemon = Daemon(config, parts, flags=flags,
-                                load_config=lambda: load_daemon_config(config_path, overrides),
+                                load_config=lambda: checked_config(config_path, overrides),
                                 on_reload=editor.reloaded)
                 running[:] = [daemon]
                 status = daemon.run(duration_s)
