@@ -14,6 +14,9 @@ from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
+# The stop reason of an in-process restart (`netpose run`'s web page).
+RESTART = "restart"
+
 
 class SignalFlags:
     """Set by signal handlers, polled by a loop (handlers do nothing else)."""
@@ -22,10 +25,20 @@ class SignalFlags:
         self.stop = threading.Event()
         self.reload = threading.Event()
         self.stop_signal: str | None = None
+        # Set by a real signal and never cleared: what a stop the owner clears to go on (the
+        # web page's in-process restart) must not swallow.
+        self.signalled = threading.Event()
 
     def request_stop(self, name: str) -> None:
-        self.stop_signal = self.stop_signal or name
+        """A stop for `name`; the first reason given is kept, except that a signal replaces a
+        restart (the process must end, not come back)."""
+        if self.stop_signal is None or self.stop_signal == RESTART:
+            self.stop_signal = name
         self.stop.set()
+
+    def signal_stop(self, name: str) -> None:
+        self.signalled.set()
+        self.request_stop(name)
 
 
 @contextmanager
@@ -42,7 +55,7 @@ def handle_signals(flags: SignalFlags, *, reload: bool = False) -> Iterator[Sign
     def on_stop(signum: int, _frame: FrameType | None) -> None:
         if flags.stop.is_set() and signum == signal.SIGINT:
             raise KeyboardInterrupt
-        flags.request_stop(signal.Signals(signum).name)
+        flags.signal_stop(signal.Signals(signum).name)
 
     def on_hup(_signum: int, _frame: FrameType | None) -> None:
         flags.reload.set()

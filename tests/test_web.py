@@ -13,6 +13,7 @@ import io
 import json
 import math
 import re
+import signal
 import socket
 import statistics
 import subprocess
@@ -354,6 +355,27 @@ def test_a_changed_endpoint_needs_a_restart_which_the_page_does(daemon: WebDaemo
     assert daemon.proc is not None and daemon.proc.poll() is None
     assert daemon.request("GET", "/api/settings")[1]["restart_pending"] == []
     assert "restarting with the saved configuration" in daemon.log()
+
+
+def test_a_stop_during_a_restart_ends_the_service(tmp_path: Path) -> None:
+    """`systemctl stop` while the page's restart is closing the old parts: the process ends
+    (a stop is final), it does not come back with new parts and go on sending distances."""
+    d = WebDaemon(tmp_path).start()
+    assert d.proc is not None
+    try:
+        status, _ = d.request("POST", "/api/restart", {}, token=True)
+        assert status == 200
+        d.proc.send_signal(signal.SIGTERM)
+        try:
+            code = d.proc.wait(timeout=30.0)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("still running 30 s after SIGTERM:\n" + d.log()) from None
+    finally:
+        if d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait()
+    assert code == 0, d.log()
+    assert "SIGTERM received: stopping" in d.log()
 
 
 # -- recordings -----------------------------------------------------------------------------------

@@ -34,7 +34,7 @@ from service.daemon.ports import FrameObserver, Notifier
 from service.daemon.settings_editor import SettingsEditor, tuning_toml
 from service.daemon.setup_mode import run_setup, setup_renderer
 from service.pipeline import PipelineResult
-from service.signals import SignalFlags, handle_signals
+from service.signals import RESTART, SignalFlags, handle_signals
 from service.tools.live_view import LiveView
 
 log = logging.getLogger("netpose.daemon")
@@ -184,7 +184,7 @@ def main(
 
             def request_restart() -> None:
                 restart.set()
-                flags.request_stop("restart")
+                flags.request_stop(RESTART)
 
             editor = SettingsEditor(
                 config.path, overrides,
@@ -215,13 +215,15 @@ def main(
                                 on_reload=editor.reloaded)
                 running[:] = [daemon]
                 status = daemon.run(duration_s)
-                if not restart.is_set() or flags.stop_signal != "restart":
+                if not restart.is_set() or flags.signalled.is_set():
                     return status
                 # A restart asked for by the web page: the same process, every part rebuilt
                 # from the saved configuration (what a reload cannot change live).
                 restart.clear()
                 flags.stop.clear()
                 flags.stop_signal = None
+                if flags.signalled.is_set():  # SIGTERM between the check and the clear
+                    return status
                 editor.restarted()
                 config, problem = _load_or_setup(config_path, overrides)
                 log.info("restarting with the saved configuration (%s)", config.digest)
