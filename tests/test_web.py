@@ -94,6 +94,44 @@ def test_allowed_origins_and_settings_validation() -> None:
         WebSettings(allowed_origins=("http://x/path",))
 
 
+def test_the_settings_page_never_shows_a_camera_password(tmp_path: Path) -> None:
+    """GET /api/settings needs no token (the token guards changes): a camera URL's password
+    is redacted there as in the log, and sending the redacted text back is refused rather
+    than saved as the password."""
+    import urllib.request
+
+    import numpy as np
+
+    from drivers.net import free_port
+    from drivers.web.page import WebPage
+    from service.daemon.settings_editor import SettingsEditor
+    from service.daemon.wiring import load_daemon_config
+
+    save_camera(builtin_camera(1280, 720), tmp_path / "camera.yaml")
+    url = "rtsp://admin:S3cretPass@192.168.2.10:554/stream1"
+    config = tmp_path / "netpose.toml"
+    config.write_text(f'[camera]\nurl = "{url}"\ncalibration = "camera.yaml"\n'
+                      '[mesh]\nbar_length_m = 0.025\n')
+    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), lambda: None,
+                            lambda: None)
+    port = free_port()
+    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port,
+                                     token="longtoken123"),
+                         lambda f, r: np.zeros((8, 8, 3), np.uint8), editor)
+    page.start()
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/settings", timeout=10) as r:
+            body = r.read().decode()
+    finally:
+        page.close()
+    assert "S3cretPass" not in body
+    shown = json.loads(body)["values"]["camera.url"]
+    assert shown == "rtsp://admin:<redacted>@192.168.2.10:554/stream1"
+    with pytest.raises(ConfigError, match=r"^camera\.url: holds <redacted>"):
+        editor.apply({"camera.url": shown.replace("stream1", "stream2")})
+    assert url in config.read_text()
+
+
 def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> EstimateMessage:
     filtered = FilteredView(valid=valid, autopilot="good" if valid else "none",
                             state="tracking" if valid else "lost", measurement="accepted",

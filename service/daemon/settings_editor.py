@@ -32,6 +32,7 @@ from tomlkit.items import Table
 from service.config import Config
 from service.core.camera import load_camera
 from service.core.errors import CalibrationError, ConfigError
+from service.core.redact import REDACTED, redact_config
 from service.daemon.loop import ReloadOutcome
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,10 @@ class SettingsEditor:
                 fields.append({"key": key, **field,
                                "overridden": key in self._overridden})
                 if config is not None:
-                    values[key] = config.effective.get(section, {}).get(name)
+                    # The page is open to the vehicle's network (the token guards changes,
+                    # not reading): a camera URL's password is not shown, as in the log.
+                    value = config.effective.get(section, {}).get(name)
+                    values[key] = redact_config({name: value})[name]
             groups.append({"title": title, "fields": fields})
         return {"path": str(self.path) if self.path else None, "editable": editable,
                 "reason": reason, "problem": problem, "groups": groups, "values": values,
@@ -150,6 +154,9 @@ class SettingsEditor:
                                   "the file: change it there")
             if isinstance(value, dict):
                 raise ConfigError(key, f"must be a single value, got {value!r}")
+            if isinstance(value, str) and REDACTED in value:
+                raise ConfigError(key, f"holds {REDACTED} where a secret was (the page does not "
+                                  "show it): type the whole value, secret included")
         with self._lock:
             old_text = self.path.read_text(encoding="utf-8")
             try:
