@@ -306,6 +306,30 @@ def test_looping_folder_emptied_and_refilled_comes_back(tmp_path: Path) -> None:
     assert back[0].index > max(f.index for f in first if f is not None)  # numbering carries on
 
 
+def test_looping_file_removed_and_put_back_comes_back(
+    videos: dict[str, Path], tmp_path: Path
+) -> None:
+    """The same for a looping video file that goes away between passes (a demo's clip
+    replaced): DOWN with the reason, then frames again; read() never raises."""
+    clip = tmp_path / "clip.avi"
+    clip.write_bytes(videos["mjpg"].read_bytes())
+    options = SourceOptions(wait_at_start=True, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    with open_source(f"file:{clip}?loop=1", options) as source:
+        first = [source.read(0.5) for _ in range(3)]
+        assert all(f is not None for f in first)
+        moved = tmp_path / "away.avi"
+        clip.rename(moved)
+        states = []
+        for _ in range(FRAMES + 10):  # through the end of the pass, into the rewind
+            if source.read(0.1) is None:
+                states.append(source.state)
+        assert SourceState.DOWN in states and SourceState.ENDED not in states
+        assert "no such file" in source.stats().error
+        moved.rename(clip)
+        back = [f for f in (source.read(0.3) for _ in range(10)) if f is not None]
+    assert back, "frames did not come back after the file returned"
+
+
 def test_a_missing_file_at_start_is_waited_for(videos: dict[str, Path], tmp_path: Path) -> None:
     target = tmp_path / "later.avi"
     options = SourceOptions(wait_at_start=True, reconnect_min_s=0.05, reconnect_max_s=0.2)

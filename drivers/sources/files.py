@@ -143,7 +143,12 @@ class VideoFileSource(PacedSource):
         self._stop()
         self._decoded = 0
         self._origin_ms = None
-        self._cap = self._open_capture()
+        try:
+            self._cap = self._open_capture()
+        except SourceError as exc:
+            # The file went away (or was replaced by something unreadable) between passes: a
+            # pass without a frame, which a service's source retries as an outage.
+            self._note_damage(exc.reason)
 
     def _stop(self) -> None:
         if self._cap is not None:
