@@ -19,6 +19,7 @@ import statistics
 import subprocess
 import sys
 import tarfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -130,6 +131,48 @@ def test_the_settings_page_never_shows_a_camera_password(tmp_path: Path) -> None
     with pytest.raises(ConfigError, match=r"^camera\.url: holds <redacted>"):
         editor.apply({"camera.url": shown.replace("stream1", "stream2")})
     assert url in config.read_text()
+
+
+def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> None:
+    """A topside client that stops reading a recording's tar (a slow link, a closed laptop)
+    must not keep a stop or a restart waiting: the page cuts the download off and closes at
+    once (it waited for the download's one-minute timeouts, about two minutes, before)."""
+    import numpy as np
+
+    from drivers.net import free_port
+    from drivers.recorder import MANIFEST, Recorder, RecordingSetup
+    from drivers.web.page import WebPage
+
+    name = "netpose-rov-20260101T120000Z"
+    folder = tmp_path / name
+    (folder / "frames").mkdir(parents=True)
+    (folder / MANIFEST).write_text(json.dumps({"finished": True}))
+    # More than the loopback socket's buffers and the page's queue hold.
+    (folder / "frames" / "00000001.png").write_bytes(bytes(32 * 1024 * 1024))
+    port = free_port()
+    def no_recording() -> RecordingSetup:
+        raise AssertionError("this test records nothing")
+
+    no_settings: Any = object()
+    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
+                         lambda f, r: np.zeros((8, 8, 3), np.uint8), no_settings,
+                         Recorder(tmp_path, "rov", no_recording, 10**9))
+    page.start()
+    client = socket.create_connection(("127.0.0.1", port))
+    client.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    try:
+        client.sendall(f"GET /api/recordings/{name}.tar HTTP/1.1\r\n"
+                       f"Host: 127.0.0.1:{port}\r\n\r\n".encode())
+        assert client.recv(64).startswith(b"HTTP/1.1 200")
+        time.sleep(1.0)  # the download fills every buffer; the client reads no more
+        t0 = time.monotonic()
+        page.close()
+        closing_s = time.monotonic() - t0
+        assert closing_s < 5.0, closing_s
+        stalled = [t.name for t in threading.enumerate() if t.name.startswith("web files")]
+        assert stalled == []
+    finally:
+        client.close()
 
 
 def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> EstimateMessage:

@@ -14,6 +14,7 @@ What the page may change goes through `SettingsBackend`, which the application p
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import io
 import json
@@ -24,7 +25,7 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,10 @@ SEND_TIMEOUT_S = 10.0  # a page that takes no data for this long is disconnected
 CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml")
 PENDING_CALIBRATIONS = 4
 MAX_HOLES = 20  # confirmed holes listed on the page (newest first)
+# A recording download whose client takes nothing for this long is ended (its tar thread is
+# one of the two that also serve settings and calibrations).
+DOWNLOAD_STALL_S = 60.0
+_CANCEL_POLL_S = 0.2
 
 R = TypeVar("R")
 
@@ -108,6 +113,8 @@ class WebPage(Generic[R]):
         self._history = PlotHistory(settings.history_s)
         self._clients: set[ClientSlots] = set()
         self._sockets: set[web.WebSocketResponse] = set()
+        # Recording downloads under way (their cancel flag, their request): a stop ends them.
+        self._downloads: dict[threading.Event, web.Request] = {}
         self._last_texts: dict[str, str] = {}
         self._holes: list[dict[str, Any]] = []
         self._thread: threading.Thread | None = None
@@ -339,6 +346,12 @@ class WebPage(Generic[R]):
 
     async def _close_clients(self, app: web.Application) -> None:
         self._clients.clear()
+        # A download to a client that reads slowly (or not at all) would hold the server's
+        # shutdown, and the tar thread the file pool's, for a minute: cut it off instead.
+        for cancelled, request in list(self._downloads.items()):
+            cancelled.set()
+            if request.transport is not None:
+                request.transport.abort()
         for ws in list(self._sockets):
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(ws.close(code=WSCloseCode.GOING_AWAY,
@@ -564,6 +577,7 @@ class WebPage(Generic[R]):
         loop = asyncio.get_running_loop()
         chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=8)
         cancelled = threading.Event()
+        self._downloads[cancelled] = request
         producer = loop.run_in_executor(self._file_pool, _write_tar, folder, name, loop, chunks,
                                         cancelled)
         try:
@@ -571,10 +585,16 @@ class WebPage(Generic[R]):
                 await response.write(chunk)
             await producer
             await response.write_eof()
+        except ConnectionError:
+            # The client went away, or the page is stopping (`_close_clients` cut it off).
+            log.info("web page: download of %s ended before it was complete", name)
         finally:
+            self._downloads.pop(cancelled, None)
             cancelled.set()
             while not chunks.empty():
                 chunks.get_nowait()
+            # The tar thread then ends with "download cancelled": nothing to report.
+            producer.add_done_callback(_exception_seen)
         return response
 
 
@@ -592,11 +612,34 @@ class _QueueWriter(io.RawIOBase):
         return True
 
     def write(self, data: Any) -> int:
-        if self._cancelled.is_set():
-            raise OSError("download cancelled")
         chunk = bytes(data)
-        asyncio.run_coroutine_threadsafe(self._queue.put(chunk), self._loop).result(60.0)
+        _hand_over(self._queue.put(chunk), self._loop, self._cancelled)
         return len(chunk)
+
+
+def _exception_seen(future: asyncio.Future[Any]) -> None:
+    if not future.cancelled():
+        future.exception()
+
+
+def _hand_over(put: Coroutine[Any, Any, None], loop: asyncio.AbstractEventLoop,
+               cancelled: threading.Event) -> None:
+    """Run `put` on the page's loop and wait for it, but only while the download lasts: a
+    client that stopped reading (or a page that stops) must not hold this thread."""
+    if cancelled.is_set():
+        put.close()
+        raise OSError("download cancelled")
+    done = asyncio.run_coroutine_threadsafe(put, loop)
+    deadline = time.monotonic() + DOWNLOAD_STALL_S
+    while True:
+        try:
+            done.result(_CANCEL_POLL_S)
+            return
+        except concurrent.futures.TimeoutError:
+            stalled = time.monotonic() > deadline
+            if cancelled.is_set() or stalled:
+                done.cancel()
+                raise OSError("download stalled" if stalled else "download cancelled") from None
 
 
 def _write_tar(folder: Path, name: str, loop: asyncio.AbstractEventLoop,
@@ -606,8 +649,8 @@ def _write_tar(folder: Path, name: str, loop: asyncio.AbstractEventLoop,
         with tarfile.open(fileobj=writer, mode="w|", format=tarfile.PAX_FORMAT) as tar:
             tar.add(folder, arcname=name)
     finally:
-        if not cancelled.is_set():
-            asyncio.run_coroutine_threadsafe(queue.put(None), loop).result(60.0)
+        with contextlib.suppress(OSError):
+            _hand_over(queue.put(None), loop, cancelled)
 
 
 def undistorted_preview(image: npt.NDArray[Any], camera: CameraModel, width: int
