@@ -280,7 +280,12 @@ class Recorder(Closeable):
             except OSError as exc:
                 shutil.rmtree(folder, ignore_errors=True)
                 raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
-            self._manifest(session, setup, finished=False)
+            try:
+                self._manifest(session, setup, finished=False)
+            except OSError as exc:
+                session.close()  # its writer thread too
+                shutil.rmtree(folder, ignore_errors=True)
+                raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
             self._session_setup = setup
             self._session = session
             log.info("recording started: %s", folder)
@@ -292,11 +297,19 @@ class Recorder(Closeable):
             if session is None:
                 return self._last
             session.close()
+            error = session.error
             if self._session_setup is not None:
-                self._manifest(session, self._session_setup, finished=True)
+                try:
+                    self._manifest(session, self._session_setup, finished=True)
+                except OSError as exc:
+                    # The frames written stay; the recording is not marked finished (a replay
+                    # can still read it), and the page says why.
+                    why = f"cannot finish the recording's manifest: {exc.strerror or exc}"
+                    error = f"{error}; {why}" if error else why
+                    log.warning("recording %s: %s", session.folder.name, why)
             self._last = RecorderStatus(name=session.folder.name, frames=session.frames,
                                         dropped=session.dropped, bytes=session.bytes,
-                                        started_unix=session.started_unix, error=session.error)
+                                        started_unix=session.started_unix, error=error)
             log.info("recording %s stopped: %d frames (%d dropped), %.1f MB", session.folder.name,
                      session.frames, session.dropped, session.bytes / 1e6)
             return self._last

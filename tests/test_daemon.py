@@ -574,6 +574,42 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
     assert compared >= len(rows) // 2
 
 
+def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SD card fails while recording (the kernel remounts it read-only): the recorder stops
+    by itself, keeps what it wrote, says why (the manifest cannot be finished either), and the
+    daemon goes on sending distances. Writes fail at the filesystem's edge, the one part that
+    cannot fail on demand here (root writes read-only folders)."""
+    import errno
+    import time
+
+    holder: list[Any] = []
+    cfg = demo_config()
+    recorder = _recorder(tmp_path, cfg, holder)
+    h = make_harness(cfg, steps(frames[:20]), observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.iterate(8)
+
+    def read_only(*_args: Any, **_kwargs: Any) -> Any:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(Path, "write_bytes", read_only)
+    monkeypatch.setattr(Path, "write_text", read_only)
+    h.run_script()
+    deadline = time.monotonic() + 10.0
+    while recorder.status().active and time.monotonic() < deadline:
+        time.sleep(0.05)
+    status = recorder.status()
+    assert not status.active and status.frames >= 1
+    assert "Read-only file system" in status.error
+    assert "cannot finish the recording's manifest" in status.error
+    assert recorder.stop() == status  # a Stop from the page after it: the same answer
+    good = [r for r in h.link.ranges[8:] if r.status is RangeStatus.GOOD]
+    assert len(good) >= 10
+
+
 def test_a_frames_distance_goes_to_the_autopilot_before_its_hole_search(
     frames: list[Frame], monkeypatch: pytest.MonkeyPatch
 ) -> None:
