@@ -610,6 +610,35 @@ def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     assert len(good) >= 10
 
 
+def test_a_stall_of_the_camera_replays_to_the_same_filter_state() -> None:
+    """A recording keeps frames, not the loop's ticks. A stalled camera makes the loop tick
+    (the filter coasts for the autopilot's sake); the frames after the stall must still meet
+    the filter state a replay of the frames alone computes, to the bit."""
+    from service.core.tracking import NetTracker
+    from service.daemon.loop import make_estimator
+    from service.pipeline import Pipeline
+
+    cfg = demo_config("damage.enabled=false")
+    raw = render_frames("synthetic:?width=640&height=360&fps=30&trajectory=approach"
+                        "&near=0.5&far=1.6", 30)
+    timed = frames_at(raw, 30.0, 100.0)
+    timed = timed[:15] + [dataclasses.replace(f, t_monotonic=f.t_monotonic + 0.35)
+                          for f in timed[15:]]
+    script = [*(Step(frame=f) for f in timed[:15]), Step(wait_s=0.2),
+              *(Step(frame=f) for f in timed[15:])]
+    h = make_harness(cfg, script)
+    h.run_script()
+    assert any(r.index is None for r in h.results), "the stall made no tick"
+    live = {r.index: r for r in h.results if r.index is not None}
+    replay = Pipeline(make_estimator(cfg, builtin_camera(640, 360)), NetTracker(cfg.filter),
+                      cfg.service.autopilot_distance)
+    for f in timed:
+        mine = replay.measure(f.image, f.t_monotonic, f.index, budget=live[f.index].budget)
+        theirs = live[f.index].track
+        assert mine.track.distance_m == theirs.distance_m, f.index
+        assert mine.track.sigma_distance_m == theirs.sigma_distance_m, f.index
+
+
 def test_a_frames_distance_goes_to_the_autopilot_before_its_hole_search(
     frames: list[Frame], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -366,11 +366,17 @@ class NetTracker:
             else:  # intervals are the track's only; the next one counts from this frame
                 self._frames.last = t
         m = None if estimate is None else measurement_from_estimate(estimate, s)
+        # Time without a frame (a tick, a frame not measured) is predicted for the output only:
+        # the filter commits one prediction over the whole interval at the next measured
+        # frame. Discrete process noise does not add up over split intervals, and a recording
+        # keeps frames, not ticks: a replay must meet the same filter state.
+        held = None if estimate is not None else self._held_state()
         if self._has_track and self._t_last is not None:
             dt = t - self._t_last
             if dt > 0:
                 self._predict(dt)
-        self._t_last = t
+        if held is None:
+            self._t_last = t
 
         outcome = Outcome.NONE
         maha: float | None = None
@@ -417,7 +423,14 @@ class NetTracker:
             state = TrackState.TRACKING
         else:
             state = TrackState.COASTING
-        return self._output(t, state, outcome, maha, since)
+        output = self._output(t, state, outcome, maha, since)
+        if held is not None:
+            self._kf.x, self._kf.P, self._kf.x_prior, self._kf.P_prior = held
+        return output
+
+    def _held_state(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        kf = self._kf
+        return kf.x.copy(), kf.P.copy(), kf.x_prior.copy(), kf.P_prior.copy()
 
     def _output(
         self, t: float, state: TrackState, outcome: Outcome, maha: float | None,
