@@ -174,6 +174,26 @@ def test_reload_applies_filter_and_rejects_a_broken_file(
     assert sum(m.startswith("RELOADING=1") for m in h.notifier.messages) == 3
 
 
+def test_reload_changes_how_often_the_status_is_published(
+    tmp_path: Path, frames: list[Frame]
+) -> None:
+    """`[service]` intervals reload live (docs/daemon.md): the status comes every 0.3 s of
+    the frames' clock after the reload where it came every second before."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames[:30]),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(10)  # 1 s of frames at 10 per second
+    before = len(h.telemetry.statuses)
+    path.write_text(base.replace("[service]", "[service]\nstatus_interval_s = 0.3", 1))
+    assert h.daemon.reload()
+    h.run_script()  # 2 s more
+    after = len(h.telemetry.statuses) - before
+    assert before <= 2
+    assert 5 <= after <= 8, after
+
+
 def test_replay_reproduces_the_daemons_filtered_distances(
     tmp_path: Path, frames: list[Frame]
 ) -> None:

@@ -335,5 +335,7 @@ class Daemon:
     def _apply_config_to_reporter(self) -> None:
         self.reporter.set_config(self.config.digest, self.config.effective,
                                  self.parts.telemetry_enabled)
+        self.reporter.set_intervals(self.config.service.status_interval_s,
+                                    self.config.service.summary_interval_s)
         self.track_log.coast_timeout_s = self.config.filter.coast_timeout_s
         self.track_log.max_rejects = self.config.filter.max_consecutive_rejects

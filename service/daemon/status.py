@@ -115,6 +115,13 @@ class StatusReporter:
         self._config_redacted = redact_config(effective)  # once here, not per report
         self.telemetry_enabled = telemetry_enabled
 
+    def set_intervals(self, interval_s: float, summary_interval_s: float) -> None:
+        """New periods (a reload): the next report comes the new period after the last one."""
+        self._next_status += interval_s - self.interval_s
+        self._next_summary += summary_interval_s - self.summary_interval_s
+        self.interval_s = interval_s
+        self.summary_interval_s = summary_interval_s
+
     def tick(self, now: float, last: TrackOutput | None) -> None:
         if now >= self._next_status:
             self._next_status = now + self.interval_s
