@@ -228,6 +228,22 @@ def test_undistort_errors(tmp_path: Path, capsys) -> None:
     assert not out.exists()
 
 
+def test_undistort_says_what_is_wrong_with_its_paths(tmp_path: Path, capsys) -> None:
+    """A folder as INPUT and an output of no image type: one line each, no traceback."""
+    camera_file = tmp_path / "cam.yaml"
+    save_camera(TEST_CAMERA, camera_file)
+    frame = tmp_path / "frame.png"
+    cv2.imwrite(str(frame), np.full((TEST_CAMERA.height, TEST_CAMERA.width), 128, np.uint8))
+    assert main(["undistort", str(tmp_path), "-c", str(camera_file),
+                 "-o", str(tmp_path / "o.png")]) == 1
+    err = capsys.readouterr().err
+    assert "not a file" in err and len(err.strip().splitlines()) == 1, err
+    assert main(["undistort", str(frame), "-c", str(camera_file),
+                 "-o", str(tmp_path / "o.txt")]) == 1
+    err = capsys.readouterr().err
+    assert "cannot write" in err and len(err.strip().splitlines()) == 1, err
+
+
 @pytest.mark.parametrize("suffix", [".yml", ".xml"])
 def test_opencv_filestorage_calibrations_are_read(tmp_path: Path, suffix: str) -> None:
     """Files written by OpenCV's own calibration sample (cv::FileStorage) load unchanged."""

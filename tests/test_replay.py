@@ -375,6 +375,13 @@ def test_unreadable_inputs_give_clear_errors(
     code = main(["replay", video, "--calibration", cal, "--mesh-size", "5", "--out",
                  str(tmp_path / "out")])
     assert code == 78 and "--mesh-size" in capsys.readouterr().err
+    taken = tmp_path / "out.txt"  # --out naming a file: said at once, the file kept
+    taken.write_text("mine")
+    code = main(["replay", video, "--calibration", cal, "--mesh-size", "0.025", "--out",
+                 str(taken)])
+    err = capsys.readouterr().err
+    assert code == 1 and "exists and is not a folder" in err, err
+    assert len(err.strip().splitlines()) == 1 and taken.read_text() == "mine"
 
 
 # -- interruption ---------------------------------------------------------------------------------

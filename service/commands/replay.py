@@ -425,6 +425,9 @@ def _replay(
     truth: dict[int, Truth] | None,
     total: int | None,
 ) -> int:
+    if args.out.exists() and not args.out.is_dir():
+        # Said before the first frame is estimated, not after.
+        raise NetposeError(f"--out {args.out}: exists and is not a folder")
     # The daemon's pipeline, as the daemon builds it: the filter always runs (its output is
     # written with --filter), so the estimates are the ones the vehicle would have made.
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
@@ -452,7 +455,11 @@ def _replay(
             for result in runner.run(frames):
                 if csv_file is None:
                     # The first frame was accepted: only now is there something to write.
-                    out_dir.mkdir(parents=True, exist_ok=True)
+                    try:
+                        out_dir.mkdir(parents=True, exist_ok=True)
+                    except OSError as exc:
+                        raise NetposeError(
+                            f"--out {out_dir}: cannot create it ({exc.strerror or exc})") from None
                     _remove_stale_outputs(out_dir)
                     csv_file = EstimatesCsv(out_dir / "estimates.csv")
                     video = None if annotator is None else AnnotatedVideo(out_dir, fps)

@@ -71,6 +71,8 @@ def side_by_side(camera: CameraModel, image: Image, alpha: float = 0.0) -> Image
 def _read_input(path: Path, frame_index: int) -> Image:
     if not path.exists():
         raise CalibrationInputError(f"{path}: no such file")
+    if not path.is_file():
+        raise CalibrationInputError(f"{path}: not a file (an image or a video)")
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         image = cv2.imdecode(np.fromfile(str(path), dtype=np.uint8), cv2.IMREAD_COLOR)
         return read_image(path) if image is None else np.asarray(image, dtype=np.uint8)
@@ -100,7 +102,11 @@ def run(args: argparse.Namespace) -> int:
     out = side_by_side(camera, image, args.alpha) if args.side_by_side else (
         undistort_image(camera, image, args.alpha)
     )
-    if not cv2.imwrite(str(args.output), out):
+    try:
+        written = cv2.imwrite(str(args.output), out)
+    except cv2.error:  # OpenCV 5 raises where 4.x returns False
+        written = False
+    if not written:
         raise NetposeError(f"{args.output}: cannot write (unknown image extension or folder?)")
     print(f"wrote {args.output}")
     return 0
