@@ -100,7 +100,7 @@ def ran() -> Iterator[PassRun]:
         outputs = daemon.outputs.damage
         assert outputs is not None
         daemon_holes = outputs.reported
-        expected = len(outputs.notices.sent)
+        expected = outputs.notices.sent_total
         autopilot.wait_for("STATUSTEXT", count=expected, timeout=10.0,
                            where=lambda r: "hole" in r.msg.text)
         deadline = time.monotonic() + 10.0

@@ -8,6 +8,7 @@ for I/O (the publisher and the link queue what they are given).
 from __future__ import annotations
 
 import base64
+import collections
 import logging
 from collections.abc import Callable
 
@@ -16,6 +17,8 @@ from service.core.errors import NetposeError
 from service.core.messages import DamageMessage
 from service.daemon.ports import AutopilotLink, Frame, FrameObserver, TelemetrySink
 from service.tools.preview import encode_jpeg
+
+RECENT_TEXTS = 32  # the last pilot texts, kept to be read back (tests, a debugger)
 
 log = logging.getLogger("netpose.daemon")
 
@@ -57,7 +60,10 @@ class PilotNotices:
         self._last_sent = -float("inf")
         self._pending: tuple[ConfirmedHole, float] | None = None
         self._held_back = 0  # holes confirmed since the last text, besides the pending one
-        self.sent: list[str] = []
+        # The last texts sent (tests and the status read them), and how many in all: a
+        # daemon runs for months, so the texts themselves are not all kept.
+        self.sent: collections.deque[str] = collections.deque(maxlen=RECENT_TEXTS)
+        self.sent_total = 0
 
     def hole(self, hole: ConfirmedHole, now: float) -> None:
         if self._pending is not None:
@@ -79,6 +85,7 @@ class PilotNotices:
         self._held_back = 0
         self._last_sent = now
         self.sent.append(text)
+        self.sent_total += 1
         self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
 
 

@@ -12,6 +12,7 @@ that flickers at the limit does not flood the pilot's screen. The log says when 
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 
@@ -20,6 +21,8 @@ from service.core.readings import RangeStatus
 from service.core.state_log import StateLog, not_logged_note
 from service.daemon.ports import AutopilotLink
 from service.pipeline import PipelineResult
+
+RECENT_TEXTS = 32  # the last pilot texts, kept to be read back (tests, a debugger)
 
 log = logging.getLogger("netpose.daemon")
 
@@ -82,7 +85,10 @@ class ViewNotices:
         self._frames = 0
         self._announced = View.NET
         self._last_text_at: dict[View, float] = {}
-        self.sent: list[str] = []
+        # The last texts sent (tests and the status read them), and how many in all: a
+        # daemon runs for months, so the texts themselves are not all kept.
+        self.sent: collections.deque[str] = collections.deque(maxlen=RECENT_TEXTS)
+        self.sent_total = 0
 
     @property
     def view(self) -> View:
@@ -106,6 +112,7 @@ class ViewNotices:
                 self._last_text_at[view] = now
                 text = pilot_text(view, result, self.configured_opening_deg)
                 self.sent.append(text)
+                self.sent_total += 1
                 self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
         due, logged, between = self._states.update("view", self._announced, now)
         if not due:
