@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 
 from drivers.distance_gate import DistanceGate
 from service.core.readings import RangeReading, RangeStatus
@@ -37,21 +38,52 @@ def test_the_freshness_limit_follows_a_slow_frame_rate() -> None:
     assert all(sends[5:]) and gate.changes == 1
 
 
+def test_a_frozen_fast_camera_stops_the_distance_after_its_own_measured_limit() -> None:
+    """A camera at 30 frames/s, 20 ms from capture to the link, freezes: the newest distance
+    is repeated for 1.5 x (latency + interval) + two send periods, about 0.28 s, not for the
+    ceiling's 0.8 s that a slow machine would need."""
+    gate = DistanceGate(ceiling_s=0.8, send_period_s=PERIOD)
+    interval, latency = 1 / 30, 0.02
+    frame = 0
+    reading = good(0.0)
+    for step in range(1, 300):  # 3 s of the loop at 100 Hz
+        t = step / 100
+        while (frame + 1) * interval + latency <= t and (frame + 1) * interval < 2.0:
+            frame += 1
+            reading = good(frame * interval)
+            gate.observe(reading, frame * interval + latency)
+        if gate.decide(reading, t):
+            last_sent = t
+    expected = 1.5 * (latency + interval) + 2 * PERIOD
+    assert gate.freshness_s == pytest.approx(expected, rel=1e-6)
+    frozen_at = frame * interval  # the last frame's capture time
+    assert last_sent - frozen_at == pytest.approx(expected, abs=0.011)  # the loop's 10 ms step
+
+
 def test_a_wavering_reading_flips_the_output_at_most_once_a_second() -> None:
     """Readings whose age hovers around the limit (a frame rate that comes and goes): without
     hysteresis the rangefinder would come and go every 100-200 ms."""
-    gate = DistanceGate(ceiling_s=0.3, send_period_s=PERIOD, floor_s=0.3)
+    gate = DistanceGate(ceiling_s=0.3, send_period_s=PERIOD, floor_s=0.3, settle_s=0.3)
     rng = np.random.default_rng(3)
     t, changes_at = 0.0, []
     last_changes = 0
     while t < 30.0:
-        age = 0.3 + rng.uniform(-0.12, 0.12)  # around the 0.3 s limit
+        # Stretches well inside the limit (long enough to settle), then ages beyond it: the
+        # reading would start and stop the output about every 0.6 s without the rule.
+        age = 0.1 if (t % 1.2) < 0.6 else 0.3 + rng.uniform(0.01, 0.12)
         gate.decide(good(t - age), t)
         if gate.changes != last_changes:
             changes_at.append(t)
             last_changes = gate.changes
         t += PERIOD
-    assert len(changes_at) <= 30 / 1.0 + 1
+    assert len(changes_at) >= 10  # it did go on and off, so the spacing below is tested
+    # A stale distance stops at once (the safety rule); what the rule limits is the starts:
+    # each one (every other change, from the first) a second or more after the stop before
+    # it, so the output goes on and off at most once a second.
+    starts = changes_at[2::2]
+    stops_before = changes_at[1::2]
+    assert all(start - stop >= 1.0 - 1e-9
+               for stop, start in zip(stops_before, starts, strict=False))
     assert all(b - a >= 1.0 - 1e-9 for a, b in itertools.pairwise(changes_at[::2]))
 
 
