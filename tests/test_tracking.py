@@ -92,6 +92,29 @@ def test_outlier_is_rejected_and_counted() -> None:
     assert out.measurement.value == "accepted" and out.state is TrackState.TRACKING
 
 
+def test_the_gate_accepts_within_gate_sigma_and_rejects_beyond() -> None:
+    """At the gate's boundary, not 60 sigma from it: on a converged track, a measurement
+    3.5 innovation sigmas off is accepted and one 4.5 off rejected (gate_sigma 4). The
+    innovation sigma is the measurement's and the track's own together: checked against
+    sqrt(sd^2 + sigma_track^2) from the outputs (the prediction over one frame adds little)."""
+    import copy
+
+    sd = 0.02
+    tracker = NetTracker(FilterSettings(gate_sigma=4.0))
+    out = None
+    for i in range(60):
+        out = tracker.step(i / FPS, estimate(1.2, sd=sd))
+    assert out is not None and out.sigma_distance_m is not None
+    t = 60 / FPS
+    probe = copy.deepcopy(tracker).step(t, estimate(1.2 + 0.01, sd=sd))
+    assert probe.mahalanobis is not None
+    per_metre = probe.mahalanobis / 0.01  # innovation sigmas per metre off
+    assert 1.0 / per_metre == pytest.approx(math.hypot(sd, out.sigma_distance_m), rel=0.1)
+    for sigmas, accepted in ((3.5, True), (4.5, False), (-3.5, True), (-4.5, False)):
+        trial = copy.deepcopy(tracker).step(t, estimate(1.2 + sigmas / per_metre, sd=sd))
+        assert (trial.measurement is Outcome.ACCEPTED) == accepted, sigmas
+
+
 def test_consistent_rejects_restart_the_track_at_the_new_value() -> None:
     """The net really jumped (e.g. another net panel came into view): after
     max_consecutive_rejects the track restarts there and must be re-acquired."""
