@@ -177,9 +177,25 @@ def test_hard_minimum_distance_is_never_crossed_with_thrust() -> None:
     # A set point below the minimum (a mistake) still stops short of the minimum.
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
     applet = engaged_applet(vehicle, DIST=0.5, DIST_MIN=0.8)
-    trace = run_closed_loop(applet, vehicle, 30.0)
+    run_closed_loop(applet, vehicle, 30.0)
     assert vehicle.min_distance_seen > 0.8 - 0.03
-    assert all(fwd <= 1500 for _, d, _, fwd, _ in trace if d <= 0.8)
+
+
+@pytest.mark.parametrize("speed_mps", [0.0, -0.3, -0.6])
+def test_inside_the_hard_minimum_there_is_no_thrust_toward_the_net(speed_mps: float) -> None:
+    """Pushed inside NETH_DIST_MIN (a wave, the pilot), still or moving away: the loop would
+    brake a fast retreat, i.e. thrust toward the net, and a still vehicle too near would be
+    held where it is. Neither inside the minimum: every frame there has no forward thrust,
+    and the vehicle ends outside it."""
+    vehicle = NetVehicle(distance_m=1.2, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 5.0)
+    vehicle.distance_m, vehicle.speed_mps = 0.3, -speed_mps  # moving away at |speed|
+    trace = run_closed_loop(applet, vehicle, 10.0)
+    inside = [(d, fwd) for _, d, _, fwd, _ in trace if d <= 0.4]
+    assert len(inside) >= 20  # the rule was exercised
+    assert all(fwd <= 1500 for _, fwd in inside), [f for _, f in inside if f > 1500][:5]
+    assert vehicle.distance_m > 0.4 and applet.engaged
 
 
 def test_engage_and_disengage_by_command_with_acks() -> None:
