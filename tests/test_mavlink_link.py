@@ -229,6 +229,20 @@ def test_heartbeat_and_distance_sensor_over_udp() -> None:
     assert json.loads(json.dumps(json_value(status)))  # ready for telemetry as it is
 
 
+def test_too_close_goes_out_below_the_minimum_over_udp() -> None:
+    """A net too close to resolve, on the wire: DISTANCE_SENSOR with a distance below its own
+    min_distance, so ArduPilot reports OutOfRangeLow (proved against ArduSub SITL below);
+    never a believable distance inside the range, never silence."""
+    too_close = RangeReading(RangeStatus.TOO_CLOSE, t_capture=0.0, quality=0.9)
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link, feeding(link, reading=too_close):
+            sensors = autopilot.wait_for("DISTANCE_SENSOR", count=5, where=from_link)
+    for r in sensors:
+        assert r.msg.min_distance == 30 and r.msg.current_distance < r.msg.min_distance
+        assert r.msg.current_distance == 29  # 1 cm below: ArduPilot's test is a strict '<'
+
+
 def test_nothing_sent_without_a_valid_distance() -> None:
     with FakeAutopilot(UdpServerTransport()) as autopilot:
         link = MavlinkLink(settings(autopilot.url))
