@@ -394,8 +394,8 @@ def _assert_not_gross(est: NetEstimate, truth: GroundTruth) -> None:
 
 # Gross errors that the 20,000-frame run of 2026-11-24 (seed 1) found among 8,575 valid outputs;
 # both gave the same answer with the code before that session's speed work, so they were not
-# regressions of it. Kept here, strict on bookworm's pinned stack only (tests/numeric_stack.py), until it is
-# mended (docs/benchmarks.md):
+# regressions of it. Kept here, strict on bookworm's pinned stack only (tests/numeric_stack.py),
+# until it is mended (docs/benchmarks.md):
 # - (1, 482, 19): 640x360, 0.74 m, 20 deg, four or five ROIs (the fewest a plane may have): the
 #   range is right (+2 %) but the normal is off: on numpy 2 / OpenCV 5 by 8.9 deg at a sigma of
 #   3.3 deg (not gross), on bookworm's stack by 12.5 deg at 3.7 deg, still gross there (with the
