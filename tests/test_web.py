@@ -511,6 +511,48 @@ def test_a_recording_downloads_and_replays_to_the_daemons_output(
 
 
 # -- set-up mode ----------------------------------------------------------------------------------
+def test_a_first_start_without_mesh_size_or_calibration_is_set_up_on_the_page(
+    tmp_path: Path,
+) -> None:
+    """config/blueos.toml as shipped: neither the mesh size (no default) nor a calibration.
+    The service must not exit (the container engine would restart it forever, with no page);
+    set-up mode serves the page, which saves the two one at a time, and the daemon starts."""
+    d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml"}})
+    text = d.config.read_text()
+    d.config.write_text("\n".join(line for line in text.splitlines()
+                                  if not line.startswith("bar_length_m")) + "\n")
+    d.start()
+    try:
+        _, settings = d.request("GET", "/api/settings")
+        assert settings["problem"].startswith("configuration error: "), settings
+        assert settings["values"]["mesh.bar_length_m"] is None  # shown unset, not a stand-in
+        status, reply = d.request("POST", "/api/settings",
+                                  {"changes": {"mesh.bar_length_m": 0.025}}, token=True)
+        assert status == 200 and reply["saved"], reply  # saved while the calibration lacks
+        assert "bar_length_m = 0.025" in d.config.read_text()
+        assert "set-up mode" in d.log() and "leaving set-up mode" not in d.log()
+        path = tmp_path / "upload.yaml"
+        save_camera(builtin_camera(1280, 720), path)
+        status, reply = _upload(d, "camera.yaml", path.read_bytes())
+        assert status == 200, reply
+        status, reply = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
+                                  token=True)
+        assert status == 200 and reply["saved"], reply
+        deadline = time.monotonic() + 60.0
+        while "leaving set-up mode" not in d.log():
+            assert time.monotonic() < deadline, d.log()
+            time.sleep(0.5)
+        texts: list[dict[str, Any]] = []
+        while not any(t["kind"] == "estimate" and t["detected"] for t in texts):
+            assert time.monotonic() < deadline, d.log()
+            try:
+                texts, _ = d.collect(2.0)
+            except OSError:
+                texts = []
+    finally:
+        assert d.stop() == 0, d.log()
+
+
 def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Path) -> None:
     autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     autopilot.bind(("127.0.0.1", 0))

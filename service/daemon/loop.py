@@ -76,6 +76,8 @@ class ReloadOutcome:
     restart_needed: tuple[str, ...] = ()  # of those, the ones the running parts keep
     error: str = ""  # why the new configuration was rejected
     digest: str = ""  # of the configuration in force afterwards
+    # Set-up mode: the file was taken, but what it still lacks keeps the daemon from starting.
+    pending: str = ""
 
 
 def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:

@@ -14,6 +14,7 @@ neither the file nor the daemon changed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import logging
@@ -30,7 +31,6 @@ import tomlkit
 from tomlkit.items import Table
 
 from service.config import Config
-from service.core.camera import load_camera
 from service.core.errors import CalibrationError, ConfigError
 from service.core.redact import REDACTED, redact_config
 from service.daemon.loop import ReloadOutcome
@@ -51,6 +51,11 @@ LOCKED_SECTIONS = frozenset({"web"})
 RELOAD_TIMEOUT_S = 15.0
 
 Loader = Callable[[Path], Config]
+
+# While set-up mode serves the page, a configuration without a mesh size is loaded with this
+# stand-in (service/daemon/wiring.py): the page must show the key as unset, not as this value.
+SET_UP_MESH_KEY = "mesh.bar_length_m"
+SET_UP_MESH_OVERRIDE = f"{SET_UP_MESH_KEY}=0.0275"
 
 
 def _field_kind(tp: Any) -> dict[str, Any]:
@@ -83,10 +88,15 @@ class SettingsEditor:
 
     def __init__(self, path: Path | None, overrides: tuple[str, ...], load: Loader,
                  request_reload: Callable[[], None],
-                 request_restart: Callable[[], None]) -> None:
+                 request_restart: Callable[[], None],
+                 load_incomplete: Loader | None = None) -> None:
+        """`load` checks a file as `netpose run` does; `load_incomplete` as set-up mode may save
+        it (what set-up is there to finish may still be missing), used while `setting_up`."""
         self.path = path
         self._overridden = {text.partition("=")[0].strip() for text in overrides}
         self._load = load
+        self._load_incomplete = load_incomplete
+        self.setting_up = threading.Event()
         self._request_reload = request_reload
         self._request_restart = request_restart
         self._lock = threading.Lock()  # one change at a time
@@ -119,6 +129,10 @@ class SettingsEditor:
                 config = self._load(self.path)
             except (ConfigError, CalibrationError) as exc:
                 problem = f"configuration error: {exc}"
+                set_up = self._set_up_loader()
+                if set_up is not None:  # what is there, to show it
+                    with contextlib.suppress(ConfigError, CalibrationError):
+                        config = set_up(self.path)
         groups = []
         for title, keys in self._groups(config):
             fields = []
@@ -131,6 +145,8 @@ class SettingsEditor:
                     # The page is open to the vehicle's network (the token guards changes,
                     # not reading): a camera URL's password is not shown, as in the log.
                     value = config.effective.get(section, {}).get(name)
+                    if key == SET_UP_MESH_KEY and SET_UP_MESH_OVERRIDE in config.overrides:
+                        value = None  # the stand-in, not the file's
                     values[key] = redact_config({name: value})[name]
             groups.append({"title": title, "fields": fields})
         return {"path": str(self.path) if self.path else None, "editable": editable,
@@ -196,6 +212,8 @@ class SettingsEditor:
         needs = sorted(self.restart_pending)
         message = "saved and applied" if not needs else (
             f"saved; changes to {', '.join(needs)} take effect after a restart")
+        if outcome.pending:
+            message = f"saved; set-up not finished: {outcome.pending}"
         return {"saved": True, "message": message, "changed": list(outcome.changed),
                 "restart_needed": needs, "digest": outcome.digest}
 
@@ -229,15 +247,17 @@ class SettingsEditor:
             return False, f"{self.path} (or its folder) is not writable by the service"
         return True, ""
 
+    def _set_up_loader(self) -> Loader | None:
+        return self._load_incomplete if self.setting_up.is_set() else None
+
     def _validate(self, candidate: Path) -> Config:
-        config = self._load(candidate)
-        calibration = config.calibration_path()
-        if calibration is not None:
-            try:
-                load_camera(calibration)
-            except CalibrationError as exc:
-                raise ConfigError("camera.calibration", str(exc)) from None
-        return config
+        # The loader checks as `netpose run` does, the calibration file loaded too; in set-up
+        # mode, as set-up may save a file piece by piece.
+        load = self._set_up_loader() or self._load
+        try:
+            return load(candidate)
+        except CalibrationError as exc:
+            raise ConfigError("camera.calibration", str(exc)) from None
 
     def _reload(self) -> ReloadOutcome:
         with self._outcomes:

@@ -1,8 +1,8 @@
 """Set-up mode: the web page without the estimator, until the configuration is complete.
 
-On a first start under BlueOS there is no camera calibration yet, and `netpose run` would stop
-with exit status 78, restarted in a loop by the container engine, with no page to fix it from.
-With `web.enabled`, a calibration problem starts this mode instead: the camera's frames (with
+On a first start under BlueOS there is no mesh size and no camera calibration yet, and `netpose
+run` would stop with exit status 78, restarted in a loop by the container engine, with no page to
+fix it from. With `web.enabled`, a problem with either starts this mode instead: the camera's frames (with
 the problem written on them), the settings form and the calibration upload. Nothing is sent to
 the autopilot and nothing is published: the link and telemetry are not even built. A change
 saved on the page asks for a reload (the editor's ordinary path); when the configuration is
@@ -83,7 +83,9 @@ def run_setup(
                 try:
                     config = validate()
                 except NetposeError as exc:
-                    on_reload(ReloadOutcome(ok=False, error=str(exc)))
+                    # Saved (the page checked it as far as set-up allows), still not complete:
+                    # the page says what is left, and set-up goes on.
+                    on_reload(ReloadOutcome(ok=True, pending=str(exc)))
                     notifier.status(f"set-up mode: {exc}")
                     continue
                 log.info("configuration complete: leaving set-up mode")

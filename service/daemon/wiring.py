@@ -31,7 +31,12 @@ from service.core.errors import CalibrationError, ConfigError
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
 from service.daemon.ports import FrameObserver, Notifier
-from service.daemon.settings_editor import SettingsEditor, tuning_toml
+from service.daemon.settings_editor import (
+    SET_UP_MESH_KEY,
+    SET_UP_MESH_OVERRIDE,
+    SettingsEditor,
+    tuning_toml,
+)
 from service.daemon.setup_mode import run_setup, setup_renderer
 from service.pipeline import PipelineResult
 from service.signals import RESTART, SignalFlags, handle_signals
@@ -154,14 +159,33 @@ def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
     return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
 
 
-def checked_config(config_path: str | None, overrides: Iterable[str] = ()) -> Config:
+def checked_config(config_path: str | None, overrides: Iterable[str] = (), *,
+                   incomplete_ok: bool = False) -> Config:
     """The configuration, and every part `run` builds from it (source, camera, MAVLink link,
     telemetry) built once as a check, nothing opened or kept: a file saved from the web page
     must start the daemon it restarts, or the service would exit on an error only the page
-    could have fixed."""
-    config = load_daemon_config(config_path, overrides)
-    parts = build_parts(config, NullNotifier())
-    parts.source.close()
+    could have fixed.
+
+    With `incomplete_ok` (set-up mode: the page saves one setting at a time), what set-up mode
+    is there to finish (the mesh size, the calibration) may still be missing; everything else
+    is checked as ever."""
+    overrides = tuple(overrides)
+    try:
+        config = load_daemon_config(config_path, overrides)
+        parts = build_parts(config, NullNotifier())
+        parts.source.close()
+        return config
+    except (ConfigError, CalibrationError) as exc:
+        if not (incomplete_ok and _set_up_can_fix(exc)):
+            raise
+    config = _setup_config(config_path, overrides)
+    source = build_source(config)
+    try:
+        check_simulated(config, source)
+    finally:
+        source.close()
+    MavlinkLink(config.section("mavlink", MavlinkSettings))
+    make_publisher(config.section("telemetry", TelemetrySettings))
     return config
 
 
@@ -187,9 +211,10 @@ def main(
                 flags.request_stop(RESTART)
 
             editor = SettingsEditor(
-                config.path, overrides,
-                lambda path: checked_config(str(path), overrides),
-                flags.reload.set, request_restart)
+                config.path, overrides, lambda path: checked_config(str(path), overrides),
+                flags.reload.set, request_restart,
+                load_incomplete=lambda path: checked_config(str(path), overrides,
+                                                            incomplete_ok=True))
             running: list[Daemon] = []
             started = time.monotonic()
             controls = WebControls(editor, lambda: running[-1].config if running else config,
@@ -204,8 +229,12 @@ def main(
                 if parts is None:
                     assert problem is not None
                     deadline = None if duration_s is None else started + duration_s
-                    ready = _set_up(config, problem, notify, flags, editor, config_path,
-                                    overrides, deadline)
+                    editor.setting_up.set()  # the page may save the file piece by piece
+                    try:
+                        ready = _set_up(config, problem, notify, flags, editor, config_path,
+                                        overrides, deadline)
+                    finally:
+                        editor.setting_up.clear()
                     if ready is None:
                         return 0
                     config, problem = ready, None
@@ -277,15 +306,36 @@ def fewer_malloc_arenas() -> None:
         log.debug("mallopt(M_ARENA_MAX) refused; the C library keeps its arenas")
 
 
+# What a new vehicle's configuration lacks until its owner has set it up, and the page can set:
+# the net's mesh size (no default: every distance scales with it) and the camera calibration.
+SET_UP_KEYS = frozenset({SET_UP_MESH_KEY, "camera.calibration"})
+
+
+def _set_up_can_fix(exc: Exception) -> bool:
+    return isinstance(exc, CalibrationError) or (
+        isinstance(exc, ConfigError) and exc.key in SET_UP_KEYS)
+
+
 def _setup_problem(config: Config, exc: Exception) -> str:
-    """The problem set-up mode can fix from the page (a missing or unusable calibration, with
-    the page enabled); anything else is raised again (exit status 78)."""
-    calibration = isinstance(exc, CalibrationError) or (
-        isinstance(exc, ConfigError) and exc.key == "camera.calibration")
-    if not calibration or not config.section("web", WebSettings).enabled:
+    """The problem set-up mode can fix from the page (the mesh size or the calibration
+    missing or unusable, with the page enabled); anything else is raised again (exit status
+    78)."""
+    if not _set_up_can_fix(exc) or not config.section("web", WebSettings).enabled:
         raise exc
     return f"configuration error: camera.calibration: {exc}" if isinstance(
         exc, CalibrationError) else f"configuration error: {exc}"
+
+
+def _setup_config(config_path: str | None, overrides: tuple[str, ...]) -> Config:
+    """The configuration as far as set-up mode needs it (the page, the camera's frames): the
+    calibration file not looked at, a missing or unusable mesh size stood in for (set-up mode
+    estimates nothing, and it ends only once the file itself has the key)."""
+    try:
+        return load_daemon_config(config_path, overrides, check_files=False)
+    except ConfigError as exc:
+        if exc.key != SET_UP_MESH_KEY:
+            raise
+    return load_daemon_config(config_path, (*overrides, SET_UP_MESH_OVERRIDE), check_files=False)
 
 
 def _load_or_setup(config_path: str | None, overrides: tuple[str, ...]
@@ -293,17 +343,10 @@ def _load_or_setup(config_path: str | None, overrides: tuple[str, ...]
     try:
         return load_daemon_config(config_path, overrides), None
     except ConfigError as exc:
-        if exc.key != "camera.calibration":
+        if not _set_up_can_fix(exc):
             raise
-        config = load_daemon_config(config_path, overrides, check_files=False)
+        config = _setup_config(config_path, overrides)
         return config, _setup_problem(config, exc)
-
-
-def _validated(config_path: str | None, overrides: tuple[str, ...]) -> Config:
-    """The configuration, checked as far as the daemon's start checks it."""
-    config = load_daemon_config(config_path, overrides)
-    resolve_camera(config, build_source(config))
-    return config
 
 
 def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
@@ -315,7 +358,7 @@ def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
     vehicle = config.section("telemetry", TelemetrySettings).vehicle
     page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
     return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
-                     problem=problem, validate=lambda: _validated(config_path, overrides),
+                     problem=problem, validate=lambda: checked_config(config_path, overrides),
                      on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline)
 
 
