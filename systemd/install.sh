@@ -13,9 +13,13 @@
 #     for you to fill: the service refuses to start until it is set;
 #   - $UNIT_DIR/netpose.service with these paths, daemon-reload, enable (start with START=1).
 #
+#   - with the web page on in that file (PROFILE=blueos), $CONF_DIR writable by the service
+#     (a drop-in: ReadWritePaths, group-writable), so the page can save settings and recordings;
+#   - an upgrade (re-running it) restarts a running service on the new code.
+#
 # Variables: PREFIX (/opt/netpose), CONF_DIR (/etc/netpose), UNIT_DIR (/etc/systemd/system),
-# PROFILE (raspberrypi), CONFIG (a file to install instead of the profile), PYTHON (python3),
-# START (0).
+# PROFILE (raspberrypi), CONFIG (a file to install instead of the profile: relative to this
+# checkout, or absolute), PYTHON (python3), START (0).
 set -eu
 
 SRC_DIR=$(CDPATH= cd -- "$(dirname -- "$0")/.." && pwd)
@@ -32,8 +36,12 @@ if [ "$(id -u)" -ne 0 ]; then
     echo "install.sh: run as root (sudo $0)" >&2
     exit 1
 fi
-if [ ! -f "$SRC_DIR/$CONFIG" ]; then
-    echo "install.sh: no such configuration: $SRC_DIR/$CONFIG (PROFILE=raspberrypi|blueos)" >&2
+case "$CONFIG" in
+    /*) CONFIG_FILE=$CONFIG ;;
+    *) CONFIG_FILE=$SRC_DIR/$CONFIG ;;
+esac
+if [ ! -f "$CONFIG_FILE" ]; then
+    echo "install.sh: no such configuration: $CONFIG_FILE (PROFILE=raspberrypi|blueos)" >&2
     exit 1
 fi
 
@@ -41,11 +49,14 @@ echo "netpose: Debian packages (skipped when present)"
 if command -v apt-get >/dev/null 2>&1; then
     missing=""
     # python3-lxml: pymavlink's XML parser, prebuilt (pip would compile it on a Pi).
+    # python3-matplotlib: filterpy depends on it; from pip it would come in a version that
+    # needs a newer numpy than Debian's, and pip would replace python3-numpy (or build it).
     for pkg in python3-venv python3-numpy python3-scipy python3-opencv python3-yaml \
-               python3-serial python3-lxml; do
+               python3-serial python3-lxml python3-matplotlib; do
         dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"
     done
     if [ -n "$missing" ]; then
+        apt-get update
         apt-get install -y --no-install-recommends $missing
     fi
 fi
@@ -60,6 +71,8 @@ for group in video dialout; do
 done
 
 echo "netpose: code in $PREFIX"
+# A fresh copy: modules removed upstream must not linger from an earlier install.
+rm -rf "$PREFIX/src"
 install -d -m 0755 "$PREFIX" "$PREFIX/src"
 # Copy the tracked sources only (no .venv, no caches).
 (cd "$SRC_DIR" && tar --exclude=.venv --exclude=.git --exclude='*.egg-info' \
@@ -70,7 +83,8 @@ if [ ! -x "$PREFIX/venv/bin/python" ]; then
     "$PYTHON" -m venv --system-site-packages "$PREFIX/venv"
 fi
 # opencv-python is an extra, not a dependency: Debian's python3-opencv provides cv2.
-"$PREFIX/venv/bin/python" -m pip install --quiet --upgrade "$PREFIX/src"
+# Wheels where pip has a choice (pure-Python packages that exist only as sources are fine).
+"$PREFIX/venv/bin/python" -m pip install --quiet --prefer-binary --upgrade "$PREFIX/src"
 if ! "$PREFIX/venv/bin/python" -c "import cv2" 2>/dev/null; then
     "$PREFIX/venv/bin/python" -m pip install --quiet "opencv-python-headless>=4.6"
 fi
@@ -78,7 +92,7 @@ fi
 echo "netpose: configuration in $CONF_DIR"
 install -d -m 0750 -o root -g "$SERVICE_USER" "$CONF_DIR"
 if [ ! -e "$CONF_DIR/netpose.toml" ]; then
-    install -m 0640 -o root -g "$SERVICE_USER" "$SRC_DIR/$CONFIG" "$CONF_DIR/netpose.toml"
+    install -m 0640 -o root -g "$SERVICE_USER" "$CONFIG_FILE" "$CONF_DIR/netpose.toml"
     echo "netpose: wrote $CONF_DIR/netpose.toml from $CONFIG: set the mesh size, the camera"
     echo "         calibration and the MAVLink endpoint (see the comments in the file)"
 else
@@ -87,8 +101,10 @@ fi
 
 echo "netpose: systemd unit"
 # The unit names the paths of this installation (PREFIX, CONF_DIR may differ from the defaults).
-unit_tmp=$(mktemp)
-trap 'rm -f "$unit_tmp"' EXIT
+# Checked under its own name: systemd-analyze refuses a file without the .service suffix.
+unit_dir_tmp=$(mktemp -d)
+trap 'rm -rf "$unit_dir_tmp"' EXIT
+unit_tmp=$unit_dir_tmp/netpose.service
 sed -e "s#/opt/netpose#$PREFIX#g" -e "s#/etc/netpose/netpose.toml#$CONF_DIR/netpose.toml#g" \
     "$SRC_DIR/systemd/netpose.service" > "$unit_tmp"
 if command -v systemd-analyze >/dev/null 2>&1 && ! systemd-analyze verify "$unit_tmp"; then
@@ -96,6 +112,23 @@ if command -v systemd-analyze >/dev/null 2>&1 && ! systemd-analyze verify "$unit
     echo "netpose: systemd-analyze verify reported problems (above); installing anyway" >&2
 fi
 install -m 0644 "$unit_tmp" "$UNIT_DIR/netpose.service"
+# The web page saves the configuration (and, with a relative recordings_dir, its recordings)
+# next to it: the hardened unit must let the service write there, and the files must let it.
+dropin=$UNIT_DIR/netpose.service.d/web-page.conf
+if "$PREFIX/venv/bin/python" -c "
+import sys, tomllib
+with open(sys.argv[1], 'rb') as fh:
+    sys.exit(0 if tomllib.load(fh).get('web', {}).get('enabled', False) else 1)
+" "$CONF_DIR/netpose.toml" 2>/dev/null; then
+    install -d -m 0755 "$UNIT_DIR/netpose.service.d"
+    printf '# Written by install.sh: the web page is on in %s.\n[Service]\nReadWritePaths=%s\nConfigurationDirectoryMode=0770\n' \
+        "$CONF_DIR/netpose.toml" "$CONF_DIR" > "$dropin"
+    chmod 0770 "$CONF_DIR"
+    chmod 0660 "$CONF_DIR/netpose.toml"
+    echo "netpose: the web page is on: $CONF_DIR is writable by the service ($dropin)"
+else
+    rm -f "$dropin"
+fi
 systemctl daemon-reload
 systemctl enable netpose.service
 
@@ -110,6 +143,9 @@ if $as_service "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" 
     if [ "$START" = "1" ]; then
         systemctl restart netpose.service
         systemctl --no-pager status netpose.service || true
+    elif systemctl is-active --quiet netpose.service; then
+        systemctl restart netpose.service  # an upgrade: the running service takes the new code
+        echo "netpose: upgraded and restarted"
     else
         echo "netpose: installed and enabled; start with: systemctl start netpose"
     fi
