@@ -2,11 +2,12 @@
 
 On a first start under BlueOS there is no mesh size and no camera calibration yet, and `netpose
 run` would stop with exit status 78, restarted in a loop by the container engine, with no page to
-fix it from. With `web.enabled`, a problem with either starts this mode instead: the camera's frames (with
-the problem written on them), the settings form and the calibration upload. Nothing is sent to
-the autopilot and nothing is published: the link and telemetry are not even built. A change
-saved on the page asks for a reload (the editor's ordinary path); when the configuration is
-then valid, set-up mode ends and the daemon starts as usual, in the same process.
+fix it from. With `web.enabled`, a problem with either starts this mode instead: the camera's
+frames (with the problem written on them), the settings form and the calibration upload.
+Nothing is sent to the autopilot and nothing is published: the link and telemetry are not even
+built. A change saved on the page asks for a reload (the editor's ordinary path); when the
+configuration is then valid, set-up mode ends and the daemon starts as usual, in the same
+process.
 """
 
 from __future__ import annotations
