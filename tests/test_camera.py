@@ -141,6 +141,26 @@ def test_scaled_to_another_aspect_ratio_is_refused() -> None:
         camera.scaled_to(640, 480)
 
 
+@pytest.mark.parametrize(("size", "scales"), [
+    ((960, 540), True), ((478, 267), True),  # resized: each side rounded to whole pixels
+    ((1920, 1088), False), ((1920, 1072), False),  # a decoder's padding, a crop: 8 rows
+    ((1904, 1080), False),  # 16 columns cropped
+])
+def test_only_a_resized_frame_takes_the_calibration_scaled(
+    size: tuple[int, int], scales: bool
+) -> None:
+    """Stretching fx and fy apart for 8 rows of padding would bias every distance by about
+    0.5 % (fy by 8/1080) at a sigma that does not know it: a frame more than the rounding of a
+    resize from the calibrated size is refused, saying why."""
+    camera = CameraModel(width=1920, height=1080, fx=1300.0, fy=1300.0, cx=960.0, cy=540.0)
+    if scales:
+        scaled = camera.scaled_to(*size)
+        assert scaled.fx / scaled.fy == pytest.approx(1.0, abs=0.01)
+    else:
+        with pytest.raises(CalibrationError, match="cropped or padded"):
+            camera.scaled_to(*size)
+
+
 # -- bad files: a clear CalibrationError naming the problem ---------------------------------------
 
 

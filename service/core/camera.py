@@ -21,6 +21,9 @@ import yaml
 from service.core.errors import CalibrationError
 
 FloatArray = npt.NDArray[np.float64]
+# How far a frame may be from the calibrated size scaled and still count as that size
+# resized (`CameraModel.scaled_to`): the rounding of each side, with room for one more pixel.
+_RESIZE_SLACK_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -74,10 +77,15 @@ class CameraModel:
         if (width, height) == (self.width, self.height):
             return self
         sx, sy = width / self.width, height / self.height
-        if abs(sx - sy) > 0.01 * max(sx, sy):
+        # A resize rounds each side to whole pixels: a frame that is the calibrated one scaled
+        # matches it to a pixel or two. More is a crop or padding (a decoder's 1088 rows for
+        # 1080), where stretching fx and fy apart would bias every distance (0.5 % for 8 rows
+        # of 1080) at a sigma that does not know it.
+        if min(abs(height - self.height * sx), abs(width - self.width * sy)) > _RESIZE_SLACK_PX:
             raise CalibrationError(
                 f"calibration is for {self.width}x{self.height}; frames are {width}x{height}, "
-                "a different aspect ratio: recalibrate at this resolution"
+                "not that size scaled (a different aspect ratio, or cropped or padded): "
+                "recalibrate at this resolution"
             )
         # Pixel centres: OpenCV's convention puts pixel i's centre at i, so scale about -0.5.
         return CameraModel(
