@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -159,6 +160,29 @@ def test_only_a_resized_frame_takes_the_calibration_scaled(
     else:
         with pytest.raises(CalibrationError, match="cropped or padded"):
             camera.scaled_to(*size)
+
+
+def test_a_strong_lens_is_inverted_exactly_on_every_opencv() -> None:
+    """A 100 deg pincushion (k1 0.1, k2 0.3): OpenCV 4.6 (bookworm's, a Pi's) stops its
+    iteration with corners 46 px off where OpenCV 5 gets within 0.003 px. Every pixel's ray
+    must project back onto it, whichever OpenCV runs."""
+    f = 0.5 * 1280 / math.tan(math.radians(50.0))
+    camera = CameraModel(1280, 720, f, f, 639.5, 359.5, (0.1, 0.3, 0.0, 0.0, 0.0))
+    v, u = np.mgrid[0:720:3, 0:1280:3].astype(np.float64)
+    pixels = np.stack([u, v], axis=-1)
+    back = camera.project_normalized(camera.undistort_pixels(pixels))
+    assert float(np.abs(back - pixels).max()) < 1e-5
+
+
+def test_a_lens_model_that_folds_within_the_frame_is_refused() -> None:
+    """A tangential term of 0.1 at 100 deg: no ray reaches the frame's corners (the model
+    folds first). Its rays there would be wrong (OpenCV 5's 279 px off, 4.6's NaN): the
+    calibration is refused, saying where."""
+    f = 0.5 * 1280 / math.tan(math.radians(50.0))
+    camera = CameraModel(1280, 720, f, f, 639.5, 359.5, (0.0, 0.0, 0.0, 0.1, 0.0))
+    corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 719.0], [1279.0, 719.0]])
+    with pytest.raises(CalibrationError, match="cannot be inverted at pixel"):
+        camera.undistort_pixels(corners)
 
 
 # -- bad files: a clear CalibrationError naming the problem ---------------------------------------

@@ -24,6 +24,12 @@ FloatArray = npt.NDArray[np.float64]
 # How far a frame may be from the calibrated size scaled and still count as that size
 # resized (`CameraModel.scaled_to`): the rounding of each side, with room for one more pixel.
 _RESIZE_SLACK_PX = 2.0
+# Undistortion, checked (`CameraModel._inverted`): points projected back per call, how far they
+# may land from where they came from, and how near the points that missed are then brought
+# (the estimator differentiates rays 2 px apart: their errors must be far below that).
+_INVERSION_SAMPLE = 4096
+_INVERSION_TOLERANCE_PX = 1e-3
+_INVERSION_TARGET_PX = 1e-6
 
 
 @dataclass(frozen=True)
@@ -118,7 +124,55 @@ class CameraModel:
             und = cv2.undistortPoints(
                 flat, self.matrix, self.dist_coeffs, R=None, P=None, criteria=criteria
             )
-        return np.asarray(und, dtype=np.float64).reshape(shape)
+        inverted = self._inverted(pts.reshape(-1, 2), np.asarray(und, np.float64).reshape(-1, 2))
+        return inverted.reshape(shape)
+
+    def _inverted(self, pixels: FloatArray, guess: FloatArray) -> FloatArray:
+        """`guess` (OpenCV's inversion of the lens at `pixels`) made exact where it is not.
+
+        OpenCV 4.6 (Debian bookworm's, what a Pi runs) stops its fixed-point iteration without
+        converging for a strong lens (a wide pincushion, large tangential terms: corners off by
+        tens to thousands of pixels), or returns NaN, where OpenCV 5 inverts it to 1e-12 px;
+        nothing downstream could tell, and a NaN corner ray stopped every frame. A sample of the
+        points (and every non-finite one) is projected back; only when that shows a miss are
+        all of them checked and the ones that miss refined by Newton steps on the forward model
+        itself. A point still not inverted means the model folds over within the frame: no
+        calibration for it."""
+        n = len(pixels)
+        bad = np.asarray(~np.isfinite(guess).all(axis=1), dtype=bool)
+        sample = np.arange(0, n, max(1, n // _INVERSION_SAMPLE))
+        miss = np.linalg.norm(self.project_normalized(np.nan_to_num(guess[sample]))
+                              - pixels[sample], axis=1)
+        if not bad.any() and not (miss > _INVERSION_TOLERANCE_PX).any():
+            return guess
+        linear = np.stack([(pixels[:, 0] - self.cx) / self.fx,
+                           (pixels[:, 1] - self.cy) / self.fy], axis=1)
+        out = np.where(bad[:, None], linear, guess)
+        residual = self.project_normalized(out) - pixels
+        todo = np.flatnonzero(~(np.linalg.norm(residual, axis=1) <= _INVERSION_TARGET_PX))
+        h = 1e-7
+        for _ in range(50):
+            if todo.size == 0:
+                break
+            x = out[todo]
+            f0 = residual[todo]
+            jx = (self.project_normalized(x + [h, 0.0]) - pixels[todo] - f0) / h
+            jy = (self.project_normalized(x + [0.0, h]) - pixels[todo] - f0) / h
+            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+            safe = np.where(np.abs(det) > 1e-12, det, np.nan)
+            step = np.stack([(jy[:, 1] * f0[:, 0] - jy[:, 0] * f0[:, 1]) / safe,
+                             (jx[:, 0] * f0[:, 1] - jx[:, 1] * f0[:, 0]) / safe], axis=1)
+            out[todo] = x - np.clip(np.nan_to_num(step), -0.2, 0.2)
+            residual[todo] = self.project_normalized(out[todo]) - pixels[todo]
+            todo = todo[~(np.linalg.norm(residual[todo], axis=1) <= _INVERSION_TARGET_PX)]
+        todo = todo[~(np.linalg.norm(residual[todo], axis=1) <= _INVERSION_TOLERANCE_PX)]
+        if todo.size:
+            u, v = pixels[todo[0]]
+            raise CalibrationError(
+                f"the lens model cannot be inverted at pixel ({u:.0f}, {v:.0f}) of "
+                f"{self.width}x{self.height} (its distortion folds the image over there): "
+                "check the calibration's distortion coefficients, or recalibrate")
+        return out
 
     def project_normalized(self, normalized: npt.ArrayLike) -> FloatArray:
         """Undistorted normalised coordinates (..., 2) -> distorted pixel coordinates (..., 2)."""
