@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -183,6 +184,29 @@ def test_a_lens_model_that_folds_within_the_frame_is_refused() -> None:
     corners = np.array([[0.0, 0.0], [1279.0, 0.0], [0.0, 719.0], [1279.0, 719.0]])
     with pytest.raises(CalibrationError, match="cannot be inverted at pixel"):
         camera.undistort_pixels(corners)
+
+
+def test_a_skewed_camera_matrix_is_refused_and_a_tiny_skew_ignored() -> None:
+    """OpenCV's model (projectPoints, undistortPoints) has no skew: a NaN or a real skew would
+    be used by one path and not the other; rounding-size skew is kept in the file only."""
+    for skew in (float("nan"), 50.0):
+        with pytest.raises(CalibrationError, match="skew"):
+            CameraModel(1280, 720, 900.0, 900.0, 640.0, 360.0, skew=skew)
+    camera = CameraModel(1280, 720, 900.0, 900.0, 640.0, 360.0, skew=0.25)
+    pixels = np.array([[10.0, 700.0], [1270.0, 20.0]])
+    back = camera.project_normalized(camera.undistort_pixels(pixels))
+    np.testing.assert_allclose(back, pixels, atol=1e-9)
+
+
+def test_a_filestorage_matrix_of_the_wrong_size_names_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "one_row.yml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 1280)
+    fs.write("image_height", 720)
+    fs.write("camera_matrix", np.array([[900.0, 0.0, 640.0, 0.0, 900.0, 360.0]]))
+    fs.release()
+    with pytest.raises(CalibrationError, match=r"one_row\.yml: camera_matrix must have 9 values"):
+        load_camera(path)
 
 
 # -- bad files: a clear CalibrationError naming the problem ---------------------------------------

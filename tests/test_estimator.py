@@ -316,6 +316,12 @@ def test_uniform_frame_is_no_net(estimator: NetEstimator) -> None:
         ({"min_rois": 3}, "estimator.min_rois"),
         ({"grid_cols": 2, "grid_rows": 2, "min_rois": 5}, "estimator.min_rois"),
         ({"min_confidence": 1.5}, "estimator.min_confidence"),
+        # Each divided by zero, or rooted negative, on every frame (a review found these).
+        ({"preferred_period_px": 0.0}, "estimator.preferred_period_px"),
+        ({"preferred_period_px": -9.0}, "estimator.preferred_period_px"),
+        ({"min_period_px": 0.0}, "estimator.min_period_px"),
+        ({"lattice_tolerance": float("nan")}, "estimator.lattice_tolerance"),
+        ({"min_inlier_fraction": 0.0}, "estimator.min_inlier_fraction"),
     ],
 )
 def test_invalid_settings_name_the_key(change: dict[str, float], key: str) -> None:

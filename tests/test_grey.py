@@ -68,6 +68,27 @@ def test_every_path_gives_the_same_grey() -> None:
     assert int(np.abs(libjpeg_grey.astype(int) - reference.astype(int)).max()) >= 1
 
 
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """`jpeg` with an EXIF segment saying how a viewer should turn it (as phones write)."""
+    import struct
+
+    ifd = struct.pack("<HHHIHHI", 1, 0x0112, 3, 1, orientation, 0, 0)  # one entry, SHORT
+    tiff = b"II*\x00" + struct.pack("<I", 8) + ifd
+    body = b"Exif\x00\x00" + tiff
+    app1 = b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body
+    return jpeg[:2] + app1 + jpeg[2:]
+
+
+def test_exif_orientation_does_not_turn_the_frame() -> None:
+    """The calibration describes the sensor's pixels: a still whose EXIF says "turned 180"
+    must be read as the sensor gave it (a real SOLAQUA frame so tagged read 1.136 m for
+    1.106 m, 5 sigma off, when OpenCV turned it)."""
+    image = _colour_scene(shape=(96, 128))
+    plain = decode_gray(_jpeg(image))[0]
+    tagged = decode_gray(_with_exif_orientation(_jpeg(image), 3))[0]
+    assert np.array_equal(tagged, plain)
+
+
 def test_grey_input_passes_through_and_bad_shapes_are_refused() -> None:
     grey = np.arange(64, dtype=np.uint8).reshape(8, 8)
     assert to_gray(grey) is grey

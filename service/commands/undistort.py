@@ -74,7 +74,8 @@ def _read_input(path: Path, frame_index: int) -> Image:
     if not path.is_file():
         raise CalibrationInputError(f"{path}: not a file (an image or a video)")
     if path.suffix.lower() not in VIDEO_SUFFIXES:
-        image = cv2.imdecode(np.fromfile(str(path), dtype=np.uint8), cv2.IMREAD_COLOR)
+        image = cv2.imdecode(np.fromfile(str(path), dtype=np.uint8),
+                             cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         return read_image(path) if image is None else np.asarray(image, dtype=np.uint8)
     capture = cv2.VideoCapture(str(path))
     try:

@@ -24,6 +24,10 @@ FloatArray = npt.NDArray[np.float64]
 # How far a frame may be from the calibrated size scaled and still count as that size
 # resized (`CameraModel.scaled_to`): the rounding of each side, with room for one more pixel.
 _RESIZE_SLACK_PX = 2.0
+# OpenCV's projectPoints and undistortPoints leave a camera matrix's skew out; so does this
+# model. Up to this share of fx (about a pixel) that changes a ray by under a pixel at the frame's
+# edge; a larger skew is refused rather than ignored.
+_SKEW_LIMIT = 1e-3
 # Undistortion, checked (`CameraModel._inverted`): points projected back per call, how far they
 # may land from where they came from, and how near the points that missed are then brought
 # (the estimator differentiates rays 2 px apart: their errors must be far below that).
@@ -55,6 +59,13 @@ class CameraModel:
         for label, value in (("cx", self.cx), ("cy", self.cy)):
             if not math.isfinite(value):
                 raise CalibrationError(f"camera_matrix {label} is not finite")
+        # OpenCV's lens model has no skew (calibrateCamera fixes it at zero; projectPoints and
+        # undistortPoints leave it out): kept for the file's sake, used nowhere.
+        if not (math.isfinite(self.skew) and abs(self.skew) <= _SKEW_LIMIT * self.fx):
+            raise CalibrationError(
+                f"camera_matrix skew (row 1, column 2) must be about 0, got {self.skew}: "
+                "OpenCV's lens model has none (recalibrate with OpenCV or ROS "
+                "camera_calibration)")
         if len(self.distortion) not in (4, 5, 8, 12, 14):
             raise CalibrationError(
                 f"distortion_coefficients must have 4, 5, 8, 12 or 14 values, "
@@ -114,7 +125,7 @@ class CameraModel:
         if not self.has_distortion:
             out = np.empty_like(flat)
             out[..., 1] = (flat[..., 1] - self.cy) / self.fy
-            out[..., 0] = (flat[..., 0] - self.cx - self.skew * out[..., 1]) / self.fx
+            out[..., 0] = (flat[..., 0] - self.cx) / self.fx  # no skew, as OpenCV's model
             return out.reshape(shape)
         # The default 5 iterations are not enough for strong underwater-housing distortion.
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
@@ -262,7 +273,10 @@ def _load_opencv_storage(path: Path) -> CameraModel:
         if w_node.empty() or h_node.empty():
             raise CalibrationError(f"{path}: missing key 'image_width'/'image_height'")
         dist = np.zeros(5) if d is None else np.asarray(d, dtype=np.float64).ravel()
-        return _from_matrix(k, dist, int(w_node.real()), int(h_node.real()), path.stem)
+        try:
+            return _from_matrix(k, dist, int(w_node.real()), int(h_node.real()), path.stem)
+        except CalibrationError as exc:
+            raise CalibrationError(f"{path}: {exc}") from None
     finally:
         fs.release()
 
@@ -271,6 +285,10 @@ def _from_matrix(k: npt.NDArray[Any], dist: npt.NDArray[Any], width: int,
                  height: int, name: str) -> CameraModel:
     """The model of a camera matrix K and its distortion coefficients, as both file formats
     store them."""
+    k = np.asarray(k, dtype=np.float64)
+    if k.size != 9:
+        raise CalibrationError(f"camera_matrix must have 9 values (3x3), got {k.size}")
+    k = k.reshape(3, 3)
     return CameraModel(
         width=width,
         height=height,

@@ -164,6 +164,17 @@ class EstimatorSettings:
             raise ConfigError("estimator.max_closing_speed_m_s", "must be > 0")
         if not 1 <= self.scale_proof_frames <= 300:
             raise ConfigError("estimator.scale_proof_frames", "must be 1..300")
+        # Periods, thresholds and tolerances: a zero or a negative one divides by zero or takes
+        # a root of a negative number on every frame, instead of failing here with its name.
+        for name in ("preferred_period_px", "min_period_px", "min_source_period_px",
+                     "min_cycles", "min_snr", "min_roi_snr", "guided_snr", "lattice_tolerance",
+                     "opening_tolerance_deg", "aspect_tolerance", "max_sigma_range_fraction",
+                     "max_sigma_normal_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ConfigError(f"estimator.{name}", f"must be a number > 0, got {value}")
+        if not 0.0 < self.min_inlier_fraction <= 1.0:
+            raise ConfigError("estimator.min_inlier_fraction", "must be in (0, 1]")
 
 
 @dataclass(frozen=True)

@@ -86,7 +86,10 @@ def decode_gray(data: bytes) -> tuple[GrayImage, ColorImage]:
     damage = encoded_damage(data)
     if damage is not None:
         raise DamagedImageError(damage)
-    color = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    # The pixels as the sensor gave them: a JPEG's EXIF orientation would turn the frame, and
+    # the calibration describes the sensor's pixels, not the turned ones.
+    color = cv2.imdecode(np.frombuffer(data, np.uint8),
+                         cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if color is None:
         raise DamagedImageError("cannot decode: not an image, or an unsupported format")
     bgr: ColorImage = np.asarray(color, dtype=np.uint8)

@@ -88,7 +88,9 @@ def read_image(path: Path) -> GrayImage:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
         raise CalibrationInputError(f"{path}: cannot read ({exc.strerror})") from None
-    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    # Sensor pixels, as the calibration must describe them (not turned by EXIF orientation).
+    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
+    gray = cv2.imdecode(data, flags) if data.size else None
     if gray is None:
         raise CalibrationInputError(f"{path}: not an image OpenCV can decode")
     return np.asarray(gray, dtype=np.uint8)
