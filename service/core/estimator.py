@@ -1692,11 +1692,23 @@ def _twine_profile(
     null_level, null_spread = null or NetEstimator._null(spectrum, snr, basis)
     significant = null_level + max(2.0 * null_spread, 1.5)
     edges = np.asarray(np.linalg.inv(basis).T, dtype=np.float64)
-    dual = np.linalg.inv(_bar_pair(edges)).T  # reciprocal basis dual to the bars (bins)
     orders = [(1, 0), (0, 1), (1, 1), (1, -1), (2, 1), (1, 2), (2, -1), (1, -2)]
-    pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
-    sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
-    amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
+    # The bars: of the pairs of lattice vectors as nearly equal in length as the best, the one
+    # whose own fundamentals are strongest. Usually there is one such pair; a 60 or 120 deg
+    # mesh's lattice is hexagonal, its short diagonal as long as its bars, and a pair with the
+    # diagonal in it would put a bar family's fundamental among the "cross terms" and call
+    # the net a brick wall (half the frames of a clean 60 deg net, before).
+    best: tuple[float, dict[tuple[int, int], float], dict[tuple[int, int], float]] | None = None
+    for bars in _bar_pairs(edges):
+        dual = np.linalg.inv(bars).T  # reciprocal basis dual to the bars (bins)
+        pts = np.array([h * dual[:, 0] + j * dual[:, 1] for h, j in orders])
+        sig = dict(zip(orders, spectrum.sample(snr, pts), strict=True))
+        amp = dict(zip(orders, spectrum.sample(logp, pts), strict=True))
+        strength = min(amp[(1, 0)], amp[(0, 1)])
+        if best is None or strength > best[0]:
+            best = (strength, sig, amp)
+    assert best is not None
+    _, sig, amp = best
     # Noise on a difference of averaged log powers; a factor 2 in power is log 2 = 0.7.
     margin = max(1.0, 2.5 * 1.28 / math.sqrt(max(count, 1)))
 
@@ -1961,17 +1973,30 @@ def _bar_pair(edges: F64) -> F64:
     """The two lattice vectors that are the net's bars: the most nearly equal-length pair among
     the reduced basis (a, b) and (b, b +- a) (a rhombus with an opening under 60 deg has its
     short diagonal in the reduced basis)."""
+    return _bar_pairs(edges)[0]
+
+
+def _bar_pairs(edges: F64) -> list[F64]:
+    """`_bar_pair`'s candidates that are as nearly equal in length as the best (within 5 %),
+    the best first: more than one only for a lattice near hexagonal (a 60 or 120 deg mesh),
+    where the geometry alone cannot tell the bars from the short diagonal."""
     a, b = edges[:, 0], edges[:, 1]
     candidates = [(a, b), (b, b - a), (b, b + a), (a, a - b), (a, a + b)]
-    best = min(candidates, key=lambda uv: abs(math.log(
-        float(np.linalg.norm(uv[0])) / float(np.linalg.norm(uv[1])))))
-    return np.stack(best, axis=1)
+    mismatch = [abs(math.log(float(np.linalg.norm(u)) / float(np.linalg.norm(v))))
+                for u, v in candidates]
+    order = sorted(range(len(candidates)), key=mismatch.__getitem__)
+    least = mismatch[order[0]]
+    return [np.stack(candidates[i], axis=1) for i in order
+            if mismatch[i] <= least + _BAR_PAIR_SLACK]
 
 
 # The uncertainty model (see `_verdict`, `_deformation`): the share of the last pass-to-pass
 # change that is the last pass's own error, the net's deformation that the ROIs cannot see (a
 # share of the distance over the ROIs' spread), and the floor for resampling and interpolation.
 _CHANGE_SHARE = 0.5
+# How much less equal (in log length) than the best a pair of lattice vectors may be and still
+# be taken for the bars (`_bar_pairs`).
+_BAR_PAIR_SLACK = 0.05
 _UNSEEN_DEFORMATION = 0.005
 # The same for the normal (relative to the cell areas' cube roots, over the ROIs' spread beyond
 # the view's own): chosen on `netpose bench integrity` (3,000 frames, seed 7) so that the
