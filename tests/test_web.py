@@ -511,6 +511,16 @@ def test_a_recording_downloads_and_replays_to_the_daemons_output(
 
 
 # -- set-up mode ----------------------------------------------------------------------------------
+def _use_the_synthetic_camera(d: WebDaemon, tmp_path: Path) -> None:
+    """Upload the camera the synthetic source renders with, as a calibration file, and use it."""
+    path = tmp_path / "upload.yaml"
+    save_camera(builtin_camera(1280, 720), path)
+    status, reply = _upload(d, "camera.yaml", path.read_bytes())
+    assert status == 200, reply
+    status, reply = d.request("POST", f"/api/calibration/{reply['id']}/apply", {}, token=True)
+    assert status == 200 and reply["saved"], reply
+
+
 def test_a_first_start_without_mesh_size_or_calibration_is_set_up_on_the_page(
     tmp_path: Path,
 ) -> None:
@@ -531,13 +541,7 @@ def test_a_first_start_without_mesh_size_or_calibration_is_set_up_on_the_page(
         assert status == 200 and reply["saved"], reply  # saved while the calibration lacks
         assert "bar_length_m = 0.025" in d.config.read_text()
         assert "set-up mode" in d.log() and "leaving set-up mode" not in d.log()
-        path = tmp_path / "upload.yaml"
-        save_camera(builtin_camera(1280, 720), path)
-        status, reply = _upload(d, "camera.yaml", path.read_bytes())
-        assert status == 200, reply
-        status, reply = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
-                                  token=True)
-        assert status == 200 and reply["saved"], reply
+        _use_the_synthetic_camera(d, tmp_path)
         deadline = time.monotonic() + 60.0
         while "leaving set-up mode" not in d.log():
             assert time.monotonic() < deadline, d.log()
@@ -561,7 +565,7 @@ def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Pa
     d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml"},
                                       "mavlink": {"url": url}}).start()
     try:
-        status, settings = d.request("GET", "/api/settings")
+        _, settings = d.request("GET", "/api/settings")
         assert settings["problem"].startswith(
             "configuration error: camera.calibration: file not found"), settings
         texts, frames = d.collect(4.0)
@@ -569,15 +573,7 @@ def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Pa
         assert frames and reasons and all(r.startswith("set-up mode:") for r in reasons)
         with pytest.raises(TimeoutError):
             autopilot.recv(1024)  # no link at all in set-up mode
-        # The camera the synthetic source renders with, as a calibration file.
-        camera = builtin_camera(1280, 720)
-        path = tmp_path / "upload.yaml"
-        save_camera(camera, path)
-        status, reply = _upload(d, "camera.yaml", path.read_bytes())
-        assert status == 200, reply
-        status, reply = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
-                                  token=True)
-        assert status == 200 and reply["saved"], reply
+        _use_the_synthetic_camera(d, tmp_path)
         deadline = time.monotonic() + 60.0
         while True:  # the daemon proper starts: estimates with the net, MAVLink to the autopilot
             time.sleep(1.0)
