@@ -617,7 +617,7 @@ class NetEstimator:
                 )
         current.timings["total"] = (time.perf_counter() - t0) * 1e3
         return replace(result, timings_ms=current.timings, budget_level=budget,
-                       fft_counts=dict(sorted(current.ffts.items())))
+                       fft_counts=dict(sorted(current.ffts.items())), frame_px=(w, h))
 
     def _too_close(
         self, frame: _Frame, layout: _Layout, prior: NetEstimate | None = None
@@ -776,7 +776,10 @@ class NetEstimator:
     def _prior_rois(self, prior: NetEstimate, layout: _Layout) -> list[_Roi]:
         """The previous estimate's ROI lattices, as guides for the first rectified pass."""
         used = [r for r in prior.rois if r.used_in_fit and r.reciprocal is not None]
-        if not used:
+        if not used or prior.frame_px != (layout.camera.width, layout.camera.height):
+            # Another frame size (the stream changed resolution; a state from before frame
+            # sizes were kept): its ROIs' pixels are not this frame's, and may lie where the
+            # lens model is not even defined. Its plane still guides the rectified pass.
             return []
         # Normally cached; a prior from elsewhere (a restored state) is computed, not cached.
         missing = [r.center_px for r in used if r.center_px not in layout.by_centre]

@@ -90,6 +90,9 @@ class NetEstimate:
     # Such a frame costs several times a tracked one (the daemon's budget is judged on
     # tracked frames only: service/core/budget.py).
     searched: bool = False
+    # (width, height) of the frame measured: `rois` are in its pixels. A prior from a frame of
+    # another size (a stream that changed resolution) guides with its plane, not its ROIs.
+    frame_px: tuple[int, int] | None = None
 
     @property
     def net_seen(self) -> bool:
