@@ -5,8 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
-from service.benchmarks.real_frames import RealSummary
+import cv2
+import numpy as np
+
+from drivers.synthetic_net import NetPose, NetRenderer
+from service.benchmarks.real_frames import SOLAQUA_MESH, RealFrame, RealSummary, run_frames
+from service.core.camera import CameraModel, save_camera
 
 SUMMARY = RealSummary(
     stills=4, stills_detected=4, sequence=44, sequence_detected=5, sequence_seen=23, no_net=18,
@@ -41,3 +47,25 @@ def test_the_spread_of_seen_ranges_is_judged_on_its_own_sigmas() -> None:
     assert seen.targets[SEEN_SPREAD] is False
     assert dataclasses.replace(seen, sequence_seen_sigma_median_m=0.035).targets[SEEN_SPREAD]
     assert SUMMARY.targets[SEEN_SPREAD] is None  # no two consecutive ranges: not measurable
+
+
+def _frame(tmp_path: Path, name: str, kind: str, camera: CameraModel, range_m: float) -> RealFrame:
+    image, _ = NetRenderer(camera, SOLAQUA_MESH, seed=0).render(
+        NetPose(range_m, tilt_deg=10.0), rng=np.random.default_rng(0))
+    cv2.imwrite(str(tmp_path / f"{name}.png"), image)
+    save_camera(camera, tmp_path / f"{name}.yaml")
+    return RealFrame(name, tmp_path / f"{name}.png", tmp_path / f"{name}.yaml", kind)
+
+
+def test_tracking_starts_afresh_at_a_sequence(tmp_path: Path) -> None:
+    """`bench real`'s tracked run feeds each sequence frame the previous detection, as the
+    daemon does; a still before the sequence (another camera, another place) is not the
+    sequence's past, so the sequence's first frame is searched, not tracked from it."""
+    still_camera = CameraModel(width=1280, height=720, fx=882.0, fy=821.0, cx=640.0, cy=360.0)
+    strip_camera = CameraModel(width=640, height=360, fx=441.0, fy=410.5, cx=320.0, cy=180.0)
+    frames = [_frame(tmp_path, "still", "still", still_camera, 1.0),
+              _frame(tmp_path, "seq0", "sequence", strip_camera, 1.0),
+              _frame(tmp_path, "seq1", "sequence", strip_camera, 1.0)]
+    still, first, second = run_frames(frames, tracking=True)
+    assert still.estimate.detected and first.estimate.detected and second.estimate.detected
+    assert first.estimate.searched and not second.estimate.searched

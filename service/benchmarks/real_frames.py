@@ -115,13 +115,18 @@ def run_frames(frames: list[RealFrame], tracking: bool = False) -> Iterator[Real
     detection as prior, as the daemon does."""
     estimator_for = RealEstimators()
     prior: NetEstimate | None = None
+    previous_folder: Path | None = None
     for frame in frames:
         gray, _ = decode_gray(frame.image.read_bytes())
-        use_prior = prior if tracking and frame.kind == "sequence" else None
+        # Only the sequence's own previous frame is its past: a still, or another sequence's
+        # last frame, is another camera and another place.
+        same_sequence = frame.kind == "sequence" and frame.image.parent == previous_folder
+        use_prior = prior if tracking and same_sequence else None
         t0 = time.thread_time()
         est = estimator_for(frame).estimate(gray, prior=use_prior)
         cpu = (time.thread_time() - t0) * 1e3
         prior = est if est.detected else None
+        previous_folder = frame.image.parent if frame.kind == "sequence" else None
         yield RealResult(frame, est, cpu)
 
 
