@@ -68,6 +68,22 @@ def test_the_report_states_every_target(results: list[damage.PassResult]) -> Non
     assert len(summary.targets) == 5
 
 
+def test_a_target_a_run_could_not_measure_is_not_judged() -> None:
+    """No hole confirmed (a short run) leaves the size error unknown, no hole that counts
+    leaves recall unknown, and `--no-real` judges no real frame: each says so, instead of
+    reading as missed (or, for the real frames, as met)."""
+    nothing = damage.Summary(
+        recall_confirmed={}, recall_frames={}, size_errors=[], intact_frames=48,
+        intact_false_confirmed=0, intact_false_candidates=0, damaged_false_confirmed=0,
+        real_candidates=0, real_frames=0, cost_ratio=0.5, inspect_ms_median=5.0,
+        estimate_ms_median=10.0)
+    verdicts = list(nothing.targets.values())
+    assert verdicts == [None, None, True, None, False]
+    measured = replace(nothing, recall_confirmed={("2 cells", "0.4-0.8"): (1, 2)},
+                       size_errors=[0.01, 0.3], real_frames=8, real_candidates=1)
+    assert list(measured.targets.values()) == [False, False, True, False, False]
+
+
 @needs_real_field
 def test_no_candidate_on_the_real_frames() -> None:
     data = shared_data_dir()
