@@ -101,6 +101,34 @@ def test_a_rendered_source_needs_allow_simulated_to_start() -> None:
     build_parts(demo_config(), NullNotifier()).source.close()
 
 
+def test_the_daemons_file_like_sources_keep_to_the_clock(tmp_path: Path) -> None:
+    """A folder of stills (or a video file) as the daemon's camera: read as fast as the loop
+    went, at 10 frames/s of media time, frame stamps ran ahead of the clock (the log's latency
+    went to -11 s in 12 s, each DISTANCE_SENSOR stamped seconds in the future). The daemon
+    paces such sources to their frame rate; a URL that says realtime=0 is read as written."""
+    import cv2
+    import numpy as np
+
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / f"{i:03d}.png"), np.full((180, 320), 40 * i, np.uint8))
+    paced = build_source(demo_config(f"camera.url=images:{tmp_path}?fps=20"))
+    unpaced = build_source(demo_config(f"camera.url=images:{tmp_path}?fps=20&realtime=0"))
+    for source, keeps_to_the_clock in ((paced, True), (unpaced, False)):
+        source.open()
+        try:
+            ahead = []
+            for _ in range(4):
+                frame = source.read(1.0)
+                assert frame is not None
+                ahead.append(frame.t_monotonic - time.monotonic())
+        finally:
+            source.close()
+        if keeps_to_the_clock:
+            assert max(ahead) <= 0.0
+        else:
+            assert max(ahead) > 0.1  # the fourth frame, 0.15 s of media time, read at once
+
+
 def test_the_daemon_process_refuses_a_rendered_source_without_allow_simulated() -> None:
     """End to end: with a real (fake) autopilot listening, the process exits 78 naming the
     key, and the autopilot never hears a distance (nor anything else)."""

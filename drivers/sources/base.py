@@ -197,6 +197,10 @@ class SourceOptions:
         minimum up to the maximum while the source stays down.
     ffmpeg_options: replaces the stream source's low-latency FFmpeg options
         ("key;value|key;value", see docs/sources.md); None keeps the defaults.
+    realtime_default: file-like sources (file:, images:, recording:) are paced to their frame
+        rate unless their URL says `realtime`: what a service wants (it serves the present:
+        read faster than that, media time runs ahead of its clock); tools that read a
+        recording want every frame at once (the default).
     """
 
     keep_color: bool = False
@@ -206,6 +210,7 @@ class SourceOptions:
     reconnect_max_s: float = 10.0
     ffmpeg_options: str | None = None
     wait_at_start: bool = False
+    realtime_default: bool = False
 
     def __post_init__(self) -> None:
         from service.core.errors import ConfigError

@@ -54,7 +54,8 @@ class VideoFileSource(PacedSource):
     def __init__(self, url: str, options: SourceOptions | None = None) -> None:
         parsed = _parse(url, "file")
         super().__init__(
-            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
+            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag(
+                "realtime", (options or SourceOptions()).realtime_default)
         )
         self.path = Path(parsed.path).expanduser()
         # The file's own frame rate wins; this is for files that do not state one.
@@ -162,7 +163,8 @@ class ImageFolderSource(PacedSource):
     def __init__(self, url: str, options: SourceOptions | None = None) -> None:
         parsed = _parse(url, "images")
         super().__init__(
-            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag("realtime", False)
+            url, options, loop=parsed.flag("loop", False), realtime=parsed.flag(
+                "realtime", (options or SourceOptions()).realtime_default)
         )
         self.pattern = parsed.path
         self._fps = parsed.number_or("fps", DEFAULT_IMAGE_FPS, 0.01, 1000.0)

@@ -46,7 +46,8 @@ class RecordingSource(PacedSource):
         parsed.check_options(RECORDING_OPTIONS)
         if not parsed.path:
             raise url_error(url, "recording: needs a folder")
-        super().__init__(url, options, realtime=parsed.flag("realtime", False))
+        super().__init__(url, options, realtime=parsed.flag(
+            "realtime", (options or SourceOptions()).realtime_default))
         self.path = Path(parsed.path).expanduser()
         self._entries: list[tuple[str, int, float, float, int | None, bool]] = []
         self._position = 0

@@ -61,7 +61,8 @@ def build_source(config: Config) -> DriverFrameSource:
     """The frame source for `camera.url`, built but not yet opened. A source that is not there
     at start (the camera manager starts after us) is waited for, like one lost later."""
     # A live source that delivers nothing for stale_after_s is re-opened by the source itself.
-    options = SourceOptions(stall_timeout_s=config.camera.stale_after_s, wait_at_start=True)
+    options = SourceOptions(stall_timeout_s=config.camera.stale_after_s, wait_at_start=True,
+                            realtime_default=True)
     return create_source(config.camera.url, options)
 
 
