@@ -129,6 +129,25 @@ def test_the_daemons_file_like_sources_keep_to_the_clock(tmp_path: Path) -> None
             assert max(ahead) > 0.1  # the fourth frame, 0.15 s of media time, read at once
 
 
+@pytest.mark.parametrize("url", ["file:{folder}/dive.avi", "{folder}/dive.avi",
+                                 "images:{folder}", "recording:{folder}"])
+def test_a_recorded_source_needs_allow_simulated_to_start(tmp_path: Path, url: str) -> None:
+    """A recording played as the camera (a dive video, a folder of stills, a netpose
+    recording) is not what the vehicle sees now: its distances would steer a real vehicle by a
+    net that is somewhere else. Like a rendered source, it starts only where the configuration
+    says so (a bench test, SITL); the check needs no file to be there."""
+    camera = tmp_path / "camera.yaml"
+    save_camera(builtin_camera(640, 360), camera)
+    overrides = [f"camera.url={url.format(folder=tmp_path)}", f"camera.calibration={camera}"]
+    with pytest.raises(ConfigError) as info:
+        build_parts(demo_config(*overrides, "mavlink.allow_simulated=false"), NullNotifier())
+    assert info.value.key == "mavlink.allow_simulated" and "recorded" in info.value.problem
+    source = build_source(demo_config(*overrides))
+    assert source.recorded and not source.rendered
+    assert not build_source(demo_config("camera.url=rtsp://127.0.0.1:8554/x")).recorded
+    assert not build_source(demo_config()).recorded  # rendered, not recorded
+
+
 def test_the_daemon_process_refuses_a_rendered_source_without_allow_simulated() -> None:
     """End to end: with a real (fake) autopilot listening, the process exits 78 naming the
     key, and the autopilot never hears a distance (nor anything else)."""

@@ -97,6 +97,13 @@ class FrameSource(Closeable):
         configuration says so (mavlink.allow_simulated)."""
         return False
 
+    @property
+    def recorded(self) -> bool:
+        """True for sources that play frames filmed earlier (a video file, an image folder, a
+        netpose recording): not what the vehicle's camera sees now, so, like a rendered source,
+        their distances reach an autopilot only with mavlink.allow_simulated."""
+        return False
+
     @abstractmethod
     def open(self) -> None:
         """Start delivering frames; raises drivers.errors.SourceError if that is impossible."""

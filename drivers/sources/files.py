@@ -66,6 +66,10 @@ class VideoFileSource(PacedSource):
         self._origin_ms: float | None = None
 
     @property
+    def recorded(self) -> bool:
+        return True
+
+    @property
     def frame_period_s(self) -> float:
         return 1.0 / self._fps
 
@@ -170,6 +174,10 @@ class ImageFolderSource(PacedSource):
         self._fps = parsed.number_or("fps", DEFAULT_IMAGE_FPS, 0.01, 1000.0)
         self._files: list[Path] = []
         self._position = 0
+
+    @property
+    def recorded(self) -> bool:
+        return True
 
     @property
     def frame_period_s(self) -> float:

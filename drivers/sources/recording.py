@@ -55,6 +55,10 @@ class RecordingSource(PacedSource):
         self._period = 0.1
 
     @property
+    def recorded(self) -> bool:
+        return True
+
+    @property
     def camera(self) -> CameraModel | None:
         return self._camera
 

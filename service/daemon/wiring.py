@@ -67,14 +67,25 @@ def build_source(config: Config) -> DriverFrameSource:
 
 
 def check_simulated(config: Config, source: DriverFrameSource) -> None:
-    """A rendered distance (synthetic:, sim:) reaches an autopilot only when the configuration
-    says so explicitly: otherwise the service does not start (an installed configuration left
-    on the demo source must not feed a real autopilot rendered distances)."""
-    if source.rendered and not config.section("mavlink", MavlinkSettings).allow_simulated:
+    """A distance that is not the water in front of the vehicle now (a rendered source:
+    synthetic:, sim:; a recorded one: a video file, an image folder, a recording) reaches an
+    autopilot only when the configuration says so explicitly: otherwise the service does not
+    start (an installed configuration left on the demo source, or on a dive video, must not
+    steer a real vehicle)."""
+    if config.section("mavlink", MavlinkSettings).allow_simulated:
+        return
+    if source.rendered:
         raise ConfigError(
             "mavlink.allow_simulated",
             "camera.url renders its frames: set it to true to send their distance to an "
             "autopilot (a simulator or a demo), or use a real camera",
+        )
+    if source.recorded:
+        raise ConfigError(
+            "mavlink.allow_simulated",
+            "camera.url plays recorded frames, not what the camera sees now: set it to true "
+            "to send their distance to an autopilot (a bench test or a simulator), or use the "
+            "vehicle's camera",
         )
 
 
