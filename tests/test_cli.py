@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -60,6 +61,42 @@ def test_estimate_says_net_seen_for_a_frame_too_uncertain_for_a_distance() -> No
     seen, measured = done.stdout.splitlines()
     assert "038.png: net seen, ~0." in seen and "no distance (plane too uncertain" in seen
     assert "032.png: net detected" in measured
+
+
+def test_estimate_reads_the_images_of_a_folder_in_name_order(tmp_path: Path) -> None:
+    """`netpose estimate FOLDER` (what `images:` and `netpose calibrate` take): each image in it,
+    in name order, other files left out; an empty folder is named as such (it read 'no such
+    file')."""
+    import cv2
+    import numpy as np
+
+    from drivers.sources.synthetic import builtin_camera
+    from drivers.synthetic_net import NetPose, NetRenderer
+    from service.core.camera import save_camera
+    from service.core.mesh import MeshGeometry
+
+    camera = builtin_camera(640, 360)
+    save_camera(camera, tmp_path / "camera.yaml")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    renderer = NetRenderer(camera, MeshGeometry(0.025), seed=0)
+    for name, range_m in (("b.png", 1.2), ("a.jpg", 0.8)):
+        image, _ = renderer.render(NetPose(range_m, tilt_deg=10.0), rng=np.random.default_rng(1))
+        cv2.imwrite(str(frames / name), image)
+    (frames / "notes.txt").write_text("not an image")
+    (tmp_path / "empty").mkdir()
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
+         "--mesh-size", "0.025", str(frames)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines] == [str(frames / "a.jpg"), str(frames / "b.png")]
+    assert all("net detected" in line for line in lines)
+    empty = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
+         "--mesh-size", "0.025", str(tmp_path / "empty")], capture_output=True, text=True,
+        timeout=120)
+    assert empty.returncode == 1 and "a folder without images" in empty.stdout
 
 
 _FIRST_NUMPY_IMPORT = """

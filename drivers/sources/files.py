@@ -25,12 +25,11 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.core.grey import DamagedImageError, decode_gray
+from service.core.grey import IMAGE_SUFFIXES, DamagedImageError, decode_gray
 
 log = logging.getLogger(__name__)
 
 FILE_OPTIONS = ("loop", "realtime", "fps")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 DEFAULT_IMAGE_FPS = 10.0
 # Failed reads in a row that mean "end of file" rather than "a damaged frame". OpenCV's FFmpeg
 # backend returns False both for a frame the decoder rejects (and goes on with the next one) and
@@ -200,7 +199,7 @@ class ImageFolderSource(PacedSource):
         )
         if not self._files:
             raise SourceError(
-                self.url, f"no images ({', '.join(IMAGE_SUFFIXES)}) in {self.pattern}"
+                self.url, f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in {self.pattern}"
             )
 
     def _next_media(self) -> MediaFrame:

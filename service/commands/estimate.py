@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from service.core.grey import IMAGE_SUFFIXES
 from service.core.results import NetEstimate
 
 
@@ -18,7 +19,8 @@ def add_parser(subparsers: Any) -> None:
         description="One line per image, in input order. Unreadable, truncated or corrupt images "
         "are reported with a warning and give no estimate; the exit status is then 1.",
     )
-    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE")
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE",
+                   help="image files, or folders (their images in name order)")
     p.add_argument("--calibration", "-c", required=True, type=Path,
                    help="camera calibration (ROS camera_info YAML or OpenCV FileStorage)")
     p.add_argument("--mesh-size", required=True, type=float, metavar="METRES",
@@ -47,6 +49,17 @@ def describe(name: str, est: NetEstimate) -> str:
     )
 
 
+def _images(paths: list[Path]) -> list[Path]:
+    """The paths given, each folder replaced by its images in name order (a folder without any
+    stays, to be reported)."""
+    out: list[Path] = []
+    for path in paths:
+        found = sorted(p for p in path.iterdir() if p.is_file() and
+                       p.suffix.lower() in IMAGE_SUFFIXES) if path.is_dir() else []
+        out.extend(found or [path])
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from service.core.camera import load_camera
     from service.core.estimator import NetEstimator
@@ -57,9 +70,11 @@ def run(args: argparse.Namespace) -> int:
     mesh = MeshGeometry(args.mesh_size, args.opening_angle)
     estimator = NetEstimator(camera, mesh)
     failures = 0
-    for path in args.images:
+    for path in _images(args.images):
         name = str(path)
         try:
+            if path.is_dir():
+                raise ValueError(f"a folder without images ({', '.join(sorted(IMAGE_SUFFIXES))})")
             if not path.is_file():
                 raise ValueError("no such file")
             # The same decoding and grey conversion as every other frame path; a truncated or

@@ -29,6 +29,11 @@ GrayImage = npt.NDArray[Any]  # 2-D; uint8 for decoded and camera frames
 ColorImage = npt.NDArray[np.uint8]  # H x W x 3, BGR
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# What a folder of frames is read for (an `images:` source, `netpose estimate` and `netpose
+# calibrate` given a folder): still formats OpenCV decodes.
+IMAGE_SUFFIXES = frozenset(
+    {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm"}
+)
 
 
 class DamagedImageError(EstimatorInputError):

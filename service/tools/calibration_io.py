@@ -16,12 +16,10 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.errors import NetposeError
+from service.core.grey import IMAGE_SUFFIXES
 
 GrayImage = npt.NDArray[np.uint8]
 
-IMAGE_SUFFIXES = frozenset(
-    {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm"}
-)
 VIDEO_SUFFIXES = frozenset(
     {".mp4", ".mkv", ".avi", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".h264", ".h265"}
 )
