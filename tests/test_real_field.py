@@ -164,3 +164,22 @@ def test_crops_of_a_real_frame_agree_with_it_within_their_sigmas() -> None:
         assert angle <= 3.0 * math.hypot(crop.sigma_normal_deg, whole.sigma_normal_deg), (
             x0, y0, angle, crop.sigma_normal_deg, whole.sigma_normal_deg)
     assert measured >= 3  # the net fills this frame: most crops measure it
+
+
+def test_the_tracked_run_measures_what_the_cold_run_does(results: list[RealResult]) -> None:
+    """`netpose bench real`'s second run, as the daemon tracks: each sequence frame gets the
+    previous detection as its prior (it once stopped the whole benchmark with a calibration
+    error, a still's prior mapped through the strip's lens). It covers every frame, tracking
+    never makes a net-free scene a net, and where both runs give a distance they agree within
+    their sigmas."""
+    tracked = list(run_frames(real_field_frames(shared_data_dir()), tracking=True))
+    assert [r.frame for r in tracked] == [r.frame for r in results]
+    for cold, warm in zip(results, tracked, strict=True):
+        if warm.estimate.detected and warm.frame.kind == "no-net":
+            pytest.fail(f"{warm.frame.name}: a net-free scene tracked as a net")
+        if cold.estimate.detected and warm.estimate.detected:
+            a, b = cold.estimate, warm.estimate
+            assert a.range_m is not None and b.range_m is not None
+            assert a.sigma_range_m is not None and b.sigma_range_m is not None
+            assert abs(a.range_m - b.range_m) <= 3.0 * math.hypot(a.sigma_range_m,
+                                                                  b.sigma_range_m)
