@@ -15,6 +15,12 @@
 -- the net, or a net plane older than NETH_TIMEOUT (from its frame's capture), stops all thrust at
 -- once and says so; if no fresh plane comes within NETH_GRACE, net hold disengages. It never
 -- commands thrust toward the net closer than NETH_DIST_MIN.
+--
+-- What is not believed (thrust stops, and the pilot is told): a plane stamped later than it
+-- arrived (the clocks disagree: its age would never grow), a plane that is not a finite distance,
+-- a distance that jumps faster than the vehicle moves (until three frames agree again), planes or
+-- commands from anyone but netpose and the ground station. No pilot input for a second (the
+-- pilot could not take over) hands back. Parameters outside their ranges refuse to engage.
 
 local PARAM_TABLE_KEY = 86
 local PARAM_PREFIX = "NETH_"
@@ -23,6 +29,7 @@ local MSG_DEBUG_VECT = 250
 local MSG_MANUAL_CONTROL = 69
 local MSG_COMMAND_LONG = 76
 local MSG_COMMAND_ACK = 77
+local MSG_RC_CHANNELS_OVERRIDE = 70
 local MAV_CMD_USER_1 = 31010
 local MAV_RESULT_ACCEPTED = 0
 local MAV_RESULT_DENIED = 2
@@ -30,35 +37,56 @@ local SEV_WARNING = 4
 local SEV_INFO = 6
 local NEUTRAL = 1500
 local UPDATE_MS = 10  -- re-assert overrides often: the pilot's MANUAL_CONTROL writes them too
+-- A plane is stamped with its frame's capture time (the autopilot's clock), so it can only be
+-- older than its arrival; one stamped later than this after it came is not believed.
+local FUTURE_TOLERANCE_S = 0.2
+-- A plane stamped this much before the newest one is a new clock (netpose re-based on a
+-- rebooted autopilot, or the clock wrapped): the history starts again from it.
+local CLOCK_REBASE_S = 1.0
+-- Without any pilot input (MANUAL_CONTROL, RC_CHANNELS_OVERRIDE) for this long the pilot could
+-- not take over by stick: net hold does not engage, or hands back.
+local PILOT_TIMEOUT_S = 1.0
+-- A distance that changes faster than this between two frames (plus the slack: netpose's noise,
+-- a few per cent) is doubtful (a harmonic locked for a moment, a fish): no thrust until
+-- CONFIRM_FRAMES frames agree again. A BlueROV2 tops out near 1.5 m/s.
+local JUMP_SPEED = 1.5
+local JUMP_SLACK_M = 0.05
+local JUMP_SLACK_SHARE = 0.03
+local CONFIRM_FRAMES = 3
+local PLAUSIBLE_M = {0.05, 100.0}
+local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
 
--- Parameters: name, default. Units and ranges in docs/net-hold.md.
+-- Parameters: name, default, and the range net hold engages with (outside it, or NaN, it
+-- refuses and says which: an inverted clamp or a dead zone no stick can leave would otherwise
+-- turn into thrust). Units in docs/net-hold.md.
 local PARAMS = {
-  {"ENABLE", 1},       -- 0: the applet does nothing
-  {"DIST", 1.0},       -- set point, m (clamped to 0.5..3)
-  {"DIST_MIN", 0.4},   -- hard minimum, m: no thrust toward the net at or below it
-  {"DIST_MAX", 4.0},   -- refuse to engage (and disengage) beyond this distance, m
-  {"TIMEOUT", 0.4},    -- a net plane older than this (from its capture) stops all thrust, s
-  {"GRACE", 3.0},      -- no fresh plane for this long (from the last capture) disengages, s
-  {"KP", 0.5},         -- speed command per metre of distance error, 1/s
-  {"KI", 0.0},         -- integral of the distance error within I_BAND, 1/s^2 (current)
-  {"I_BAND", 0.2},     -- the integral runs only within this distance of the set point, m
-  {"SPD_MAX", 0.3},    -- speed limit toward and away from the net, m/s
-  {"ACC_MAX", 0.3},    -- limit on speeding up toward the net, m/s^2
-  {"FWD_GAIN", 190},   -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
-  {"KV", 150},         -- extra forward PWM per m/s of speed error (damping: drag alone is weak)
-  {"FWD_MAX", 150},    -- largest forward PWM offset, us
-  {"FWD_DZ", 20},      -- ESC dead band to step over, us (ESCs: no thrust within 25 us)
-  {"FWD_DZ_RAMP", 5},  -- the step is blended in over this command, us (continuous through 0)
-  {"YAW_P", 0.5},      -- yaw rate command per degree of heading error, 1/s
-  {"YAW_RATE", 8},     -- yaw rate limit, deg/s
-  {"YAW_ACC", 8},      -- yaw rate command slew limit, deg/s^2 (gentle for the camera too)
-  {"YAW_GAIN", 3.0},   -- yaw PWM offset per deg/s (SITL: ~3 us per deg/s)
-  {"YAW_DZ", 20},      -- yaw dead zone to step over, us (RC4_DZ 40 x joystick gain 0.5)
-  {"YAW_I", 0.5},      -- integral of the heading error, us per deg*s (overcomes friction, dz)
-  {"YAW_DB", 1.0},     -- heading error below which yaw is left to ArduSub's heading hold, deg
-  {"CAM_TILT", 0},     -- camera tilt on the vehicle, deg (positive = looking down)
-  {"BTN", 1},          -- script button (1..4) that toggles net hold; 0 = none
-  {"PILOT_DZ", 100},   -- pilot stick beyond this (of +-1000) on forward or yaw disengages
+  {"ENABLE", 1, 0, 1},            -- 0: the applet does nothing
+  {"DIST", 1.0, 0.3, 10},         -- set point, m (clamped to 0.5..3)
+  {"DIST_MIN", 0.4, 0.3, 5},      -- hard minimum, m: no thrust toward the net at or below it
+  {"DIST_MAX", 4.0, 0.5, 20},     -- refuse to engage (and disengage) beyond this distance, m
+  {"TIMEOUT", 0.4, 0.1, 1.0},     -- a plane older than this (from its capture) stops thrust, s
+  {"GRACE", 3.0, 0.5, 10},        -- no fresh plane for this long disengages, s
+  {"KP", 0.5, 0, 5},              -- speed command per metre of distance error, 1/s
+  {"KI", 0.0, 0, 2},              -- integral of the distance error within I_BAND, 1/s^2
+  {"I_BAND", 0.2, 0, 2},          -- the integral runs only within this of the set point, m
+  {"SPD_MAX", 0.3, 0, 1},         -- speed limit toward and away from the net, m/s
+  {"ACC_MAX", 0.3, 0.01, 2},      -- limit on speeding up toward the net, m/s^2
+  {"FWD_GAIN", 190, 10, 1000},    -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
+  {"KV", 150, 0, 1000},           -- extra forward PWM per m/s of speed error (damping)
+  {"FWD_MAX", 150, 0, 400},       -- largest forward PWM offset, us
+  {"FWD_DZ", 20, 0, 100},         -- ESC dead band to step over, us (no thrust within 25 us)
+  {"FWD_DZ_RAMP", 5, 1, 100},     -- the step is blended in over this command, us
+  {"YAW_P", 0.5, 0, 5},           -- yaw rate command per degree of heading error, 1/s
+  {"YAW_RATE", 8, 0, 45},         -- yaw rate limit, deg/s
+  {"YAW_ACC", 8, 0.1, 90},        -- yaw rate command slew limit, deg/s^2
+  {"YAW_GAIN", 3.0, 0.1, 20},     -- yaw PWM offset per deg/s (SITL: ~3 us per deg/s)
+  {"YAW_DZ", 20, 0, 100},         -- yaw dead zone to step over, us (RC4_DZ 40 x gain 0.5)
+  {"YAW_I", 0.5, 0, 10},          -- integral of the heading error, us per deg*s
+  {"YAW_DB", 1.0, 0, 20},         -- heading error left to ArduSub's heading hold, deg
+  {"CAM_TILT", 0, -90, 90},       -- camera tilt on the vehicle, deg (positive = looking down)
+  {"BTN", 1, 0, 4},               -- script button (1..4) that toggles net hold; 0 = none
+  {"PILOT_DZ", 100, 10, 500},     -- pilot stick beyond this (of +-1000) disengages
+  {"PLANE_COMP", 197, 0, 255},    -- netpose's component id (its system id is the vehicle's)
 }
 
 local P = {}
@@ -73,6 +101,20 @@ end
 
 local function get(name)
   return P[name]:get()
+end
+
+-- The first parameter outside its range (or NaN, or unset), described; nil when all are good.
+local function bad_param()
+  for _, p in ipairs(PARAMS) do
+    local v = P[p[1]]:get()
+    if type(v) ~= "number" or not (v >= p[3] and v <= p[4]) then
+      return string.format("NETH_%s %s outside %g..%g", p[1], tostring(v), p[3], p[4])
+    end
+  end
+  if get("DIST_MAX") <= get("DIST_MIN") then
+    return "NETH_DIST_MAX not above NETH_DIST_MIN"
+  end
+  return nil
 end
 
 local function clamp(v, lo, hi)
@@ -91,6 +133,7 @@ end
 
 -- State -------------------------------------------------------------------------------------
 local fwd_channel = nil
+local fwd_rc, yaw_rc = 5, 4
 local lateral_rc = 6
 local yaw_channel = nil
 local gcs_sysid = 255
@@ -102,9 +145,17 @@ local engaged_mode = nil
 local plane = nil        -- {t = capture time s, x, y, z}: the newest plane with the net
 local no_net_t = nil     -- capture time of the newest frame without the net, if newer than plane
 local last_pause_text = -math.huge
--- The vehicle's own heading over the last second and a half (AHRS, no delay), so the net's
--- heading measured in a frame captured a few hundred ms ago becomes a heading to hold now.
-local yaw_history = {}   -- {t, yaw rad}, oldest first
+local doubt = 0          -- frames that must still agree after a jump before thrust resumes
+local doubt_why = nil    -- what is not believed (pilot text while paused for it)
+local jump = nil         -- {d, t}: the last believed distance before a jump, while in doubt
+local level_changed = nil  -- a jump the next frames confirmed: why net hold hands back
+local last_pilot = -math.huge  -- when the ground station's pilot input last arrived
+-- The vehicle's own heading over the last 1.6 s (AHRS, no delay), so the net's heading measured
+-- in a frame captured a few hundred ms ago becomes a heading to hold now. A ring buffer looked
+-- up by bisection: each plane costs a few dozen VM instructions (ArduPilot stops a script that
+-- runs more than SCR_VM_I_COUNT, 10000 by default, in one call, overrides and all).
+local yaw_t, yaw_v = {}, {}
+local yaw_n, yaw_head = 0, 0
 local target_yaw = nil   -- heading (rad) that faces the net squarely, from the newest plane
 local said_pause = false
 local prev_plane = nil
@@ -123,16 +174,25 @@ end
 
 local function setup()
   setup_params()
-  fwd_channel = rc:get_channel(math.floor(param_or("RCMAP_FORWARD", 5)))
-  yaw_channel = rc:get_channel(math.floor(param_or("RCMAP_YAW", 4)))
+  fwd_rc = math.floor(param_or("RCMAP_FORWARD", 5))
+  yaw_rc = math.floor(param_or("RCMAP_YAW", 4))
+  fwd_channel = rc:get_channel(fwd_rc)
+  yaw_channel = rc:get_channel(yaw_rc)
   lateral_rc = math.floor(param_or("RCMAP_LATERAL", 6))
-  gcs_sysid = math.floor(param_or("MAV_GCS_SYSID", param_or("SYSID_MYGCS", 255)))
   my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
-  mavlink:init(10, 3)
+  -- Four message ids; a queue of 20 holds a quarter second of the pilot's and netpose's
+  -- messages should the scripting thread stall (a full queue drops what comes).
+  mavlink:init(4, 20)
   mavlink:register_rx_msgid(MSG_DEBUG_VECT)
   mavlink:register_rx_msgid(MSG_MANUAL_CONTROL)
+  mavlink:register_rx_msgid(MSG_RC_CHANNELS_OVERRIDE)
   mavlink:register_rx_msgid(MSG_COMMAND_LONG)
   mavlink:block_command(MAV_CMD_USER_1)
+end
+
+local function read_gcs_sysid()
+  -- Read each run: ArduSub takes the pilot from the live value, so must net hold.
+  gcs_sysid = math.floor(param_or("MAV_GCS_SYSID", param_or("SYSID_MYGCS", 255)))
 end
 
 -- Geometry: the plane vector into a level frame (x forward, y right), from the camera tilt and
@@ -157,19 +217,27 @@ local function wrap_pi(a)
 end
 
 local function record_yaw(now)
-  table.insert(yaw_history, {now, ahrs:get_yaw_rad()})
-  while #yaw_history > 1 and now - yaw_history[1][1] > 1.5 do
-    table.remove(yaw_history, 1)
-  end
+  if yaw_n > 0 and now < yaw_t[yaw_head] then yaw_n = 0 end  -- the clock wrapped: start again
+  yaw_head = yaw_head % HISTORY_N + 1
+  yaw_t[yaw_head], yaw_v[yaw_head] = now, ahrs:get_yaw_rad()
+  if yaw_n < HISTORY_N then yaw_n = yaw_n + 1 end
 end
 
 local function yaw_at(t)
-  -- The recorded heading nearest to time t (the history is 10 ms apart).
-  local best = nil
-  for _, sample in ipairs(yaw_history) do
-    if best == nil or math.abs(sample[1] - t) < math.abs(best[1] - t) then best = sample end
+  -- The recorded heading nearest to time t (the samples are 10 ms apart, oldest first).
+  if yaw_n == 0 then return ahrs:get_yaw_rad() end
+  local oldest = (yaw_head - yaw_n) % HISTORY_N
+  local lo, hi = 0, yaw_n - 1
+  while lo < hi do  -- the first sample at or after t (or the newest)
+    local mid = (lo + hi) // 2
+    if yaw_t[(oldest + mid) % HISTORY_N + 1] < t then lo = mid + 1 else hi = mid end
   end
-  return best and best[2] or ahrs:get_yaw_rad()
+  local i = (oldest + lo) % HISTORY_N + 1
+  if lo > 0 then
+    local j = (oldest + lo - 1) % HISTORY_N + 1
+    if math.abs(yaw_t[j] - t) < math.abs(yaw_t[i] - t) then i = j end
+  end
+  return yaw_v[i]
 end
 
 -- Messages ------------------------------------------------------------------------------------
@@ -179,24 +247,73 @@ end
 
 local disengage
 
-local function on_plane(msg)
+local function no_net_at(t)
+  if no_net_t == nil or t > no_net_t then no_net_t = t end
+end
+
+local function on_plane(msg, now)
   local t_us, x, y, z, name = string.unpack("<I8fffc10", msg, 13)
   if name:gsub("%z", "") ~= PLANE_NAME then return end
   local t = t_us * 1e-6
+  if t > now + FUTURE_TOLERANCE_S then
+    -- Stamped after it arrived: the clocks disagree (netpose's estimate of this autopilot's
+    -- boot, another sender). Its age would not grow; thrust stops until a plane that can be
+    -- timed comes. Not kept, so it cannot freeze the planes after it either.
+    doubt_why = "net plane from the future (clock?)"
+    no_net_at(now)
+    return
+  end
+  if plane ~= nil and (t < plane.t - CLOCK_REBASE_S or now < plane.arrival) then
+    -- A new clock (netpose re-based, this clock wrapped): nothing before it is comparable.
+    plane, prev_plane, no_net_t, closing_speed, doubt, jump = nil, nil, nil, 0, 0, nil
+  end
   if plane ~= nil and t <= plane.t then return end  -- repeated or out of order
+  local d = math.sqrt(x * x + y * y + z * z)
   if x == 0 and y == 0 and z == 0 then  -- netpose: this frame did not confirm the net
-    if no_net_t == nil or t > no_net_t then no_net_t = t end
+    doubt_why = nil
+    no_net_at(t)
+    return
+  end
+  if not (d > PLAUSIBLE_M[1] and d < PLAUSIBLE_M[2]) then  -- NaN, infinite or nonsense
+    doubt_why = "net plane not a distance"
+    no_net_at(t)
     return
   end
   if no_net_t ~= nil and no_net_t >= t then return end  -- older than a frame without the net
   no_net_t = nil
   prev_plane = plane
-  plane = {t = t, x = x, y = y, z = z, d = math.sqrt(x * x + y * y + z * z)}
+  plane = {t = t, x = x, y = y, z = z, d = d, arrival = now}
   local lx, ly = level_vector(x, y, z)
   target_yaw = wrap_pi(yaw_at(t) + math.atan(ly, lx))
-  if prev_plane ~= nil then
-    local dt = plane.t - prev_plane.t
-    if dt > 0.01 and dt < 1.0 then
+  if prev_plane == nil then
+    if doubt == 0 then doubt_why = nil end
+    return
+  end
+  local dt = plane.t - prev_plane.t
+  if dt >= 1.0 then
+    closing_speed = 0  -- after a gap the speed before it says nothing
+    if doubt == 0 then doubt_why = nil end
+  elseif math.abs(plane.d - prev_plane.d) > JUMP_SPEED * dt + JUMP_SLACK_M
+      + JUMP_SLACK_SHARE * prev_plane.d then
+    -- Faster than the vehicle moves: doubtful until the next frames agree with this one.
+    if jump == nil then jump = {d = prev_plane.d, t = prev_plane.t} end
+    doubt, doubt_why, closing_speed = CONFIRM_FRAMES, "net distance jumped", 0
+  else
+    if doubt > 0 then
+      doubt = doubt - 1
+      if doubt == 0 then
+        -- The frames agree again. Back where the net was: a glitch, hold on. Somewhere the
+        -- vehicle cannot have gone since: one of the two readings is wrong, and which one
+        -- cannot be told here, so the pilot takes over.
+        if math.abs(plane.d - jump.d) > JUMP_SPEED * (plane.t - jump.t) + JUMP_SLACK_M
+            + JUMP_SLACK_SHARE * jump.d then
+          level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
+        end
+        jump = nil
+      end
+    end
+    if doubt == 0 then doubt_why = nil end
+    if dt > 0.01 then
       local rate = (prev_plane.d - plane.d) / dt
       closing_speed = closing_speed + 0.35 * (rate - closing_speed)
     end
@@ -210,19 +327,45 @@ end
 
 local engage
 
-local function on_manual_control(msg)
-  if string.byte(msg, 8) ~= gcs_sysid then return end
+local function on_manual_control(msg, now)
   local x, _, _, r, _, target = string.unpack("<hhhhHB", msg, 13)
   if target ~= my_sysid then return end
+  last_pilot = now
   if engaged and pilot_moves(x, r) then
     -- The pilot's own message has already set the channels: leave them to the pilot.
     disengage("pilot input", false)
   end
 end
 
-local function on_command(msg, chan)
+local function override_of(msg, channel)
+  -- RC_CHANNELS_OVERRIDE: chan1..8 raw (uint16), target system, target component, chan9..18.
+  if channel <= 8 then return string.unpack("<H", msg, 13 + 2 * (channel - 1)) end
+  return string.unpack("<H", msg, 31 + 2 * (channel - 9))
+end
+
+local function on_rc_override(msg, now)
+  -- A ground station that flies by RC overrides: pilot input too (ArduSub takes it from the GCS).
+  if string.byte(msg, 29) ~= my_sysid then return end
+  last_pilot = now
+  -- Joystick units to us as ArduSub maps them at its default gain (0.5): 0.2 us per unit.
+  local limit = get("PILOT_DZ") * 0.2
+  for _, channel in ipairs({fwd_rc, yaw_rc}) do
+    local pwm = override_of(msg, channel)
+    -- 0 and 65535: the channel is released or left alone.
+    if engaged and pwm ~= 0 and pwm ~= 65535 and math.abs(pwm - NEUTRAL) > limit then
+      disengage("pilot input", false)
+      return
+    end
+  end
+end
+
+local function on_command(msg, chan, from_gcs)
   local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
   if command ~= MAV_CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
+  if not from_gcs then  -- only the pilot's ground station engages or disengages
+    send_ack(chan, command, MAV_RESULT_DENIED)
+    return
+  end
   if p1 >= 0.5 then
     send_ack(chan, command, engage() and MAV_RESULT_ACCEPTED or MAV_RESULT_DENIED)
   else
@@ -231,25 +374,39 @@ local function on_command(msg, chan)
   end
 end
 
-local function read_messages()
+local function read_messages(now)
+  local plane_comp = math.floor(get("PLANE_COMP"))
   for _ = 1, 30 do
     local msg, chan = mavlink:receive_chan()
     if msg == nil then return end
     local msgid = string.unpack("<I3", msg, 10)
+    local sysid, compid = string.byte(msg, 8), string.byte(msg, 9)
     if msgid == MSG_DEBUG_VECT then
-      on_plane(msg)
-    elseif msgid == MSG_MANUAL_CONTROL then
-      on_manual_control(msg)
+      -- Only netpose's (this vehicle's system id, its component): a replay tool, a second
+      -- netpose or a stranger on the network must not steer.
+      if sysid == my_sysid and (plane_comp == 0 or compid == plane_comp) then
+        on_plane(msg, now)
+      end
     elseif msgid == MSG_COMMAND_LONG then
-      on_command(msg, chan)
+      on_command(msg, chan, sysid == gcs_sysid)
+    elseif sysid ~= gcs_sysid then
+      -- The pilot's input comes from the ground station only (as ArduSub takes it).
+    elseif msgid == MSG_MANUAL_CONTROL then
+      on_manual_control(msg, now)
+    elseif msgid == MSG_RC_CHANNELS_OVERRIDE then
+      on_rc_override(msg, now)
     end
   end
 end
 
 -- Engage / disengage ----------------------------------------------------------------------------
+local CLOCK_WRAP_S = 4294967.296  -- millis() is a uint32: it wraps after 49.7 days
+
 local function plane_age(now)
   if plane == nil then return math.huge end
-  return now - plane.t
+  local age = now - plane.t
+  if age < -CLOCK_REBASE_S then age = age + CLOCK_WRAP_S end  -- the clock wrapped since
+  return age
 end
 
 local function set_point()
@@ -278,8 +435,17 @@ engage = function()
     say(SEV_WARNING, "disabled (NETH_ENABLE = 0)")
     return false
   end
+  local bad = bad_param()
+  if bad ~= nil then
+    say(SEV_WARNING, "not engaged: " .. bad)
+    return false
+  end
   if not arming:is_armed() then
     say(SEV_WARNING, "not engaged: disarmed")
+    return false
+  end
+  if now - last_pilot > PILOT_TIMEOUT_S then
+    say(SEV_WARNING, "not engaged: no pilot input (joystick) from the ground station")
     return false
   end
   if plane_age(now) > get("TIMEOUT") or no_net_t ~= nil then
@@ -288,6 +454,10 @@ engage = function()
   end
   if plane.d > get("DIST_MAX") or plane.d < get("DIST_MIN") then
     say(SEV_WARNING, string.format("not engaged: net at %.2f m", plane.d))
+    return false
+  end
+  if doubt > 0 then
+    say(SEV_WARNING, "not engaged: " .. doubt_why)
     return false
   end
   engaged, paused, yaw_rate_cmd = true, false, 0
@@ -390,28 +560,42 @@ local function control(now)
 end
 
 local function update()
-  record_yaw(now_s())
-  read_messages()
-  check_button()
-  if not engaged then return end
   local now = now_s()
+  record_yaw(now)
+  read_gcs_sysid()
+  read_messages(now)
+  check_button()
+  local changed = level_changed
+  level_changed = nil
+  if not engaged then return end
   local age = plane_age(now)
+  local bad = bad_param()
   if get("ENABLE") < 1 then
     disengage("disabled", true)
+  elseif bad ~= nil then
+    disengage(bad, true)
+  elseif changed ~= nil then
+    disengage(changed, true)
+  elseif now - last_pilot > PILOT_TIMEOUT_S then
+    -- The pilot could not take over by stick (link lost, joystick gone, a failsafe that only
+    -- warns): hand back rather than drive on unattended.
+    disengage(string.format("no pilot input (%.1f s)", math.min(now - last_pilot, 99)), true)
   elseif not arming:is_armed() then
     disengage("disarmed", true)
   elseif vehicle:get_mode() ~= engaged_mode then
     disengage("mode changed", true)
   elseif age > get("GRACE") then
     disengage(string.format("net lost (%.1f s)", math.min(age, 99)), true)
-  elseif age > get("TIMEOUT") or no_net_t ~= nil then
+  elseif age > get("TIMEOUT") or no_net_t ~= nil or doubt > 0 then
     if not paused then
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
       -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
       said_pause = now - last_pause_text > 3.0
       if said_pause then
         last_pause_text = now
-        if no_net_t ~= nil then
+        if doubt_why ~= nil then
+          say(SEV_WARNING, doubt_why .. ": thrust stopped")
+        elseif no_net_t ~= nil then
           say(SEV_WARNING, "net not seen: thrust stopped")
         else
           say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
@@ -439,6 +623,7 @@ local function protected_update()
       engaged = false
       neutral()
     end
+    gcs:send_named_float("NH_ON", 0)
     gcs:send_text(3, "NetHold: internal error, OFF: " .. tostring(err))
   end
   return protected_update, UPDATE_MS

@@ -21,6 +21,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "net_hold.lua"
 MSG_DEBUG_VECT = 250
 MSG_MANUAL_CONTROL = 69
 MSG_COMMAND_LONG = 76
+MSG_RC_CHANNELS_OVERRIDE = 70
 MAV_CMD_USER_1 = 31010
 ALT_HOLD = 2
 
@@ -29,7 +30,9 @@ stub = {now_ms = 0, params = {}, overrides = {}, history = {}, texts = {}, named
         rx = {}, sent = {}, blocked = {}, buttons = {0, 0, 0, 0}, armed = true, mode = 2,
         roll = 0, pitch = 0, yaw = 0, logs = 0, rx_ids = {}}
 function millis()
-  return {tofloat = function(self) return stub.now_ms end}
+  -- The autopilot's uint32 millisecond clock: stub.clock_offset_ms moves it toward its wrap.
+  local ms = (stub.now_ms + (stub.clock_offset_ms or 0)) % 4294967296
+  return {tofloat = function(self) return ms end}
 end
 param = {}
 function param:add_table(key, prefix, n) stub.prefix = prefix return true end
@@ -89,9 +92,17 @@ def mavlink_struct(msgid: int, sysid: int, compid: int, payload: bytes) -> bytes
     return header + msgid.to_bytes(3, "little") + payload.ljust(280, b"\0")
 
 
-def debug_vect(name: bytes, t_s: float, x: float, y: float, z: float) -> bytes:
-    return mavlink_struct(MSG_DEBUG_VECT, 1, 197,
+def debug_vect(name: bytes, t_s: float, x: float, y: float, z: float, sysid: int = 1,
+               compid: int = 197) -> bytes:
+    return mavlink_struct(MSG_DEBUG_VECT, sysid, compid,
                           struct.pack("<Qfff10s", int(round(t_s * 1e6)), x, y, z, name))
+
+
+def rc_override(channels: dict[int, int], sysid: int = 255, target: int = 1) -> bytes:
+    """RC_CHANNELS_OVERRIDE: channels 1-18 (0: released, 65535: left alone)."""
+    raw = [channels.get(i, 65535) for i in range(1, 19)]
+    payload = struct.pack("<8HBB10H", *raw[:8], target, 1, *raw[8:])
+    return mavlink_struct(MSG_RC_CHANNELS_OVERRIDE, sysid, 190, payload)
 
 
 def manual_control(x: int = 0, y: int = 0, z: int = 500, r: int = 0, buttons: int = 0,
@@ -100,10 +111,10 @@ def manual_control(x: int = 0, y: int = 0, z: int = 500, r: int = 0, buttons: in
                           struct.pack("<hhhhHB", x, y, z, r, buttons, target))
 
 
-def command_user_1(on: bool, target: int = 1) -> bytes:
+def command_user_1(on: bool, target: int = 1, sysid: int = 255) -> bytes:
     payload = struct.pack("<fffffffHBBB", 1.0 if on else 0.0, 0, 0, 0, 0, 0, 0,
                           MAV_CMD_USER_1, target, 1, 0)
-    return mavlink_struct(MSG_COMMAND_LONG, 255, 190, payload)
+    return mavlink_struct(MSG_COMMAND_LONG, sysid, 190, payload)
 
 
 class Applet:
@@ -135,6 +146,26 @@ class Applet:
             self._fn = fn
             self.next_run_ms += float(delay)
         self.stub.now_ms = t_s * 1000.0
+
+    def clock_s(self, t_s: float) -> float:
+        """Simulated time `t_s` on the autopilot's clock (what netpose stamps planes with):
+        the same unless `stub.clock_offset_ms` moved it toward its 49.7-day wrap."""
+        offset = float(self.stub.clock_offset_ms or 0)
+        return ((t_s * 1000.0 + offset) % 4294967296.0) / 1000.0
+
+    def instructions_of_next_run(self) -> int:
+        """Run the script's update once, now, counting the Lua VM instructions it takes (what
+        ArduPilot limits with SCR_VM_I_COUNT, 10000 by default, per call)."""
+        counter = self.lua.execute("""
+            return function(fn)
+              local n = 0
+              debug.sethook(function() n = n + 1 end, "", 1)
+              local next_fn, delay = fn()
+              debug.sethook()
+              return n, next_fn, delay
+            end""")
+        count, self._fn, _ = counter(self._fn)
+        return int(count)
 
     # -- inputs --------------------------------------------------------------------------------
     def receive(self, message: bytes, chan: int = 0) -> None:
@@ -251,9 +282,11 @@ def run_closed_loop(applet: Applet, vehicle: NetVehicle, seconds: float, *,
                 pass  # netpose (or its link) is gone: nothing at all
             elif sees_net is None or sees_net(t):
                 x, y, z = vehicle.plane()
-                pending.append((t + latency_s, debug_vect(b"NET_PLANE", t, x, y, z)))
+                pending.append((t + latency_s,
+                                debug_vect(b"NET_PLANE", applet.clock_s(t), x, y, z)))
             else:  # netpose says "no net in this frame" with a zero vector
-                pending.append((t + latency_s, debug_vect(b"NET_PLANE", t, 0.0, 0.0, 0.0)))
+                pending.append((t + latency_s,
+                                debug_vect(b"NET_PLANE", applet.clock_s(t), 0.0, 0.0, 0.0)))
             next_frame += frame_period_s
         if t >= next_pilot:
             px, pr = pilot(t) if pilot is not None else (0, 0)
