@@ -68,6 +68,10 @@ _SERIAL_WRITE_TIMEOUT_S = 0.2
 CLOSE_WAIT_S = 0.2
 # A jump of the autopilot's boot clock larger than this is a reboot, not network jitter.
 _REBOOT_JUMP_S = 1.0
+# How far two crystals may disagree (parts per million; a watch crystal is within 20-50): the
+# earliest boot estimate is allowed to move later by this much per second, so stamps follow an
+# autopilot clock slower than ours instead of running into its future.
+_CLOCK_DRIFT_PPM = 200.0
 # A new reading is sent on arrival when the one after it (a frame interval later) would come
 # later than a period after the last reading sent, less this share of a frame interval: the
 # margin for a camera whose frame times wobble.
@@ -234,6 +238,7 @@ class MavlinkLink(AutopilotLink):
         self._autopilot: _AutopilotIdentity | None = None
         self._autopilot_alive = False
         self._autopilot_boot: float | None = None
+        self._autopilot_boot_at: float = 0.0  # our clock when that estimate was last updated
         self._sent: SendTimes = dict.fromkeys(
             ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT", "STATUSTEXT"), 0
         )
@@ -596,18 +601,23 @@ class MavlinkLink(AutopilotLink):
                 ap.flight_sw_version = int(msg.flight_sw_version)
         time_boot_ms = getattr(msg, "time_boot_ms", None)
         if isinstance(time_boot_ms, int):
-            self._update_boot_time(now - time_boot_ms / 1000.0)
+            self._update_boot_time(now - time_boot_ms / 1000.0, now)
 
-    def _update_boot_time(self, boot: float) -> None:
+    def _update_boot_time(self, boot: float, now: float) -> None:
+        """`boot`: when the autopilot booted on our clock, as one of its messages says (late by
+        that message's transit)."""
         with self._lock:
             old = self._autopilot_boot
             if old is None or abs(boot - old) > _REBOOT_JUMP_S:
                 self._autopilot_boot = boot
                 rebooted = old is not None
             else:
-                # The earliest estimate had the least transport delay in it.
-                self._autopilot_boot = min(old, boot)
+                # The earliest estimate had the least transit in it; it may age later by the
+                # crystals' disagreement, so a slower autopilot clock is followed.
+                drift = _CLOCK_DRIFT_PPM * 1e-6 * max(0.0, now - self._autopilot_boot_at)
+                self._autopilot_boot = min(old + drift, boot)
                 rebooted = False
+            self._autopilot_boot_at = now
         if rebooted:
             log.warning("MAVLink: autopilot clock jumped by %.1f s (reboot?)", boot - (old or 0))
 

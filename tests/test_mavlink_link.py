@@ -729,3 +729,25 @@ def test_a_flapping_net_plane_is_sent_frame_by_frame_but_logged_once_a_second(
     lines = [r.getMessage() for r in caplog.records if "net plane" in r.getMessage()]
     assert 1 <= len(lines) <= math.ceil(elapsed) + 1, lines
     assert not any("not fresh" in line for line in lines), lines
+
+
+@pytest.mark.parametrize("ppm", [-100.0, 100.0])
+def test_capture_stamps_follow_an_autopilot_clock_that_drifts(ppm: float) -> None:
+    """The autopilot's boot is learnt from its messages' time_boot_ms; keeping the earliest
+    estimate (the least transit in it) let the stamps run ahead of a clock a little slower than
+    ours, 0.36 s after 1 h at 100 ppm and up to 1 s before a re-base: a net plane stamped in
+    the autopilot's future, which the net-hold applet cannot age. Followed now, whichever way
+    the crystal errs; transit (2-12 ms here) still only ever makes a stamp earlier."""
+    now = {"t": 1000.0}
+    link = MavlinkLink(settings("udpout:127.0.0.1:9"), clock=lambda: now["t"])
+    boot = 900.0  # on our clock, the instant the autopilot booted
+    rate = 1.0 + ppm * 1e-6  # autopilot seconds per second of ours
+    for i in range(3 * 3600):  # SYSTEM_TIME at 1 Hz for three hours
+        now["t"] = 1000.0 + i
+        transit = 0.002 + 0.01 * ((i * 7919) % 13) / 13.0
+        autopilot_s = (now["t"] - transit - boot) * rate
+        link._update_boot_time(now["t"] - autopilot_s, now["t"])
+    capture = now["t"] - 0.05
+    true_ms = (capture - boot) * rate * 1000.0
+    ahead_ms = link._autopilot_time_ms(capture) - true_ms
+    assert -15.0 <= ahead_ms <= 1.0
