@@ -12,6 +12,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import signal
 import socket
@@ -183,6 +184,45 @@ def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> 
     return EstimateMessage(vehicle="v", time_unix=t, time_mono=t, seq=seq, frame_time_mono=t,
                            detected=detected, distance_m=1.1 if detected else None,
                            tilt_deg=5.0 if detected else None, filtered=filtered)
+
+
+def test_a_busy_page_port_costs_the_page_not_the_distance(tmp_path: Path) -> None:
+    """Something else on the page's port (a stale daemon, a BlueOS port clash): the page
+    retried once, then failed for good ("Site is already registered in runner") and its dead
+    event loop took the frame loop down with it ("Event loop is closed"), exit 1: the
+    autopilot lost its distance for a web page. The loop goes on; the page comes up once the
+    port is free."""
+    page = WebDaemon(tmp_path)
+    squatter = socket.socket()
+    squatter.bind(("127.0.0.1", page.port))
+    squatter.listen()
+    env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
+    with page.log_path.open("wb") as log:
+        page.proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "run", "--config", str(page.config)],
+            cwd=REPO, env={**env, "PYTHONUNBUFFERED": "1"}, stdout=log,
+            stderr=subprocess.STDOUT)
+    try:
+        time.sleep(12.0)  # two retries
+        assert page.proc.poll() is None, page.log()
+        squatter.close()
+        deadline = time.monotonic() + 15.0
+        while True:
+            try:
+                if page.request("GET", "/register_service", timeout_s=2.0)[0] == 200:
+                    break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, page.log()
+            time.sleep(0.3)
+        assert page.collect(1.5)[1]  # live frames: the loop ran all along
+    finally:
+        squatter.close()
+        status = page.stop()
+    log_text = page.log()
+    assert status == 0, log_text
+    assert log_text.count("cannot listen") == 1 and "server failed" not in log_text
+    assert "Event loop is closed" not in log_text
 
 
 def test_what_waits_for_a_page_is_bounded_and_the_newest_wins() -> None:

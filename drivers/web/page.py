@@ -172,6 +172,7 @@ class WebPage(Generic[R]):
         except Exception:
             log.exception("web page: server failed")
         finally:
+            self._feed.attach(None)  # the frame loop must not wake a loop that is gone
             self._started.set()
             with contextlib.suppress(Exception):
                 loop.run_until_complete(loop.shutdown_asyncgens())
@@ -182,27 +183,14 @@ class WebPage(Generic[R]):
         self._stop = asyncio.Event()
 
         def wake() -> None:
-            loop.call_soon_threadsafe(self._drain)
+            with contextlib.suppress(RuntimeError):  # closed meanwhile: the page is stopping
+                loop.call_soon_threadsafe(self._drain)
 
         self._feed.attach(wake)
-        # (No shutdown_timeout: AppRunner takes it only since aiohttp 3.9, and Debian
-        # bookworm's 3.8 would hand it to every connection. Open pages are closed on shutdown.)
-        runner = web.AppRunner(self._app(), access_log=None, handle_signals=False)
-        await runner.setup()
-        site = web.TCPSite(runner, self.settings.host, self.settings.port, reuse_address=True)
-        failed_logged = False
-        while not self._stop.is_set():
-            try:
-                await site.start()
-                break
-            except OSError as exc:
-                if not failed_logged:
-                    log.error("web page: cannot listen on %s:%d (%s); retrying every 5 s",
-                              self.settings.host, self.settings.port, exc.strerror or exc)
-                    failed_logged = True
-                self._started.set()
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(self._stop.wait(), 5.0)
+        listening = await self._listen()
+        if listening is None:
+            return  # stopped before the port was ever free
+        runner, site = listening
         if not self._stop.is_set():
             server = getattr(site, "_server", None)
             sockets = getattr(server, "sockets", None) or []
@@ -215,6 +203,33 @@ class WebPage(Generic[R]):
             if timer is not None:
                 timer.cancel()
         await runner.cleanup()
+
+    async def _listen(self) -> tuple[web.AppRunner, web.TCPSite] | None:
+        """The page's server, listening; while the port is taken, a new try every 5 s (a site
+        that failed to start stays registered with its runner, so each try has its own)."""
+        assert self._stop is not None
+        failed_logged = False
+        while not self._stop.is_set():
+            # (No shutdown_timeout: AppRunner takes it only since aiohttp 3.9, and Debian
+            # bookworm's 3.8 would hand it to every connection. Open pages are closed on
+            # shutdown.)
+            runner = web.AppRunner(self._app(), access_log=None, handle_signals=False)
+            await runner.setup()
+            site = web.TCPSite(runner, self.settings.host, self.settings.port,
+                               reuse_address=True)
+            try:
+                await site.start()
+                return runner, site
+            except OSError as exc:
+                await runner.cleanup()
+                if not failed_logged:
+                    log.error("web page: cannot listen on %s:%d (%s); retrying every 5 s",
+                              self.settings.host, self.settings.port, exc.strerror or exc)
+                    failed_logged = True
+                self._started.set()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._stop.wait(), 5.0)
+        return None
 
     def _app(self) -> web.Application:
         app = web.Application(client_max_size=self.settings.max_upload_kb * 1024,
