@@ -66,11 +66,16 @@ def _max_distortion_difference(
     inside = mask[ys, xs] > 0
     pixels = np.stack([xs[inside], ys[inside]], axis=-1).astype(np.float64)
     rays = true.undistort_pixels(pixels)
-    unit = CameraModel(true.width, true.height, 1.0, 1.0, 0.0, 0.0)
-    true_shift = unit.__class__(**{**unit.__dict__, "distortion": true.distortion})
-    est_shift = unit.__class__(**{**unit.__dict__, "distortion": estimate.distortion})
-    diff = true_shift.project_normalized(rays) - est_shift.project_normalized(rays)
+    diff = _distorted(rays, true.distortion) - _distorted(rays, estimate.distortion)
     return float(np.max(np.linalg.norm(diff * [true.fx, true.fy], axis=1)))
+
+
+def _distorted(rays: np.ndarray, distortion: tuple[float, ...]) -> np.ndarray:
+    """Normalised rays through a lens model alone (a unit camera matrix)."""
+    points = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
+    image, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), np.eye(3),
+                                 np.asarray(distortion, dtype=np.float64))
+    return np.asarray(image, dtype=np.float64).reshape(-1, 2)
 
 
 def _matched(corners: np.ndarray, truth: np.ndarray) -> np.ndarray:

@@ -212,6 +212,25 @@ def test_a_filestorage_matrix_of_the_wrong_size_names_the_file(tmp_path: Path) -
 # -- bad files: a clear CalibrationError naming the problem ---------------------------------------
 
 
+@pytest.mark.parametrize("text", [
+    '<?xml version="1.0"?>\n<opencv_storage>\n<image_width>640\n',
+    "%YAML:1.0\n---\nimage_width: 640\ncamera_matrix: !!opencv-matrix\n   rows: 3\n",
+    '<?xml version="1.0"?>\n<opencv_storage>\n<image_width>abc</image_width>\n'
+    "<image_height>480</image_height>\n<camera_matrix type_id=\"opencv-matrix\"><rows>3</rows>"
+    "<cols>3</cols><dt>d</dt><data>500. 0. 319.5 0. 502. 239.5 0. 0. 1.</data></camera_matrix>"
+    "\n</opencv_storage>\n",
+], ids=["truncated-xml", "truncated-yml", "width-not-a-number"])
+def test_a_broken_filestorage_file_is_a_calibration_error(tmp_path: Path, text: str) -> None:
+    """OpenCV's parser raised SystemError on a truncated file (a traceback, exit 1 instead of
+    78, and a SIGHUP to such a file ended the running daemon); a width it read as 1.8e308
+    passed the check and failed at the first frame."""
+    path = tmp_path / ("cam.xml" if text.startswith("<") else "cam.yml")
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(CalibrationError) as err:
+        load_camera(path)
+    assert str(path) in str(err.value)
+
+
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="not found") as err:
         load_camera(tmp_path / "nope.yaml")
@@ -247,10 +266,33 @@ def test_invalid_yaml_names_the_line(tmp_path: Path) -> None:
         ),
         (lambda d: d["camera_matrix"].update(data="wide"), "not a list of numbers"),
         (lambda d: d.update(image_width="big"), "must be integers"),
+        # Stored column by column: the principal point read as (0, 0), the distances off by
+        # 8 % on a rendered net, "acquired" at a tilt it did not have.
+        (
+            lambda d: d["camera_matrix"].update(data=[500.0, 0, 0, 0, 502.0, 0, 319.5, 239.5, 1]),
+            "camera_matrix must be [fx, 0, cx, 0, fy, cy, 0, 0, 1]",
+        ),
+        (
+            lambda d: d["camera_matrix"].update(data=[500.0, 0, 5000, 0, 502.0, -4000, 0, 0, 1]),
+            "principal point (5000.0, -4000.0) lies outside the 640x480 image",
+        ),
+        (
+            lambda d: d["camera_matrix"].update(data=[1e-6, 0, 319.5, 0, 1e-6, 239.5, 0, 0, 1]),
+            "a field of view no lens has",
+        ),
+        (lambda d: d.update(image_width=10**9), "image size"),
+        # The lens model folds over within the frame (no ray reaches the corners): refused
+        # when the file is read, not at the first frame whose ROIs reach there.
+        (
+            lambda d: d["distortion_coefficients"].update(data=[-5.0, 0, 0, 0, 0]),
+            "cannot be inverted at pixel",
+        ),
     ],
     ids=[
         "no-camera-matrix", "no-width", "eight-values", "negative-fx", "fisheye",
         "three-distortion-values", "matrix-not-numbers", "width-not-integer",
+        "matrix-transposed", "principal-point-outside", "focal-length-absurd", "width-absurd",
+        "folding-lens",
     ],
 )
 def test_bad_content_is_a_clear_calibration_error(

@@ -32,6 +32,12 @@ _SKEW_LIMIT = 1e-3
 # may land from where they came from, and how near the points that missed are then brought
 # (the estimator differentiates rays 2 px apart: their errors must be far below that).
 _INVERSION_SAMPLE = 4096
+# Sanity of a calibration file: the largest image side (a 32K sensor), and the focal length as
+# a multiple of the image side (0.05: a 169 deg field of view; 100: 0.6 deg).
+_MAX_SIDE_PX = 32768
+_FOCAL_RANGE = (0.05, 100.0)
+# Where a file's lens model is checked to invert (a grid over the frame, edges included).
+_CHECK_GRID = (17, 9)
 _INVERSION_TOLERANCE_PX = 1e-3
 _INVERSION_TARGET_PX = 1e-6
 
@@ -51,14 +57,23 @@ class CameraModel:
     skew: float = field(default=0.0)
 
     def __post_init__(self) -> None:
-        if self.width <= 0 or self.height <= 0:
-            raise CalibrationError(f"image size must be positive, got {self.width}x{self.height}")
-        for label, value in (("fx", self.fx), ("fy", self.fy)):
+        if not (0 < self.width <= _MAX_SIDE_PX and 0 < self.height <= _MAX_SIDE_PX):
+            raise CalibrationError(f"image size must be positive and at most {_MAX_SIDE_PX} px "
+                                   f"a side, got {self.width}x{self.height}")
+        for label, value, side in (("fx", self.fx, self.width), ("fy", self.fy, self.height)):
             if not math.isfinite(value) or value <= 0:
                 raise CalibrationError(f"camera_matrix {label} must be positive, got {value}")
+            if not _FOCAL_RANGE[0] * side <= value <= _FOCAL_RANGE[1] * side:
+                raise CalibrationError(
+                    f"camera_matrix {label} = {value:g} px for a {side} px side is a field of "
+                    "view no lens has: is the file for this camera, in pixels?")
         for label, value in (("cx", self.cx), ("cy", self.cy)):
             if not math.isfinite(value):
                 raise CalibrationError(f"camera_matrix {label} is not finite")
+        if not (0.0 <= self.cx <= self.width and 0.0 <= self.cy <= self.height):
+            raise CalibrationError(
+                f"principal point ({self.cx:.1f}, {self.cy:.1f}) lies outside the "
+                f"{self.width}x{self.height} image: is the file for this resolution?")
         # OpenCV's lens model has no skew (calibrateCamera fixes it at zero; projectPoints and
         # undistortPoints leave it out): kept for the file's sake, used nowhere.
         if not (math.isfinite(self.skew) and abs(self.skew) <= _SKEW_LIMIT * self.fx):
@@ -261,20 +276,34 @@ def camera_from_ros_dict(doc: Mapping[str, Any], source: str = "calibration") ->
 
 
 def _load_opencv_storage(path: Path) -> CameraModel:
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    unreadable = CalibrationError(f"{path}: cannot be parsed as YAML or OpenCV FileStorage")
+    try:
+        # A truncated file makes OpenCV's parser raise cv2.error, or SystemError from the
+        # binding, rather than report a file it could not open.
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError):
+        raise unreadable from None
     try:
         if not fs.isOpened():
-            raise CalibrationError(f"{path}: cannot be parsed as YAML or OpenCV FileStorage")
-        k = fs.getNode("camera_matrix").mat()
+            raise unreadable
+        try:
+            k = fs.getNode("camera_matrix").mat()
+            d = fs.getNode("distortion_coefficients").mat()
+            w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
+            missing = w_node.empty() or h_node.empty()
+            size = (w_node.real(), h_node.real()) if not missing else (0.0, 0.0)
+        except (cv2.error, SystemError):
+            raise unreadable from None
         if k is None:
             raise CalibrationError(f"{path}: missing key 'camera_matrix'")
-        d = fs.getNode("distortion_coefficients").mat()
-        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
-        if w_node.empty() or h_node.empty():
+        if missing:
             raise CalibrationError(f"{path}: missing key 'image_width'/'image_height'")
+        # A value that is not a number reads as 1.8e308 (its "real" value), not as an error.
+        if not all(math.isfinite(v) and v == int(v) for v in size):
+            raise CalibrationError(f"{path}: image_width/image_height must be integers")
         dist = np.zeros(5) if d is None else np.asarray(d, dtype=np.float64).ravel()
         try:
-            return _from_matrix(k, dist, int(w_node.real()), int(h_node.real()), path.stem)
+            return _from_matrix(k, dist, int(size[0]), int(size[1]), path.stem)
         except CalibrationError as exc:
             raise CalibrationError(f"{path}: {exc}") from None
     finally:
@@ -289,6 +318,10 @@ def _from_matrix(k: npt.NDArray[Any], dist: npt.NDArray[Any], width: int,
     if k.size != 9:
         raise CalibrationError(f"camera_matrix must have 9 values (3x3), got {k.size}")
     k = k.reshape(3, 3)
+    if not (k[1, 0] == 0.0 and k[2, 0] == 0.0 and k[2, 1] == 0.0 and k[2, 2] == 1.0):
+        raise CalibrationError(
+            "camera_matrix must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] row by row, got "
+            f"{[round(float(v), 3) for v in k.ravel()]} (stored column by column?)")
     return CameraModel(
         width=width,
         height=height,
@@ -312,14 +345,30 @@ def load_camera(path: str | Path) -> CameraModel:
     except (OSError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{p}: cannot read calibration file ({exc})") from None
     if text.lstrip().startswith("%YAML") or p.suffix.lower() == ".xml" or "!!opencv-matrix" in text:
-        return _load_opencv_storage(p)
+        camera = _load_opencv_storage(p)
+    else:
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}" if mark is not None else ""
+            raise CalibrationError(f"{p}: invalid YAML{where}") from None
+        camera = camera_from_ros_dict(doc, source=str(p))
+    _check_invertible(camera, p)
+    return camera
+
+
+def _check_invertible(camera: CameraModel, path: Path) -> None:
+    """A lens model that folds over within the frame (k1 = 50: no ray reaches its edges) is
+    refused when its file is read, not at the first frame whose ROIs reach there."""
+    cols, rows = _CHECK_GRID
+    xs = np.linspace(0.0, camera.width - 1.0, cols)
+    ys = np.linspace(0.0, camera.height - 1.0, rows)
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise CalibrationError(f"{p}: invalid YAML{where}") from None
-    return camera_from_ros_dict(doc, source=str(p))
+        camera.undistort_pixels(grid)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
 
 
 def save_camera(camera: CameraModel, path: str | Path) -> None:
