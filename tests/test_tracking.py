@@ -298,6 +298,11 @@ def test_missing_sigmas_use_the_fallback_noise() -> None:
         ({"report_coasting_s": 2.0, "coast_timeout_s": 1.0}, "filter.report_coasting_s"),
         ({"min_confidence": 1.5}, "filter.min_confidence"),
         ({"acquire_count": 0}, "filter.acquire_count"),
+        # A prediction sent for minutes with the last frame's quality: 1000 s of coasting and
+        # 300 s of it reported sent 7.5 s of extrapolation, down to 1 cm, at quality 97.
+        ({"coast_timeout_s": 1000.0}, "filter.coast_timeout_s"),
+        ({"report_coasting_s": 4.0, "coast_timeout_s": 5.0}, "filter.report_coasting_s"),
+        ({"report_coasting_frames": 100.0}, "filter.report_coasting_frames"),
     ],
 )
 def test_bad_settings_name_the_key(kwargs: dict[str, float], key: str) -> None:
@@ -348,3 +353,13 @@ def test_the_filter_is_filterpys_own_class_loaded_without_scipy_stats() -> None:
          "print('scipy.stats' in sys.modules, 'filterpy' in sys.modules)"],
         capture_output=True, text=True, timeout=60, check=True)
     assert probe.stdout.split() == ["False", "False"]
+
+
+def test_a_slow_camera_does_not_stretch_the_reported_coasting_past_a_second() -> None:
+    """1.5 intervals of a camera at 1 frame/s would report a prediction for 1.5 s: ArduPilot
+    drops a rangefinder after 0.5 s of silence, so a second is the most a prediction is
+    passed off as a reading."""
+    tracker = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=5.0))
+    for i in range(8):
+        tracker.step(float(i), estimate(1.0))
+    assert tracker.report_coasting_limit_s() == pytest.approx(1.0)

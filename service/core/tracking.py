@@ -41,6 +41,12 @@ FloatArray = npt.NDArray[np.float64]
 _D, _YAW, _PITCH = 0, 2, 4
 # Intervals between processed frames over which their typical value is taken (median), and how
 # many are needed before it replaces `report_coasting_s` alone.
+# The longest a prediction may be passed off as a reading: ArduPilot drops a rangefinder after
+# 0.5 s of silence; a prediction held for seconds is a distance nobody measured.
+MAX_REPORT_COASTING_S = 1.0
+# The longest a track may go unconfirmed and still be a track.
+MAX_COAST_TIMEOUT_S = 5.0
+MAX_REPORT_COASTING_FRAMES = 5.0
 _INTERVAL_WINDOW = 15
 _MIN_INTERVALS = 3
 
@@ -125,20 +131,28 @@ class FilterSettings:
             value = getattr(self, name)
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f"filter.{name}", f"must be a positive number, got {value}")
-        if not (math.isfinite(self.report_coasting_frames) and self.report_coasting_frames >= 0):
+        if self.coast_timeout_s > MAX_COAST_TIMEOUT_S:
+            raise ConfigError("filter.coast_timeout_s",
+                              f"must be at most {MAX_COAST_TIMEOUT_S} s (a track unconfirmed "
+                              f"longer is a guess), got {self.coast_timeout_s}")
+        if not (math.isfinite(self.report_coasting_frames)
+                and 0 <= self.report_coasting_frames <= MAX_REPORT_COASTING_FRAMES):
             raise ConfigError("filter.report_coasting_frames",
-                              f"must be a number >= 0, got {self.report_coasting_frames}")
+                              f"must be 0..{MAX_REPORT_COASTING_FRAMES:g}, "
+                              f"got {self.report_coasting_frames}")
         if self.max_consecutive_rejects < 1:
             raise ConfigError("filter.max_consecutive_rejects", "must be at least 1")
         if self.acquire_count < 1:
             raise ConfigError("filter.acquire_count", "must be at least 1")
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError("filter.min_confidence", f"must be 0..1, got {self.min_confidence}")
-        if not 0.0 <= self.report_coasting_s <= self.coast_timeout_s:
+        if not 0.0 <= self.report_coasting_s <= min(self.coast_timeout_s,
+                                                    MAX_REPORT_COASTING_S):
             raise ConfigError(
                 "filter.report_coasting_s",
-                f"must be 0..coast_timeout_s ({self.coast_timeout_s}), "
-                f"got {self.report_coasting_s}",
+                f"must be 0..{MAX_REPORT_COASTING_S:g} s and at most coast_timeout_s "
+                f"({self.coast_timeout_s}): a prediction is not a reading, got "
+                f"{self.report_coasting_s}",
             )
 
 
@@ -342,7 +356,7 @@ class NetTracker:
         typical = self._frames.median()
         if s.report_coasting_frames > 0 and typical is not None:
             limit = max(limit, s.report_coasting_frames * typical)
-        return min(limit, s.coast_timeout_s)
+        return min(limit, s.coast_timeout_s, MAX_REPORT_COASTING_S)
 
     def _coasting_reported(self, t: float, since: float) -> bool:
         """Whether a coasting prediction still goes to the autopilot: within the window of the
