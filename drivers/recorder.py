@@ -6,7 +6,9 @@ A recording is a folder that `netpose replay` reads as it is (the `recording:` f
       recording.json   format, version, vehicle, netpose version, frames, dropped, times, and
                        which files below describe the camera and the tuning
       camera.yaml      the calibration in force (ROS camera_info layout)
-      netpose.toml     the [mesh], [estimator], [filter] and [service] settings in force
+      netpose.toml     the [mesh], [estimator], [filter], [service] and [damage] settings in
+                       force (a reload that changes them ends the recording and starts the
+                       next: each recording has one set of settings, so each replays exactly)
       pipeline_state.json  the filter's state and the estimator's prior just before the
                        first recorded frame (exact JSON values, service/pipeline.py)
       frames.jsonl     one line per frame, in order: the PNG's name, the source's frame number,
@@ -90,7 +92,7 @@ class RecordingSetup:
     """What a replay needs besides the frames: the camera and the tuning, as in force."""
 
     camera: CameraModel
-    tuning_toml: str  # [mesh], [estimator], [filter], [service] as TOML
+    tuning_toml: str  # [mesh], [estimator], [filter], [service], [damage] as TOML
     mesh_bar_length_m: float
     mesh_opening_angle_deg: float
 
@@ -220,9 +222,13 @@ class Recorder(Closeable):
     """
 
     def __init__(self, root: Path, vehicle: str, setup: Callable[[], RecordingSetup],
-                 max_bytes: int, pipeline_state: Callable[[], dict[str, Any]] | None = None
-                 ) -> None:
+                 max_bytes: int, pipeline_state: Callable[[], dict[str, Any]] | None = None,
+                 recorded_sections: frozenset[str] | None = None) -> None:
+        """`recorded_sections`: the configuration sections its replay depends on (a reload
+        that changes one rolls the recording over); None: any change does."""
         self.root = root
+        self._recorded_sections = recorded_sections
+        self._rolling: threading.Thread | None = None
         self._pipeline_state = pipeline_state
         self._vehicle = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle) or "rov"
         self._setup = setup
@@ -253,6 +259,23 @@ class Recorder(Closeable):
 
     def observe_damage(self, message: DamageMessage) -> None:
         """Nor the holes found: a replay of the recording inspects the frames again."""
+
+    def observe_reload(self, changed: frozenset[str]) -> None:
+        """Settings the recording describes changed: it ends at the last frame made with the
+        old ones and the next begins with the new ones (its netpose.toml, its pipeline state
+        at its first frame). Frames stop going to the old one at once, on the loop; the files
+        are finished, and the next begun, on a thread of the recorder's own."""
+        if self._recorded_sections is not None and not changed & self._recorded_sections:
+            return
+        with self._lock:
+            session, self._session = self._session, None
+            if session is None:
+                return
+        log.info("recording %s ends here: settings changed (%s); a new one starts",
+                 session.folder.name, ", ".join(sorted(changed)))
+        self._rolling = threading.Thread(target=self._roll_over, args=(session,),
+                                         name="recorder roll-over", daemon=True)
+        self._rolling.start()
 
     def close(self) -> None:
         self.stop()
@@ -291,28 +314,43 @@ class Recorder(Closeable):
             log.info("recording started: %s", folder)
             return self._status_of(session)
 
+    def _roll_over(self, session: _Session) -> None:
+        with self._lock:
+            self._finish(session)
+        try:
+            self.begin()
+        except RecorderError as exc:
+            log.warning("recording after the settings changed: %s", exc)
+
     def stop(self) -> RecorderStatus:
+        rolling = self._rolling
+        if rolling is not None and rolling is not threading.current_thread():
+            rolling.join()  # a roll-over under way: stop what it began
         with self._lock:
             session, self._session = self._session, None
             if session is None:
                 return self._last
-            session.close()
-            error = session.error
-            if self._session_setup is not None:
-                try:
-                    self._manifest(session, self._session_setup, finished=True)
-                except OSError as exc:
-                    # The frames written stay; the recording is not marked finished (a replay
-                    # can still read it), and the page says why.
-                    why = f"cannot finish the recording's manifest: {exc.strerror or exc}"
-                    error = f"{error}; {why}" if error else why
-                    log.warning("recording %s: %s", session.folder.name, why)
-            self._last = RecorderStatus(name=session.folder.name, frames=session.frames,
-                                        dropped=session.dropped, bytes=session.bytes,
-                                        started_unix=session.started_unix, error=error)
-            log.info("recording %s stopped: %d frames (%d dropped), %.1f MB", session.folder.name,
-                     session.frames, session.dropped, session.bytes / 1e6)
-            return self._last
+            return self._finish(session)
+
+    def _finish(self, session: _Session) -> RecorderStatus:
+        """Close a session's files and write its finished manifest (the lock held)."""
+        session.close()
+        error = session.error
+        if self._session_setup is not None:
+            try:
+                self._manifest(session, self._session_setup, finished=True)
+            except OSError as exc:
+                # The frames written stay; the recording is not marked finished (a replay
+                # can still read it), and the page says why.
+                why = f"cannot finish the recording's manifest: {exc.strerror or exc}"
+                error = f"{error}; {why}" if error else why
+                log.warning("recording %s: %s", session.folder.name, why)
+        self._last = RecorderStatus(name=session.folder.name, frames=session.frames,
+                                    dropped=session.dropped, bytes=session.bytes,
+                                    started_unix=session.started_unix, error=error)
+        log.info("recording %s stopped: %d frames (%d dropped), %.1f MB", session.folder.name,
+                 session.frames, session.dropped, session.bytes / 1e6)
+        return self._last
 
     def status(self) -> RecorderStatus:
         session = self._session

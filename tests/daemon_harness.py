@@ -136,6 +136,7 @@ class RecordingObserver:
         self.frames: list[tuple[int, Any]] = []
         self.statuses: list[Any] = []
         self.damages: list[Any] = []
+        self.reloads: list[frozenset[str]] = []
 
     def start(self) -> None:
         self.started = True
@@ -148,6 +149,9 @@ class RecordingObserver:
 
     def observe_damage(self, message: Any) -> None:
         self.damages.append(message)
+
+    def observe_reload(self, changed: frozenset[str]) -> None:
+        self.reloads.append(changed)
 
     def close(self) -> None:
         self.closed = True

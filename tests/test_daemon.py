@@ -610,6 +610,55 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
     assert compared >= len(rows) // 2
 
 
+def test_a_reload_mid_recording_ends_it_and_starts_the_next_with_the_new_settings(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """A recording kept the settings of its start: after a reload to another mesh size its
+    replay gave up to 6.4 cm other than the vehicle, without a word. The reload ends the
+    recording there and starts another with the settings in force; each replays to the
+    daemon's filtered distances. Both keep [damage] too (a replay inspects as the vehicle
+    did)."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    cfg = load_daemon_config(str(path))
+    holder: list[Any] = []
+    observer = RecordingObserver()
+    from drivers.recorder import Recorder, RecordingSetup
+    from service.daemon.settings_editor import tuning_toml
+
+    recorder = Recorder(
+        tmp_path / "rec", "test",
+        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(holder[0].daemon.config),
+                               holder[0].daemon.config.mesh.bar_length_m, 90.0),
+        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    h = make_harness(cfg, [Step(frame=f) for f in frames_at([*frames, *frames], FPS, 100.0)],
+                     load_config=lambda: load_daemon_config(str(path)),
+                     observers=(observer, recorder))
+    holder.append(h)
+    recorder.begin()
+    h.iterate(len(frames))
+    path.write_text(base.replace("bar_length_m = 0.025", "bar_length_m = 0.027", 1))
+    assert h.daemon.reload()
+    h.run_script()
+    last = recorder.stop()
+    names = sorted(r["name"] for r in recorder.recordings())
+    assert len(names) == 2 and names[-1] == last.name
+    tunings = [(tmp_path / "rec" / n / "netpose.toml").read_text() for n in names]
+    assert "0.025" in tunings[0] and "0.027" in tunings[1]
+    assert all("[damage]" in t for t in tunings)
+    live = dict(observer.frames)
+    for name in names:
+        rows = _replayed_rows(tmp_path, name)
+        assert len(rows) >= len(frames) - 3
+        for index, row in rows.items():
+            message = live[index]
+            assert row["filter_state"] == message.filtered.state
+            if message.filtered.distance_m is not None:
+                assert float(row["filtered_distance_m"]) == pytest.approx(
+                    message.filtered.distance_m, abs=1e-6 + 1e-12)
+
+
 def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

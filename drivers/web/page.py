@@ -149,6 +149,9 @@ class WebPage(Generic[R]):
     def observe_damage(self, message: DamageMessage) -> None:
         self._feed.put_damage(message)
 
+    def observe_reload(self, changed: frozenset[str]) -> None:
+        """The page reads the settings from the editor when asked: nothing to do."""
+
     def close(self) -> None:
         loop, stop = self._loop, self._stop
         if loop is not None and stop is not None and not loop.is_closed():

@@ -319,6 +319,8 @@ class Daemon:
             digest=config_digest(effective),
         )
         self._apply_config_to_reporter()
+        for observer in self.parts.observers:
+            observer.observe_reload(frozenset(changed))
         log.info(
             "configuration reloaded (%s), changed: %s%s", self.config.digest,
             ", ".join(sorted(changed)) or "nothing",

@@ -72,12 +72,17 @@ def _field_kind(tp: Any) -> dict[str, Any]:
     return {"type": {bool: "bool", int: "integer", float: "number"}.get(tp, "text")}
 
 
+# What a recording's netpose.toml keeps: everything its replay's output depends on.
+RECORDED_SECTIONS = ("mesh", "estimator", "filter", "service", "damage")
+
+
 def tuning_toml(config: Config) -> str:
-    """[mesh], [estimator], [filter] and [service] in force, as TOML (for recordings)."""
+    """[mesh], [estimator], [filter], [service] and [damage] in force, as TOML (for
+    recordings)."""
     doc = tomlkit.document()
     doc.add(tomlkit.comment("The settings in force when this recording started (netpose "
                             "replay --config)."))
-    for name in ("mesh", "estimator", "filter", "service"):
+    for name in RECORDED_SECTIONS:
         values = {k: v for k, v in config.effective[name].items() if v is not None}
         doc.add(name, values)
     return tomlkit.dumps(doc)

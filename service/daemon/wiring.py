@@ -32,6 +32,7 @@ from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
 from service.daemon.ports import FrameObserver, Notifier
 from service.daemon.settings_editor import (
+    RECORDED_SECTIONS,
     SET_UP_MESH_KEY,
     SET_UP_MESH_OVERRIDE,
     SettingsEditor,
@@ -135,7 +136,8 @@ def build_observers(config: Config, camera: CameraModel,
     from drivers.web.page import WebPage  # aiohttp's weight only when the page is on
 
     recorder = Recorder(recordings_root(config, web), vehicle, setup,
-                        web.max_recording_mb * 1024 * 1024, controls.pipeline_state)
+                        web.max_recording_mb * 1024 * 1024, controls.pipeline_state,
+                        frozenset(RECORDED_SECTIONS))
     page = WebPage[PipelineResult](web, LiveView(camera, web.live_width), controls.editor,
                                    recorder, vehicle)
     return (recorder, page)
