@@ -28,6 +28,7 @@ state depends on every frame).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -214,6 +215,22 @@ class _Session:
         self._on_stop(why)
 
 
+def _contents_of(folder: Path) -> dict[str, int]:
+    """Frames logged and bytes on disk of a recording folder (one its daemon never finished)."""
+    frames = 0
+    try:
+        with (folder / FRAMES_LOG).open("rb") as fh:
+            frames = sum(1 for line in fh if line.strip(b"\0 \t\r\n"))
+    except OSError:
+        pass
+    size = 0
+    for path in folder.rglob("*"):
+        with contextlib.suppress(OSError):
+            if path.is_file():
+                size += path.stat().st_size
+    return {"frames": frames, "bytes": size}
+
+
 class Recorder(Closeable):
     """Records processed frames on request (the web page's start/stop); a FrameObserver.
 
@@ -368,10 +385,18 @@ class Recorder(Closeable):
                 manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 continue
-            out.append({"name": folder.name, "frames": manifest.get("frames"),
-                        "dropped": manifest.get("dropped"), "bytes": manifest.get("bytes"),
-                        "started_unix": manifest.get("started_unix"),
-                        "finished": manifest.get("finished", False)})
+            finished = bool(manifest.get("finished", False))
+            session = self._session
+            running = session is not None and session.folder == folder
+            entry = {"name": folder.name, "frames": manifest.get("frames"),
+                     "dropped": manifest.get("dropped"), "bytes": manifest.get("bytes"),
+                     "started_unix": manifest.get("started_unix"), "finished": finished,
+                     "interrupted": not finished and not running}
+            if entry["interrupted"]:
+                # The daemon ended without finishing it (power lost, killed): its manifest
+                # still says what it said at the start; what it holds is on the disk.
+                entry.update(_contents_of(folder))
+            out.append(entry)
         return out
 
     def folder_of(self, name: str) -> Path:

@@ -659,6 +659,45 @@ def test_a_reload_mid_recording_ends_it_and_starts_the_next_with_the_new_setting
                     message.filtered.distance_m, abs=1e-6 + 1e-12)
 
 
+def test_a_recording_cut_short_replays_up_to_where_it_was_cut(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """Power lost mid-recording: the last line of frames.jsonl torn, NUL bytes after it. The
+    whole recording was refused ("line 149 is damaged"), the frames before lost with it; now
+    they replay, and the replay says how many lines at the end it could not read. A damaged
+    line with good ones after it is still refused: that is not a cut, and a frame missing
+    there would make the rest differ from the vehicle."""
+    holder: list[Any] = []
+    cfg = demo_config()
+    recorder = _recorder(tmp_path, cfg, holder)
+    h = make_harness(cfg, [Step(frame=f) for f in frames_at(frames, FPS, 100.0)],
+                     observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    status = recorder.stop()
+    log_path = tmp_path / "rec" / status.name / "frames.jsonl"
+    text = log_path.read_bytes()
+    lines = text.splitlines(keepends=True)
+    log_path.write_bytes(b"".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2] + b"\0" * 64)
+    out = tmp_path / "replay"
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
+         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "frames.jsonl ends in 1 damaged line" in proc.stderr
+    with (out / "estimates.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == len(lines) - 1
+    middle = lines[:3] + [b"{not json\n"] + lines[3:-1]
+    log_path.write_bytes(b"".join(middle))
+    proc = subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
+         "--no-video", "--out", str(tmp_path / "again"), "--progress", "off"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0 and "line 4 is damaged" in proc.stderr
+
+
 def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

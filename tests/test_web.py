@@ -504,6 +504,33 @@ def _number(text: str) -> float | None:
     return float(text) if text else None
 
 
+def test_a_recording_the_daemon_never_finished_is_listed_and_downloads(tmp_path: Path) -> None:
+    """The power went (SIGKILL here) mid-recording. After the restart the page listed the
+    recording as 0 frames, 0 bytes, unfinished, and hid it: no download of the dive that
+    mattered most. It is listed as interrupted with what it holds, and downloads."""
+    d = WebDaemon(tmp_path).start()
+    assert d.proc is not None
+    try:
+        assert d.request("POST", "/api/recordings/start", {}, token=True)[0] == 200
+        time.sleep(4.0)
+        d.proc.kill()
+        d.proc.wait()
+        d.start()
+        listing = d.request("GET", "/api/recordings")[1]["recordings"]
+    finally:
+        d.stop()
+    assert len(listing) == 1 and not listing[0]["finished"] and listing[0]["interrupted"]
+    name = listing[0]["name"]
+    lines = (tmp_path / "recordings" / name / "frames.jsonl").read_text().splitlines()
+    assert listing[0]["frames"] == len(lines) >= 10 and listing[0]["bytes"] > 0
+    d.start()
+    try:
+        status, tar_bytes = d.request("GET", f"/api/recordings/{name}.tar")
+    finally:
+        d.stop()
+    assert status == 200 and len(tar_bytes) > listing[0]["bytes"] // 2
+
+
 def test_a_recording_downloads_and_replays_to_the_daemons_output(
         daemon: WebDaemon, tmp_path: Path) -> None:
     status, started = daemon.request("POST", "/api/recordings/start", {}, token=True)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import statistics
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import parse_source_url, url_error
 from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError
+
+log = logging.getLogger(__name__)
 
 RECORDING_OPTIONS = ("realtime",)
 MANIFEST = "recording.json"  # the names drivers/recorder.py writes
@@ -81,24 +84,37 @@ class RecordingSource(PacedSource):
         if not is_recording(self.path):
             raise SourceError(self.url, f"{self.path}: not a netpose recording (no {MANIFEST})")
         try:
-            lines = (self.path / FRAMES_LOG).read_text(encoding="utf-8").splitlines()
+            # A recording cut short by a power loss may end in a torn character as well as a
+            # torn line: decoded leniently, the tail is judged line by line below.
+            lines = (self.path / FRAMES_LOG).read_text(encoding="utf-8",
+                                                       errors="replace").splitlines()
         except OSError as exc:
             raise SourceError(self.url, f"cannot read {FRAMES_LOG}: {exc.strerror}") from None
         entries = []
+        damaged: list[int] = []
         for number, line in enumerate(lines, 1):
-            if not line.strip():
+            if not line.strip("\0 \t\r"):
                 continue
             try:
                 row: dict[str, Any] = json.loads(line)
                 estimate = row.get("estimate") or {}
                 budget = estimate.get("budget_level") if isinstance(estimate, dict) else None
                 measured = estimate.get("measured") if isinstance(estimate, dict) else None
-                entries.append((str(row["frame"]), int(row["index"]), float(row["t_mono"]),
-                                float(row["t_unix"]),
-                                int(budget) if isinstance(budget, int) else None,
-                                measured is not False))
-            except (ValueError, KeyError, TypeError):
-                raise SourceError(self.url, f"{FRAMES_LOG} line {number} is damaged") from None
+                entry = (str(row["frame"]), int(row["index"]), float(row["t_mono"]),
+                         float(row["t_unix"]), int(budget) if isinstance(budget, int) else None,
+                         measured is not False)
+            except (ValueError, KeyError, TypeError, AttributeError):
+                damaged.append(number)
+                continue
+            if damaged:
+                # Good lines after a damaged one: not a recording cut short, and a frame
+                # missing there would make every later one differ from the vehicle's.
+                raise SourceError(self.url, f"{FRAMES_LOG} line {damaged[0]} is damaged")
+            entries.append(entry)
+        if damaged:
+            log.warning("%s: %s ends in %d damaged line(s) (the recording was cut short): "
+                        "%d frames before them are replayed", self.path, FRAMES_LOG,
+                        len(damaged), len(entries))
         if not entries:
             raise SourceError(self.url, "the recording holds no frame")
         if any(b[1] <= a[1] for a, b in itertools.pairwise(entries)):

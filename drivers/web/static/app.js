@@ -365,12 +365,14 @@ async function loadRecordings() {
   if (!response.ok) { $("record").disabled = true; return; }
   const data = await response.json();
   onRecording(data.status);
-  $("recordings").tBodies[0].replaceChildren(...data.recordings.filter((r) => r.finished).map((r) => {
+  // Interrupted: the daemon ended without finishing it (power lost); what it holds replays.
+  $("recordings").tBodies[0].replaceChildren(...data.recordings.filter((r) => r.finished || r.interrupted).map((r) => {
     const tr = document.createElement("tr");
     tr.innerHTML = "<td><a></a></td><td></td>";
     const a = tr.querySelector("a"); a.href = `api/recordings/${r.name}.tar`; a.textContent = r.name;
     a.setAttribute("download", `${r.name}.tar`);
-    tr.children[1].textContent = `${r.frames} frames, ${((r.bytes || 0) / 1e6).toFixed(1)} MB`;
+    tr.children[1].textContent = `${r.frames} frames, ${((r.bytes || 0) / 1e6).toFixed(1)} MB` +
+      (r.interrupted ? " (interrupted)" : "");
     return tr;
   }));
 }
