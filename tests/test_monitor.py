@@ -154,6 +154,31 @@ def test_bad_and_foreign_payloads_are_flagged_not_fatal() -> None:
     assert "320x180" in "\n".join(state.render(4.0))
 
 
+@pytest.mark.parametrize(("kind", "change"), [
+    ("status", {"frame_source": "up"}),
+    ("estimate", {"filtered": "x"}),
+    ("estimate", {"normal": "up", "distance_m": "far"}),
+    ("status", {"autopilot": [1, 2]}),
+])
+def test_a_payload_of_the_wrong_shape_is_flagged_and_not_shown(
+        kind: str, change: dict[str, object]) -> None:
+    """Any peer on the bus (another netpose version, a test tool) published a status whose
+    frame_source was a string: the monitor died with AttributeError, taking the pilot's
+    topside view with it. Values of the wrong type are flagged like missing keys, and the
+    last good message stays on screen."""
+    state = MonitorState()
+    good = estimate_json(1) if kind == "estimate" else to_json(status_message())
+    state.ingest(f"netpose/{VEHICLE}/{kind}", encode(good), 1.0)
+    bad = {**good, **change}
+    state.ingest(f"netpose/{VEHICLE}/{kind}", json.dumps(bad).encode(), 2.0)
+    view = state.vehicles[VEHICLE]
+    flagged = " ".join(view.problems)
+    assert all(f"{kind}: {key}" in flagged for key in change), flagged
+    assert (view.estimate if kind == "estimate" else view.status) == good
+    text = "\n".join(state.render(2.0)) + state.summary(2.0)
+    assert VEHICLE in text
+
+
 # --- the command against a real publisher --------------------------------------------------
 
 

@@ -404,8 +404,9 @@ def keys_of(cls: type[Any]) -> frozenset[str]:
 def schema_problems(payload: Mapping[str, Any]) -> list[str]:
     """What is wrong with a received payload compared with this schema (empty when fine).
 
-    Extra keys are accepted (a newer publisher may add some); missing keys and another schema
-    version are reported.
+    Extra keys are accepted (a newer publisher may add some); missing keys, another schema
+    version and values of the wrong type (a string where an object belongs: what a reader
+    would trip over) are reported, the last by their path.
     """
     kinds = {cls.KIND: cls for cls in (EstimateMessage, StatusMessage, StateMessage,
                                        DamageMessage)}
@@ -418,7 +419,65 @@ def schema_problems(payload: Mapping[str, Any]) -> list[str]:
     missing = sorted(keys_of(cls) - payload.keys())
     if missing:
         problems.append("missing " + ", ".join(missing))
+    problems.extend(type_problems(cls, payload))
     return problems
+
+
+def type_problems(cls: type[Any], payload: Mapping[str, Any], path: str = "") -> list[str]:
+    """The keys of `payload` whose values do not have the type `cls` gives them (nested
+    message parts checked too): 'filtered: expected object, got "x"'."""
+    hints = typing.get_type_hints(cls)
+    problems: list[str] = []
+    for f in dataclasses.fields(cls):
+        if f.name not in payload:
+            continue
+        where = f"{path}{f.name}"
+        value = payload[f.name]
+        tp = hints[f.name]
+        part = _dataclass_of(tp)
+        if part is not None and isinstance(value, Mapping):
+            problems.extend(type_problems(part, value, where + "."))
+        elif not _fits(tp, value):
+            problems.append(f"{where}: expected {_type_text(tp)}, got {json.dumps(value)[:40]}")
+    return problems
+
+
+def _dataclass_of(tp: Any) -> type[Any] | None:
+    """The message part a field holds (through Optional), if it holds one."""
+    options = typing.get_args(tp) if typing.get_origin(tp) in (typing.Union,
+                                                             types.UnionType) else (tp,)
+    parts = [a for a in options if dataclasses.is_dataclass(a) and isinstance(a, type)]
+    return parts[0] if len(parts) == 1 else None
+
+
+def _fits(tp: Any, value: Any) -> bool:
+    """Whether a JSON value can stand for a field of type `tp`."""
+    if tp is Any:
+        return True
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(a, value) for a in typing.get_args(tp))
+    if tp is type(None):
+        return value is None
+    if origin is typing.Literal:
+        return value in typing.get_args(tp)
+    if origin in (tuple, list):
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        return isinstance(value, list) and all(
+            any(_fits(a, v) for a in args) if args else True for v in value)
+    if origin is dict or tp is dict:
+        return isinstance(value, Mapping)
+    if dataclasses.is_dataclass(tp):
+        return isinstance(value, Mapping)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return value in {m.value for m in tp}
+    if tp is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp in (str, bool):
+        return isinstance(value, tp)
+    return True  # a type this reader does not judge
 
 
 # -- documentation ----------------------------------------------------------------------------

@@ -153,9 +153,14 @@ class MonitorState:
             self.undecodable += 1
             view.problems.add(f"{kind}: not a JSON object")
             return None
-        view.problems.update(f"{kind}: {p}" for p in schema_problems(payload))
+        problems = schema_problems(payload)
+        view.problems.update(f"{kind}: {p}" for p in problems)
         if kind in STREAMS:
             view.stream(kind).add(now_mono)
+        if any(": expected " in p for p in problems):
+            # A value of the wrong type (a foreign publisher, another version): flagged, and
+            # the last good message stays on screen rather than one the views trip over.
+            return Received(vehicle, kind, key, payload, len(data))
         if kind == ESTIMATE_SUFFIX:
             view.estimate = payload
         elif kind == STATUS_SUFFIX:
