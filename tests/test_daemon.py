@@ -190,6 +190,32 @@ def test_reload_applies_filter_and_rejects_a_broken_file(
     assert sum(m.startswith("RELOADING=1") for m in h.notifier.messages) == 3
 
 
+def test_a_reload_says_what_it_cannot_apply_live(
+    tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A reload after the calibration file was overwritten in place said "changed: nothing"
+    (the same path, so the same settings), and one that changed [web] (a token, a port) said
+    it had been applied: neither had, and an operator who locked the page by the file believed
+    it locked. Both now say a restart is needed."""
+    camera = tmp_path / "camera.yaml"
+    save_camera(builtin_camera(640, 360), camera)
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text().replace(
+        'calibration = "builtin"', f'calibration = "{camera}"', 1)
+    path.write_text(base)
+    h = make_harness(load_daemon_config(str(path)), steps(frames[:5]),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.run_script()
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    recalibrated = builtin_camera(640, 360)
+    save_camera(dataclasses.replace(recalibrated, fx=recalibrated.fx * 1.01), camera)
+    assert h.daemon.reload()
+    assert "restart needed for: camera" in caplog.records[-1].getMessage()
+    path.write_text(base.replace("[web]", '[web]\ntoken = "secret-token-123"', 1))
+    assert h.daemon.reload()
+    assert "restart needed for: camera, web" in caplog.records[-1].getMessage()
+
+
 def test_reload_changes_how_often_the_status_is_published(
     tmp_path: Path, frames: list[Frame]
 ) -> None:

@@ -14,10 +14,12 @@ Signals: SIGTERM/SIGINT request a stop (exit 0); SIGHUP reloads the configuratio
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from service import __version__
 from service.config import Config, config_digest
@@ -48,6 +50,9 @@ from service.pipeline import Pipeline, PipelineResult
 from service.signals import SignalFlags
 
 log = logging.getLogger("netpose.daemon")
+# What a reload cannot change in the running parts: these need a restart (the page's Restart,
+# or systemctl restart), and the reload says so.
+RESTART_SECTIONS = frozenset({"camera", "mavlink", "telemetry", "web"})
 
 Clock = Callable[[], float]
 
@@ -114,6 +119,9 @@ class Daemon:
         self.flags = flags or SignalFlags()
         self._load_config = load_config
         self._on_reload = on_reload
+        # The calibration's contents in force: a file recalibrated in place keeps its path, so
+        # the configuration alone does not show the change.
+        self._calibration_digest = _file_digest(config.calibration_path())
         self.pipeline = Pipeline(make_estimator(config, parts.camera), NetTracker(config.filter),
                                  config.service.autopilot_distance,
                                  make_inspector(config, parts.camera))
@@ -279,7 +287,8 @@ class Daemon:
     # -- reload ----------------------------------------------------------------------------
     def reload(self) -> bool:
         """Re-read the configuration file (SIGHUP). Filter, estimator, mesh and log level take
-        effect at once; camera, MAVLink and telemetry changes need a restart (logged). A bad
+        effect at once; camera (the calibration file's contents too), MAVLink, telemetry and web
+        changes need a restart (logged). A bad
         new configuration is rejected and the running one kept."""
         if self._load_config is None:
             log.warning("reload requested, but this daemon has no configuration file to re-read")
@@ -303,7 +312,9 @@ class Daemon:
             if "service" in changed:
                 logging.getLogger().setLevel(new.service.log_level)
                 self.pipeline.set_autopilot_distance(new.service.autopilot_distance)
-            needs_restart = sorted(changed & {"camera", "mavlink", "telemetry"})
+            if _file_digest(new.calibration_path()) != self._calibration_digest:
+                changed.add("camera")
+            needs_restart = sorted(changed & RESTART_SECTIONS)
         except NetposeError as exc:
             log.error("configuration reload rejected, keeping the running one: %s", exc)
             self.parts.notifier.ready(status="reload rejected: " + str(exc))
@@ -343,3 +354,14 @@ class Daemon:
                                     self.config.service.summary_interval_s)
         self.track_log.coast_timeout_s = self.config.filter.coast_timeout_s
         self.track_log.max_rejects = self.config.filter.max_consecutive_rejects
+
+
+def _file_digest(path: Path | None) -> str | None:
+    """sha256 of a file's contents; None without a file (or when it cannot be read: the
+    reload's own check of the configuration says why)."""
+    if path is None:
+        return None
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
