@@ -160,6 +160,11 @@ class Config:
         value = self.camera.calibration
         if value == BUILTIN_CALIBRATION:
             return None
+        return self.file_path(value)
+
+    def file_path(self, value: str) -> Path:
+        """A file or folder the configuration names: relative to the configuration file's
+        folder (the service's working directory is not where its configuration lives)."""
         p = Path(value).expanduser()
         if not p.is_absolute() and self.path is not None:
             p = self.path.parent / p

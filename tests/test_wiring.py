@@ -148,6 +148,32 @@ def test_a_recorded_source_needs_allow_simulated_to_start(tmp_path: Path, url: s
     assert not build_source(demo_config()).recorded  # rendered, not recorded
 
 
+def test_files_a_configuration_names_are_found_beside_it(tmp_path: Path) -> None:
+    """camera.calibration and web.recordings_dir were relative to the configuration file, the
+    signing key and the Zenoh configuration to the working directory: `run --check` in
+    /etc/netpose passed, the service (WorkingDirectory=/var/lib/netpose) exited 78. All are
+    the configuration file's now; an empty name is an error, not "no key" (it ran unsigned)."""
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    (folder / "mav.key").write_text("00" * 32)
+    (folder / "zenoh.json5").write_text("{}")
+    config = folder / "netpose.toml"
+    config.write_text(DEMO.read_text().replace(
+        "[mavlink]", '[mavlink]\nsigning_key_file = "mav.key"', 1).replace(
+        "[telemetry]", '[telemetry]\nconfig_file = "zenoh.json5"', 1))
+    (folder / "mav.key").chmod(0o600)
+    elsewhere = tmp_path / "var"
+    elsewhere.mkdir()
+    done = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(config),
+                           "--check"], cwd=elsewhere, capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 0, done.stderr
+    for key in ("mavlink.signing_key_file", "telemetry.config_file"):
+        with pytest.raises(ConfigError) as info:
+            check_config(str(config), [f"{key}="])
+        assert info.value.key == key
+
+
 def test_the_daemon_process_refuses_a_rendered_source_without_allow_simulated() -> None:
     """End to end: with a real (fake) autopilot listening, the process exits 78 naming the
     key, and the autopilot never hears a distance (nor anything else)."""

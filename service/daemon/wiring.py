@@ -7,6 +7,7 @@ error stops the service before a single message leaves it.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import logging
 import os
 import sys
@@ -51,11 +52,25 @@ def driver_sections() -> dict[str, type]:
     return {"mavlink": MavlinkSettings, "telemetry": TelemetrySettings, "web": WebSettings}
 
 
+# Files the drivers' sections name, by section and key: found beside the configuration file.
+_FILE_KEYS = (("mavlink", "signing_key_file"), ("telemetry", "config_file"))
+
+
 def load_daemon_config(
     path: str | None, overrides: Iterable[str] = (), *, check_files: bool = True
 ) -> Config:
-    return load_config(path, overrides, extra_sections=driver_sections(),
-                       check_files=check_files)
+    config = load_config(path, overrides, extra_sections=driver_sections(),
+                         check_files=check_files)
+    sections = dict(config.sections)
+    for name, key in _FILE_KEYS:
+        value = getattr(sections[name], key)
+        if value is None:
+            continue
+        if not str(value).strip():
+            raise ConfigError(f"{name}.{key}", "is empty: name a file, or leave the key out")
+        sections[name] = dataclasses.replace(sections[name],
+                                             **{key: str(config.file_path(value))})
+    return dataclasses.replace(config, sections=sections)
 
 
 def build_source(config: Config) -> DriverFrameSource:
@@ -114,10 +129,7 @@ class WebControls:
 
 
 def recordings_root(config: Config, web: WebSettings) -> Path:
-    root = Path(web.recordings_dir).expanduser()
-    if root.is_absolute():
-        return root
-    return (config.path.parent if config.path is not None else Path.cwd()) / root
+    return config.file_path(web.recordings_dir)
 
 
 def build_observers(config: Config, camera: CameraModel,
