@@ -212,6 +212,22 @@ def test_vehicle_profile_refuses_to_start_until_the_mesh_is_set() -> None:
     assert info.value.key == "mesh.bar_length_m"
 
 
+def test_check_says_what_run_does_with_a_configuration_set_up_mode_can_finish() -> None:
+    """config/blueos.toml as shipped (no mesh size, the page on): `run` starts set-up mode,
+    but `run --check` exited 78, so install.sh never started the service whose page was to
+    ask for the mesh. The check says the service starts in set-up mode, naming what it waits
+    for; without the page (the Pi profile) it is the configuration error it was."""
+    text = check_config(str(REPO / "config" / "blueos.toml"))
+    assert text.startswith("configuration incomplete") and "mesh.bar_length_m" in text
+    assert "set-up mode" in text
+    with pytest.raises(ConfigError) as info:
+        check_config(str(REPO / "config" / "raspberrypi.toml"))
+    assert info.value.key == "mesh.bar_length_m"
+    with pytest.raises(ConfigError) as info:  # set-up mode cannot fix a bad MAVLink URL
+        check_config(str(REPO / "config" / "blueos.toml"), ["mavlink.url=nonsense"])
+    assert info.value.key == "mavlink.url"
+
+
 def test_secrets_in_the_camera_url_reach_no_log_status_or_state(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -180,8 +180,17 @@ def build_parts(config: Config, notifier: Notifier,
 
 def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
     """`netpose run --check`: the same loading and building as `run`, stopping before anything
-    is opened; raises ConfigError/CalibrationError."""
-    config = checked_config(config_path, overrides)
+    is opened; raises ConfigError/CalibrationError where `run` would exit. A configuration
+    that only lacks what set-up mode asks for on the page (the mesh size, the calibration),
+    with the page on, is what `run` starts in set-up mode: said so, not an error."""
+    overrides = tuple(overrides)
+    try:
+        config = checked_config(config_path, overrides)
+    except (ConfigError, CalibrationError) as exc:
+        problem = _setup_problem(_setup_config(config_path, overrides), exc)
+        config = checked_config(config_path, overrides, incomplete_ok=True)
+        return (f"configuration incomplete, the service starts in set-up mode (the web page "
+                f"asks for it): {config.path or 'defaults'}: {problem}")
     return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
 
 
