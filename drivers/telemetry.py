@@ -145,8 +145,10 @@ class TelemetrySettings:
         for key in ("preview_hz", "retry_initial_s", "retry_max_s"):
             if getattr(self, key) < 0:
                 raise bad(key, "must be >= 0")
-        if self.retry_initial_s <= 0 or self.retry_max_s < self.retry_initial_s:
-            raise bad("retry_max_s", "retry_initial_s must be > 0 and <= retry_max_s")
+        if not self.retry_initial_s > 0:
+            raise bad("retry_initial_s", f"must be > 0, got {self.retry_initial_s}")
+        if self.retry_max_s < self.retry_initial_s:
+            raise bad("retry_max_s", "must be at least retry_initial_s")
         for key, low, high in (
             ("preview_width", 32, 4096),
             ("preview_quality", 1, 100),

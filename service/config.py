@@ -73,6 +73,9 @@ class CameraSettings:
             )
         if not self.stale_after_s > self.read_timeout_s:
             raise ConfigError("camera.stale_after_s", "must be longer than camera.read_timeout_s")
+        if not self.stale_after_s <= 3600.0:
+            raise ConfigError("camera.stale_after_s", f"must be at most 3600 s (an hour without "
+                              f"a frame is a lost camera), got {self.stale_after_s}")
 
 
 @dataclass(frozen=True)

@@ -102,6 +102,11 @@ def test_a_file_with_a_byte_order_mark_reads_like_one_without(tmp_path: Path) ->
         ("[link]\nendpoints = [1, 2]\n", "link.endpoints", "must be a string"),
         ("[link]\nmode = 'c'\n", "link.mode", "must be one of"),
         ("filter = 3\n", "filter", "must be a table"),
+        # Each names its own key (they named grid_cols, source.stall_timeout_s, retry_max_s).
+        ("[estimator]\ngrid_rows = 13\n", "estimator.grid_rows", "2..12"),
+        ("[camera]\nurl = 'synthetic:'\nstale_after_s = 7200\n[mesh]\nbar_length_m = 0.025\n",
+         "camera.stale_after_s", "at most 3600"),
+        ("[telemetry]\nretry_initial_s = 0\n", "telemetry.retry_initial_s", "> 0"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, key: str, words: str) -> None:

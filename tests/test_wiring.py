@@ -228,6 +228,14 @@ def test_check_says_what_run_does_with_a_configuration_set_up_mode_can_finish() 
     assert info.value.key == "mavlink.url"
 
 
+def test_a_bad_calibration_file_is_a_configuration_error_naming_the_key(
+        tmp_path: Path) -> None:
+    (tmp_path / "camera.yaml").write_text("image_width: 640\n")
+    with pytest.raises(ConfigError) as info:
+        check_config(str(DEMO), [f"camera.calibration={tmp_path / 'camera.yaml'}"])
+    assert info.value.key == "camera.calibration" and "image_height" in info.value.problem
+
+
 def test_secrets_in_the_camera_url_reach_no_log_status_or_state(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

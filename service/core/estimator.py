@@ -150,8 +150,9 @@ class EstimatorSettings:
     def validate(self) -> None:
         if self.roi_size not in (64, 128, 256, 512):
             raise ConfigError("estimator.roi_size", "must be 64, 128, 256 or 512")
-        if not 2 <= self.grid_cols <= 12 or not 2 <= self.grid_rows <= 12:
-            raise ConfigError("estimator.grid_cols", "grid must be 2..12 ROIs in each direction")
+        for name in ("grid_cols", "grid_rows"):
+            if not 2 <= getattr(self, name) <= 12:
+                raise ConfigError(f"estimator.{name}", "grid must be 2..12 ROIs in each direction")
         if not 1 <= self.levels <= 5:
             raise ConfigError("estimator.levels", "must be 1..5")
         if self.min_rois < 4:

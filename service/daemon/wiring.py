@@ -109,7 +109,10 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     """The calibration file's camera, or the one a rendered source describes."""
     path = config.calibration_path()
     if path is not None:
-        return load_camera(path)
+        try:
+            return load_camera(path)
+        except CalibrationError as exc:  # the service's errors name the key to fix
+            raise ConfigError("camera.calibration", str(exc)) from None
     if source.camera is None:
         raise ConfigError(
             "camera.calibration",
