@@ -209,6 +209,8 @@ def read_toml(path: Path) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(path), f"invalid TOML: {exc}") from None
+    except RecursionError:  # Python's parser recurses per nested array or table
+        raise ConfigError(str(path), "invalid TOML: nested too deeply") from None
 
 
 def _type_name(tp: Any) -> str:

@@ -134,3 +134,15 @@ def test_numpy_is_first_imported_with_one_blas_thread(preset: str | None, expect
     assert done.returncode == 0, done.stderr
     seen = json.loads(done.stdout.splitlines()[-1])
     assert seen == {"OPENBLAS_NUM_THREADS": expected, "OMP_NUM_THREADS": "1"}
+
+
+def test_the_command_lines_log_level_wins_over_the_files() -> None:
+    """`netpose --log-level WARNING run` printed every INFO line: service.log_level (INFO in
+    the demo) replaced it. The command line wins, as a --set does."""
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "--log-level", "WARNING", "run", "--config",
+         str(Path(__file__).resolve().parents[1] / "config" / "demo.toml"), "--duration", "2",
+         "--set", "telemetry.enabled=false"],
+        capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert " INFO " not in done.stdout + done.stderr

@@ -128,6 +128,13 @@ def test_mesh_range_checked_by_the_mesh_itself(tmp_path: Path) -> None:
     assert info.value.key == "mesh.bar_length_m"
 
 
+def test_a_value_nested_too_deeply_is_a_configuration_error(tmp_path: Path) -> None:
+    """3000 nested arrays: the parser's RecursionError was a traceback, exit 1, not 78."""
+    path = write(tmp_path, MINIMAL + "[filter]\nx = " + "[" * 3000 + "]" * 3000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_config(path)
+
+
 def test_invalid_toml_names_file_and_line(tmp_path: Path) -> None:
     p = write(tmp_path, "[mesh]\nbar_length_m = = 1\n")
     with pytest.raises(ConfigError) as info:

@@ -32,6 +32,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "log_level", None) is not None:
+        # The command line wins over the file, as --set does (and keeps winning at reloads).
+        args.overrides = [*args.overrides, f"service.log_level={args.log_level}"]
     if args.check:
         print(check_config(args.config, args.overrides))
         return 0
