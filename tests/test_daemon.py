@@ -724,6 +724,38 @@ def test_a_recording_cut_short_replays_up_to_where_it_was_cut(
     assert proc.returncode != 0 and "line 4 is damaged" in proc.stderr
 
 
+def test_a_recordings_pipeline_state_damaged_or_missing_is_said(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """A pipeline_state.json of the wrong shape was a KeyError traceback; a missing one gave a
+    replay that differed from the vehicle's on its first frames without a word."""
+    holder: list[Any] = []
+    cfg = demo_config()
+    recorder = _recorder(tmp_path, cfg, holder)
+    h = make_harness(cfg, [Step(frame=f) for f in frames_at(frames[:8], FPS, 100.0)],
+                     observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    folder = tmp_path / "rec" / recorder.stop().name
+
+    def replay() -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "service.cli", "replay", str(folder), "--no-video",
+             "--out", str(tmp_path / "out"), "--progress", "off"],
+            cwd=REPO, capture_output=True, text=True, timeout=300)
+
+    (folder / "pipeline_state.json").write_text('{"pipeline": {"x": 1}}')
+    done = replay()
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert "pipeline_state.json: damaged" in done.stderr
+    (folder / "pipeline_state.json").unlink()
+    done = replay()
+    assert done.returncode == 0, done.stderr
+    assert "has no pipeline_state.json: the replay starts without the vehicle's filter" in (
+        done.stderr)
+
+
 def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

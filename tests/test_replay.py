@@ -511,10 +511,19 @@ def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:
         ("frame,colour\n0,red\n", "no truth columns"),
         ("frame,range_m\n-1,1.0\n", ":2: 'frame'"),
         ("frame,nx,ny,nz\n0,0,0,0\n", "normal"),
+        # Accepted silently before: the last of two rows won, nonsense became truth.
+        ("frame,range_m\n3,1.0\n3,1.2\n", ":3: frame 3 again"),
+        ("frame,range_m\n0,-1\n", ":2: range_m=-1"),
+        ("frame,distance_m\n0,inf\n", ":2: distance_m=inf"),
+        ("frame,net_present\n0,2\n", ":2: net_present=2"),
+        ("frame,nx,ny\n0,0.1,0.2\n", ":2: a normal needs nx, ny and nz"),
     ]:
         path.write_text(text)
         with pytest.raises(NetposeError, match=message):
             load_truth_csv(path)
+    # Excel's "CSV UTF-8" starts with a byte-order mark: the 'frame' column is still found.
+    path.write_text("\ufeffframe,range_m\n0,1.5\n", encoding="utf-8")
+    assert load_truth_csv(path)[0].range_m == pytest.approx(1.5)
     with pytest.raises(NetposeError, match="not found"):
         load_truth_csv(tmp_path / "nothing.csv")
 
@@ -541,3 +550,32 @@ def test_replay_of_a_real_sequence_says_where_the_net_was_seen_without_a_distanc
         assert r["distance_m"] == "" and r["range_m"] == ""
         assert 0.5 < num(r, "approx_range_m") < 1.2 and num(r, "approx_sigma_range_m") > 0
         assert r["reason"].startswith("plane too uncertain")
+
+
+def test_truth_that_matches_no_frame_is_said(
+    recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ground truth numbered from 100 (a recording's frames keep the daemon's count) against
+    a video numbered from 0: every row was dropped without a word, and the summary had no
+    truth at all."""
+    shifted = tmp_path / "truth.csv"
+    write_truth_csv(shifted, ((i + 100, t) for i, t in enumerate(recording.truths)))
+    code = main(replay_args(recording, tmp_path / "out", "--truth", str(shifted), "--no-video",
+                            "--no-damage", "--progress", "off"))
+    assert code == 0
+    err = capsys.readouterr().err
+    assert f"{FRAMES} of {FRAMES} rows of {shifted} match no replayed frame" in err
+
+
+def test_an_output_the_replay_cannot_write_is_one_line(
+    recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An output name taken by a folder (or a full disk) was a chained traceback."""
+    out = tmp_path / "out"
+    (out / "summary.json").mkdir(parents=True)
+    code = main(replay_args(recording, out, "--no-video", "--no-damage",
+                                "--progress", "off"))
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (
+        f"netpose: error: {out / 'summary.json'}: Is a directory")

@@ -221,6 +221,19 @@ def test_image_folder_in_name_order_with_a_damaged_file(tmp_path: Path) -> None:
     assert np.allclose(np.diff([f.t_monotonic for f in frames]), [0.25, 0.25, 0.5, 0.25])
 
 
+def test_hidden_files_in_an_image_folder_are_not_frames(tmp_path: Path) -> None:
+    """A folder copied from a Mac to exFAT or SMB has a "._frame_0000.png" (AppleDouble
+    metadata) beside every image: they sorted first, failed to decode and took the first frame
+    numbers, so every real frame (and its ground truth) moved by as many."""
+    folder = tmp_path / "frames"
+    write_images(folder, 4)
+    for n in range(4):
+        (folder / f"._frame_{n:04d}.png").write_bytes(b"\x00\x05\x16\x07" + b"\0" * 60)
+    frames = read_all(f"images:{folder}")
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    assert [read_pattern_number(f.image) for f in frames] == [0, 1, 2, 3]
+
+
 def test_image_glob_and_bare_folder(tmp_path: Path) -> None:
     folder = tmp_path / "frames"
     write_images(folder, 4)

@@ -25,7 +25,7 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.core.grey import IMAGE_SUFFIXES, DamagedImageError, decode_gray
+from service.core.grey import IMAGE_SUFFIXES, DamagedImageError, decode_gray, is_image_name
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,7 @@ class ImageFolderSource(PacedSource):
         else:
             raise SourceError(self.url, f"no such folder: {path.resolve()}")
         self._files = sorted(
-            p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+            p for p in candidates if p.is_file() and is_image_name(p)
         )
         if not self._files:
             raise SourceError(

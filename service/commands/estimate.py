@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from service.core.grey import IMAGE_SUFFIXES
+from service.core.grey import IMAGE_SUFFIXES, is_image_name
 from service.core.results import NetEstimate
 
 
@@ -55,7 +55,7 @@ def _images(paths: list[Path]) -> list[Path]:
     out: list[Path] = []
     for path in paths:
         found = sorted(p for p in path.iterdir() if p.is_file() and
-                       p.suffix.lower() in IMAGE_SUFFIXES) if path.is_dir() else []
+                       is_image_name(p)) if path.is_dir() else []
         out.extend(found or [path])
     return out
 

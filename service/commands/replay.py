@@ -354,7 +354,10 @@ def run(args: argparse.Namespace) -> int:
             total = -(-total // args.every)
             if args.max_frames is not None:
                 total = min(total, args.max_frames)
-        return _replay(args, source, url, camera, mesh, tuning, truth, total)
+        try:
+            return _replay(args, source, url, camera, mesh, tuning, truth, total)
+        except OSError as exc:  # a full disk, an output name taken by a folder: one line
+            raise NetposeError(f"{exc.filename or args.out}: {exc.strerror or exc}") from None
 
 
 def _recording_defaults(args: argparse.Namespace) -> None:
@@ -382,8 +385,15 @@ def _recording_defaults(args: argparse.Namespace) -> None:
         if state.is_file() and args.every == 1:
             try:
                 args.pipeline_state = json.loads(state.read_text(encoding="utf-8"))["pipeline"]
-            except (OSError, ValueError, KeyError) as exc:
+                if not (isinstance(args.pipeline_state, dict)
+                        and {"tracker", "prior"} <= args.pipeline_state.keys()):
+                    raise ValueError("not a pipeline's state")
+            except (OSError, ValueError, KeyError, TypeError) as exc:
                 raise NetposeError(f"{state}: damaged ({exc})") from None
+        elif args.every == 1:
+            print(f"netpose replay: warning: {folder} has no {state.name}: the replay starts "
+                  "without the vehicle's filter and prior, so its first frames may differ",
+                  file=sys.stderr)
     for option, value in (("--calibration", args.calibration), ("--mesh-size", args.mesh_size)):
         if value is None:
             raise NetposeError(f"{option} is required (unless INPUT is a netpose recording)")
@@ -436,13 +446,17 @@ def _replay(
     state = getattr(args, "pipeline_state", None)
     if state is not None:
         # A recording started mid-dive: continue from the daemon's filter and prior.
-        pipeline.restore(state)
+        try:
+            pipeline.restore(state)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise NetposeError(f"{args.input}: pipeline_state.json is damaged ({exc!r})") from None
     runner = ReplayRunner(pipeline, keep_track=args.filter, truth=truth)
     show = args.progress == "on" or (args.progress == "auto" and sys.stderr.isatty())
     progress = RateProgress(total, sys.stderr) if show else None
     fps = _video_fps(source, args.every)
     annotator = None if args.no_video else FrameAnnotator(camera, width=args.video_width)
     stats = ReplayStats()
+    replayed: list[int] = []
     outcome = ReplayRun()
     out_dir: Path = args.out
     csv_file: EstimatesCsv | None = None
@@ -473,6 +487,7 @@ def _replay(
                 if video is not None and annotator is not None:
                     video.write(_annotated(annotator, result))
                 csv_file.write(result)
+                replayed.append(result.frame.index)
                 stats.add(result)
                 outcome.frames_read += 1
                 if progress is not None:
@@ -510,12 +525,29 @@ def _replay(
         outcome.holes = len(damage_csv.holes)
         if write_contact_sheet(damage_csv.holes, out_dir) is not None:
             outcome.outputs += [CONTACT_SHEET, f"{CROPS_DIR}/"]
+    if truth:
+        # With --every or --max-frames some rows have no frame by design: said only if none
+        # matched at all.
+        whole = args.every == 1 and args.max_frames is None and not outcome.interrupted
+        _say_unmatched_truth(args.truth, truth, replayed, whole)
     _finish(args, url, stats, outcome, out_dir, source)
     if outcome.interrupted:
         print(f"netpose replay: stopped by {outcome.stop_reason} after {outcome.frames_read} "
               f"frames; outputs in {out_dir} cover those frames", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0
+
+
+def _say_unmatched_truth(path: Path | None, truth: dict[int, Truth], replayed: list[int],
+                         whole: bool) -> None:
+    """Truth rows for frames the replay never had are said, not dropped without a word (a
+    recording numbers its frames from the daemon's count, not from 0)."""
+    unmatched = sorted(set(truth) - set(replayed))
+    if not unmatched or not replayed or (len(unmatched) < len(truth) and not whole):
+        return
+    print(f"netpose replay: warning: {len(unmatched)} of {len(truth)} rows of {path} match no "
+          f"replayed frame (they name frames {unmatched[0]}..{unmatched[-1]}; the replayed "
+          f"frames are {min(replayed)}..{max(replayed)})", file=sys.stderr)
 
 
 def _annotated(annotator: FrameAnnotator, result: FrameResult) -> npt.NDArray[np.uint8]:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,13 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 IMAGE_SUFFIXES = frozenset(
     {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm"}
 )
+
+
+def is_image_name(path: Path) -> bool:
+    """A frame's file by its name: an image suffix, and not hidden (macOS leaves an
+    AppleDouble "._000.png" beside every file copied to exFAT or SMB: not an image, and sorted
+    first it took the first frame numbers)."""
+    return not path.name.startswith(".") and path.suffix.lower() in IMAGE_SUFFIXES
 
 
 class DamagedImageError(EstimatorInputError):

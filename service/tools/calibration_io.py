@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.errors import NetposeError
-from service.core.grey import IMAGE_SUFFIXES
+from service.core.grey import IMAGE_SUFFIXES, is_image_name
 
 GrayImage = npt.NDArray[np.uint8]
 
@@ -63,7 +63,7 @@ def plan_inputs(inputs: Sequence[str | Path]) -> InputPlan:
     for raw in inputs:
         path = Path(raw)
         if path.is_dir():
-            found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            found = sorted(p for p in path.iterdir() if is_image_name(p))
             if not found:
                 raise CalibrationInputError(
                     f"{path}: folder contains no images ({', '.join(sorted(IMAGE_SUFFIXES))})"

@@ -119,7 +119,9 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
     """
     p = Path(path)
     try:
-        with p.open(newline="", encoding="utf-8") as fh:
+        # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark, which would otherwise
+        # become part of the first column's name.
+        with p.open(newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.DictReader(fh))
             header = rows[0].keys() if rows else []
     except FileNotFoundError:
@@ -138,7 +140,8 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
     out: dict[int, Truth] = {}
     for line, row in enumerate(rows, start=2):
 
-        def value(name: str, row: Mapping[str, str | None] = row, line: int = line) -> float | None:
+        def value(name: str, row: Mapping[str, str | None] = row, line: int = line,
+                  low: float = -math.inf, high: float = math.inf) -> float | None:
             text = (row.get(name) or "").strip()
             if not text:
                 return None
@@ -146,25 +149,34 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
                 number = float(text)
             except ValueError:
                 raise NetposeError(f"{p}:{line}: {name}={text!r} is not a number") from None
-            return number if math.isfinite(number) else None
+            if not (math.isfinite(number) and low <= number <= high):
+                raise NetposeError(f"{p}:{line}: {name}={text} is not a value it can have "
+                                   f"({low:g}..{high:g}; leave the cell empty if unknown)")
+            return number
 
         frame = value("frame")
         if frame is None or frame < 0 or frame != int(frame):
             raise NetposeError(f"{p}:{line}: 'frame' must be a frame number (0, 1, ...)")
+        if int(frame) in out:
+            raise NetposeError(f"{p}:{line}: frame {int(frame)} again (one row per frame)")
         nx, ny, nz = value("nx"), value("ny"), value("nz")
         normal: Vec3 | None = None
+        if (nx, ny, nz).count(None) not in (0, 3):
+            raise NetposeError(f"{p}:{line}: a normal needs nx, ny and nz (or none of them)")
         if nx is not None and ny is not None and nz is not None:
             norm = math.sqrt(nx * nx + ny * ny + nz * nz)
             if norm == 0:
                 raise NetposeError(f"{p}:{line}: the normal (nx, ny, nz) is zero")
             normal = (nx / norm, ny / norm, nz / norm)
         present = value("net_present")
+        if present not in (None, 0.0, 1.0):
+            raise NetposeError(f"{p}:{line}: net_present={present:g} must be 0 or 1")
         out[int(frame)] = Truth(
             net_present=True if present is None else present != 0,
-            range_m=value("range_m"),
-            distance_m=value("distance_m"),
+            range_m=value("range_m", low=0.0),
+            distance_m=value("distance_m", low=0.0),
             normal=normal,
-            tilt_deg=value("tilt_deg"),
+            tilt_deg=value("tilt_deg", low=0.0, high=90.0),
         )
     return out
 
