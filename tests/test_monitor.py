@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -299,3 +300,30 @@ def test_monitor_rejects_bad_options_as_configuration_errors() -> None:
     proc = monitor("--vehicle", "a/b", "--duration", "1")
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 78 and "--vehicle" in err
+    # A plot file that cannot be written died at the first redraw, after connecting; a Zenoh
+    # file that is not there was blamed on --config-file (no such option).
+    for args, option in ((("--plot-png", "/nonexistent/plot.png"), "--plot-png"),
+                         (("--zenoh-config", "/nonexistent.json5"), "--zenoh-config")):
+        proc = monitor(*args, "--duration", "1")
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 78 and f"configuration error: {option}" in err, err
+        assert "Traceback" not in err
+
+
+def test_the_plot_breaks_where_telemetry_stopped(tmp_path: Path) -> None:
+    """A 9 s outage (the tether) was drawn as straight lines across it, as if the net had
+    been tracked throughout; the plot breaks there now."""
+    from service.commands.monitor import LivePlot
+
+    plot = LivePlot(tmp_path / "plot.png")
+    state = MonitorState()
+    for t in (*np.arange(0.0, 2.0, 0.1), *np.arange(11.0, 12.0, 0.1)):
+        received = state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(int(t * 10))),
+                                float(t))
+        assert received is not None
+        plot.add(float(t), received)
+    times = [row[0] for row in plot.samples]
+    gap = next(i for i in range(1, len(times)) if times[i] - times[i - 1] > 1.0)
+    assert all(math.isnan(v) for v in plot.samples[gap - 1][1:])  # the break before the gap
+    plot.update()
+    assert (tmp_path / "plot.png").stat().st_size > 1000

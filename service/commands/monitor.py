@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 REDRAW_S = 0.5  # terminal redraw and plot update period
 LINE_S = 1.0  # one summary line per second when stdout is not a terminal
 PLOT_HISTORY_S = 120.0
+# Telemetry silent for longer than this is a gap in the plot, not a line across it.
+PLOT_GAP_S = 1.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -90,13 +92,17 @@ def _zenoh_config(args: argparse.Namespace) -> zenoh.Config:
             config_file=args.zenoh_config,
         )
     except ConfigError as exc:  # name the option, not the daemon's TOML key
-        option = exc.key.removeprefix("telemetry.").replace("_", "-")
-        raise ConfigError(f"--{option}", exc.problem) from None
+        raise ConfigError(_option_of(exc.key), exc.problem) from None
     try:
         return build_zenoh_config(settings)
     except ConfigError as exc:
-        option = exc.key.removeprefix("telemetry.").replace("_", "-")
-        raise ConfigError(f"--{option}", exc.problem) from None
+        raise ConfigError(_option_of(exc.key), exc.problem) from None
+
+
+def _option_of(key: str) -> str:
+    """The monitor's option for a telemetry key (its Zenoh file is --zenoh-config)."""
+    name = key.removeprefix("telemetry.")
+    return "--zenoh-config" if name == "config_file" else "--" + name.replace("_", "-")
 
 
 def _open_session(config: zenoh.Config, deadline: float, stop: threading.Event) -> zenoh.Session:
@@ -124,6 +130,10 @@ def run(args: argparse.Namespace) -> int:
     for chunk, option in ((args.prefix, "--prefix"), (args.vehicle, "--vehicle")):
         if not chunk or "/" in chunk or any(c in chunk for c in "?#$ "):
             raise ConfigError(option, f"{chunk!r} must be one key chunk (no '/')")
+    png: Path | None = args.plot_png
+    if png is not None and (png.is_dir() or not png.parent.is_dir()):
+        # Said now, not at the first redraw after the link is up.
+        raise ConfigError("--plot-png", f"{png}: not a file in an existing folder")
     config = _zenoh_config(args)
     start = time.monotonic()
     deadline = math.inf if args.duration is None else start + args.duration
@@ -267,6 +277,7 @@ class LivePlot:
             raise NetposeError("--plot needs matplotlib: pip install 'netpose[plot]'") from exc
 
         self.png = png
+        self._write_failed = False
         if png is not None:
             from matplotlib.backends.backend_agg import FigureCanvasAgg
             from matplotlib.figure import Figure
@@ -296,9 +307,15 @@ class LivePlot:
 
         if self.t0 is None:
             self.t0 = recv_mono
+        t = recv_mono - self.t0
+        if self.samples and t - self.samples[-1][0] > PLOT_GAP_S:
+            # Nothing came (the tether, the daemon): a break in every line, not a straight
+            # line across the outage that looks as if the net was tracked throughout.
+            gap = math.nan
+            self.samples.append((self.samples[-1][0] + 1e-3, gap, gap, gap, gap))
         detected = bool(payload.get("detected"))
         self.samples.append((
-            recv_mono - self.t0,
+            t,
             number(payload.get("distance_m")) if detected else math.nan,
             number(payload.get("sigma_distance_m")) if detected else math.nan,
             number(filtered.get("distance_m")) if filtered.get("valid") else math.nan,
@@ -334,8 +351,16 @@ class LivePlot:
         self.figure.tight_layout()
         if self.png is not None:
             temporary = self.png.with_name(self.png.name + ".tmp.png")
-            self.figure.savefig(temporary)
-            os.replace(temporary, self.png)
+            try:
+                self.figure.savefig(temporary)
+                os.replace(temporary, self.png)
+            except OSError as exc:  # a full disk must not end the pilot's topside view
+                if not self._write_failed:
+                    log.warning("--plot-png %s: %s; the plot is not updated", self.png,
+                                exc.strerror or exc)
+                self._write_failed = True
+            else:
+                self._write_failed = False
         elif self.pyplot is not None:
             self.figure.canvas.draw_idle()
             self.pyplot.pause(0.001)
