@@ -97,8 +97,10 @@ class MavlinkSettings:
             self._fail("rate_hz", f"must be between {min_rate:g} and 50 Hz (the autopilot "
                        f"drops the rangefinder after {AUTOPILOT_RANGEFINDER_TIMEOUT_S} s "
                        f"without a message), got {self.rate_hz}")
-        if not 0.0 < self.max_age_s <= 2.0:
-            self._fail("max_age_s", f"must be in (0, 2] seconds, got {self.max_age_s}")
+        if not 0.1 <= self.max_age_s <= 2.0:
+            # Below 0.1 s no camera's reading is ever fresh enough (capture to send takes
+            # longer): the link would send nothing, for a reason nobody sees.
+            self._fail("max_age_s", f"must be 0.1..2 seconds, got {self.max_age_s}")
         if not 0 <= self.orientation <= 40:
             self._fail("orientation", "must be a MAV_SENSOR_ORIENTATION 0..40 (0 forward, "
                        f"25 down), got {self.orientation}")
