@@ -274,8 +274,11 @@ class Pipeline:
             distance, sigma = track.range_m, sigma / cos_tilt
         if not (math.isfinite(distance) and distance >= 0.0):
             return RangeReading.none(t)
+        # A coasting prediction is not a measurement: half the last one's quality, so the
+        # autopilot (RNGFND_SQ_MIN) and a reader of its log can tell them apart.
+        quality = self._last_quality * (1.0 if track.state is TrackState.TRACKING else 0.5)
         return RangeReading(RangeStatus.GOOD, t_capture=t, distance_m=distance, sigma_m=sigma,
-                            quality=self._last_quality)
+                            quality=quality)
 
 
 def net_plane_of(track: TrackOutput, t: float) -> NetPlane | None:

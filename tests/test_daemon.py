@@ -88,6 +88,23 @@ def test_dead_camera_withdraws_the_distance_within_the_coasting_time(
     assert h.notifier.messages[0].startswith("READY=1")
 
 
+def test_a_coasting_prediction_goes_out_at_half_the_quality_of_a_measurement(
+    frames: list[Frame]
+) -> None:
+    """While the filter coasts (no frame confirmed the net), the autopilot got the prediction
+    with the last frame's signal quality (97 in the QA run): a guess that read as a good
+    measurement. It goes out at half that quality, so RNGFND_SQ_MIN can tell them apart."""
+    h = make_harness(demo_config(), [*steps(frames[:20]), *[Step(wait_s=0.1)] * 5])
+    h.run_script()
+    last_frame_t = max(e.frame_time_mono for e in h.telemetry.estimates
+                       if e.frame_time_mono is not None)
+    good = [r for r in h.link.ranges if r.status is RangeStatus.GOOD]
+    measured = [r for r in good if r.t_capture <= last_frame_t]
+    coasted = [r for r in good if r.t_capture > last_frame_t]
+    assert measured and coasted
+    assert all(r.quality == pytest.approx(measured[-1].quality / 2) for r in coasted)
+
+
 @pytest.mark.parametrize("kind", ["optical_axis", "perpendicular"])
 def test_the_autopilot_gets_the_distance_its_configuration_names(
     frames: list[Frame], kind: str
