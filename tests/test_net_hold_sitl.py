@@ -198,6 +198,26 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             results["blocked_stop_s"] = stopped_at - blocked_at
             after_block = truth.series(pilot, blocked_at, time.monotonic())
             results["blocked_min_distance_m"] = min(v.distance_m for _, v in after_block)
+
+            # -- E: the pilot's joystick falls silent while holding ---------------------------
+            # (ArduSub's own pilot failsafe, FS_PILOT_INPUT, warns only by default, and only
+            # after FS_PILOT_TIMEOUT, 3 s: the applet must hand back by itself.)
+            blind.unlink()
+            pilot.wait_for("netpose tracking again", lambda: fresh_planes(pilot, 2.0), 20)
+            holding_at = time.monotonic()
+            pilot.press(0)
+            pilot.wait_text("NetHold: ON", holding_at, 5)
+            time.sleep(5.0)
+            silent_at = time.monotonic()
+            pilot.joystick = False
+            off_at, _ = pilot.wait_text("OFF, no pilot input", silent_at, 3)
+            time.sleep(1.0)
+            pilot.joystick = True
+            results["no_pilot_handback_s"] = off_at - silent_at
+            # The applet's last word on the forward channel is neutral (no MANUAL_CONTROL
+            # rewrites it meanwhile).
+            unattended = forward_pwm_after(pilot, off_at + 0.2)
+            results["no_pilot_last_fwd"] = float(unattended[-1][1]) if unattended else 1500.0
             everything = truth.series(pilot, engage_at, time.monotonic())
             results["min_distance_m"] = min(v.distance_m for _, v in everything)
             assert daemon.poll() is None, daemon_log.read_text()[-3000:]
@@ -234,6 +254,10 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
     assert all(pwm <= 1500 for pwm in thrust_after_stop), context
     assert results["blocked_min_distance_m"] >= DIST_MIN, context
     assert results["min_distance_m"] >= 0.3, context
+    # No joystick for a second: off within about a second (the applet's 1 s, the GCS link's
+    # and the 10 ms run's latency), and nothing but neutral after.
+    assert 0.9 <= results["no_pilot_handback_s"] <= 1.6, context
+    assert results["no_pilot_last_fwd"] == 1500.0, context
 
 
 def dump_record(pilot: Pilot, path: Path, truth: Truth | None) -> None:
