@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 
 from service import __version__
 from service.core.errors import CalibrationError, ConfigError, NetposeError
+from service.signals import EarlySignals
 
 # Exit status for configuration errors (sysexits.h EX_CONFIG); the systemd unit lists it in
 # RestartPreventExitStatus so a broken configuration does not restart forever.
@@ -79,8 +80,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Before the command's module imports numpy; a value set by the user wins.
     for name, value in SINGLE_THREADED_NUMERICS.items():
         os.environ.setdefault(name, value)
+    # The service is signalled by systemd from its first moment: keep what comes while it
+    # imports and starts, for its handlers to act on.
+    early = EarlySignals().install() if _chosen_command(argv) == "run" else None
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    args.early_signals = early
     logging.basicConfig(
         level=getattr(logging, args.log_level or "INFO"),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -41,13 +41,44 @@ class SignalFlags:
         self.request_stop(name)
 
 
+class EarlySignals:
+    """Signals that come while the service is still starting (importing numpy and OpenCV,
+    reading its configuration: a few hundred ms), kept for `handle_signals` to act on. Without
+    it a `systemctl reload` right after a start ended the process (SIGHUP's default), and a
+    stop there ended it with 143 instead of a clean exit."""
+
+    WATCHED = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+    def __init__(self) -> None:
+        self.pending: list[signal.Signals] = []
+        self._previous: dict[signal.Signals, Any] = {}
+
+    def install(self) -> EarlySignals:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._keep) for sig in self.WATCHED}
+        return self
+
+    def _keep(self, signum: int, _frame: FrameType | None) -> None:
+        self.pending.append(signal.Signals(signum))
+
+    def hand_over(self) -> list[signal.Signals]:
+        """The signals kept, with the handlers from before `install` back in place."""
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+        return self.pending
+
+
 @contextmanager
-def handle_signals(flags: SignalFlags, *, reload: bool = False) -> Iterator[SignalFlags]:
-    """SIGTERM and SIGINT request a stop; SIGHUP a reload when `reload` is set.
+def handle_signals(flags: SignalFlags, *, reload: bool = False,
+                   early: EarlySignals | None = None) -> Iterator[SignalFlags]:
+    """SIGTERM and SIGINT request a stop; SIGHUP a reload when `reload` is set. `early`: the
+    signals that came during start-up are acted on now.
 
     A second Ctrl-C while a stop is already under way interrupts at once (KeyboardInterrupt).
     Outside the main thread (where Python cannot handle signals) nothing is installed.
     """
+    pending = early.hand_over() if early is not None else []
     if threading.current_thread() is not threading.main_thread():
         yield flags
         return
@@ -65,6 +96,12 @@ def handle_signals(flags: SignalFlags, *, reload: bool = False) -> Iterator[Sign
     if reload:
         handlers.append((signal.SIGHUP, on_hup))
     previous = {sig: signal.signal(sig, handler) for sig, handler in handlers}
+    for sig in pending:
+        if sig == signal.SIGHUP:
+            if reload:
+                flags.reload.set()
+        else:
+            flags.signal_stop(sig.name)
     try:
         yield flags
     finally:

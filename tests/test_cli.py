@@ -146,3 +146,33 @@ def test_the_command_lines_log_level_wins_over_the_files() -> None:
         capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert " INFO " not in done.stdout + done.stderr
+
+
+_SIGNAL_WHILE_STARTING = """
+import os, signal, sys, time
+class Gate:
+    def find_spec(self, name, path=None, target=None):
+        if name == "service.commands.run":  # the heavy imports of start-up begin here
+            os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+            time.sleep(0.05)
+        return None
+sys.meta_path.insert(0, Gate())
+from service.cli import main
+sys.exit(main(["run", "--config", sys.argv[2], "--duration", "3",
+               "--set", "telemetry.enabled=false"]))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGHUP", "SIGTERM"])
+def test_a_signal_while_the_service_starts_is_acted_on_not_fatal(sig: str) -> None:
+    """systemd may signal the service from its first moment: a `systemctl reload` while it was
+    still importing ended it (SIGHUP's default action, exit 129, and a restart), a stop ended it
+    with 143. A reload now happens once the daemon is up; a stop is a clean stop."""
+    demo = Path(__file__).resolve().parents[1] / "config" / "demo.toml"
+    done = subprocess.run([sys.executable, "-c", _SIGNAL_WHILE_STARTING, sig, str(demo)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    if sig == "SIGHUP":
+        assert "configuration reloaded" in done.stderr
+    else:
+        assert "SIGTERM received: stopping" in done.stderr

@@ -40,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.duration is not None and not args.duration > 0:
         raise ConfigError("--duration", "must be a positive number of seconds")
-    status = main(args.config, args.overrides, args.duration)
+    status = main(args.config, args.overrides, args.duration,
+                  early=getattr(args, "early_signals", None))
     # Everything is closed and the final lines are logged. The interpreter's own teardown of
     # numpy, OpenCV and Zenoh (and of a capture thread still inside an FFmpeg open) takes
     # another ~0.5 s that nothing needs, and a stop must fit systemd's budget: leave now.

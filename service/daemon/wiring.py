@@ -41,7 +41,7 @@ from service.daemon.settings_editor import (
 )
 from service.daemon.setup_mode import run_setup, setup_renderer
 from service.pipeline import PipelineResult
-from service.signals import RESTART, SignalFlags, handle_signals
+from service.signals import RESTART, EarlySignals, SignalFlags, handle_signals
 from service.tools.live_view import LiveView
 
 log = logging.getLogger("netpose.daemon")
@@ -232,8 +232,10 @@ def main(
     overrides: Iterable[str] = (),
     duration_s: float | None = None,
     notifier: Notifier | None = None,
+    early: EarlySignals | None = None,
 ) -> int:
-    """`netpose run`: load and validate the configuration, run until stopped."""
+    """`netpose run`: load and validate the configuration, run until stopped. `early`: the
+    signals that came while the process started (acted on once the daemon's handlers are in)."""
     overrides = tuple(overrides)
     config, problem = _load_or_setup(config_path, overrides)
     logging.getLogger().setLevel(config.service.log_level)
@@ -241,7 +243,7 @@ def main(
     fewer_malloc_arenas()
     notify = notifier or notifier_from_environment(console=sys.stdout)
     try:
-        with handle_signals(SignalFlags(), reload=True) as flags:
+        with handle_signals(SignalFlags(), reload=True, early=early) as flags:
             restart = threading.Event()
 
             def request_restart() -> None:
