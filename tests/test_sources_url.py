@@ -66,6 +66,7 @@ def test_factory_routes_each_scheme(url: str, kind: type) -> None:
         ("file:dive.mp4?fps=-3", ["fps", "outside"]),
         ("file:dive.mp4?loop=1&loop=0", ["twice"]),
         ("images:?fps=5", ["needs a path"]),
+        ("sdp:", ["SDP file"]),  # it was blamed on the calibration
         ("synthetic:?trajectory=spiral", ["trajectory", "approach"]),
         ("synthetic:?gap=6-4", ["gap", "START<END"]),
         ("synthetic:?trajectory=approach&near=3&far=1", ["near", "far"]),

@@ -31,6 +31,7 @@ from drivers.sources.opencv_capture import (
     decoder_frames_held,
     open_ffmpeg_capture,
 )
+from drivers.sources.url import url_error
 
 # Low-latency demuxer/decoder flags for every network stream.
 LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay"
@@ -67,6 +68,8 @@ class StreamSource(LiveSource):
 
     def __init__(self, url: str, options: SourceOptions | None = None) -> None:
         super().__init__(url, options)
+        if url.startswith("sdp:") and not ffmpeg_target(url).strip():
+            raise url_error(url, "sdp: needs the path of the stream's SDP file")
         opts = self._options
         self._ffmpeg_options = (
             opts.ffmpeg_options if opts.ffmpeg_options is not None else default_ffmpeg_options(url)
