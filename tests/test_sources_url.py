@@ -88,6 +88,13 @@ def test_url_mistakes_are_configuration_errors_naming_the_problem(
 def test_passwords_never_reach_messages() -> None:
     url = "rtsp://admin:s3cret@192.168.2.10:554/stream1"
     assert redact_text(url) == "rtsp://admin:<redacted>@192.168.2.10:554/stream1"
+    # Typed raw into the configuration, a password may hold '#', '/', '?' or a space: it was
+    # left in clear in the log and in the published configuration.
+    for password in ("Fish#Farm/2026", "Salmon?2026", "pa ss", "a@b/c?d#e"):
+        raw = f"rtsp://admin:{password}@192.168.2.10:554/stream1"
+        assert redact_text(raw) == "rtsp://admin:<redacted>@192.168.2.10:554/stream1", raw
+        said = f"frame source {raw} down (timeout)"
+        assert password.split(" ")[0] not in redact_text(said).replace("admin", ""), said
     assert "s3cret" not in repr(create_source(url))
     assert redact_text("udp://0.0.0.0:5600") == "udp://0.0.0.0:5600"
 

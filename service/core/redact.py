@@ -3,8 +3,8 @@
 One rule, used everywhere a URL or a configuration is shown:
 
 - the user-info password of a URL (`rtsp://user:pa@ss@camera/...` -> `rtsp://user:<redacted>@...`).
-  The password ends at the *last* `@` before the host, so a password containing `@` is hidden
-  whole, not cut at its first `@`;
+  The password ends at the *last* `@` on the line, so a password containing `@`, `#`, `/`, `?`
+  or a space is hidden whole, not cut where one of them begins;
 - the value of query parameters that name a secret (`?passphrase=`, `?token=`, `?password=`,
   `?key=`... see `_SECRET_NAME`), as SRT and many cameras take them;
 - in a configuration mapping, the value of any key that names a secret, and every URL-looking
@@ -25,9 +25,12 @@ _SECRET_NAME = re.compile(
     r"auth|^key$|signing_key)",
     re.I,
 )
-# scheme://user:password@host — greedy up to the last '@' before the path, so '@' inside a
-# password stays hidden. The user part has no ':', '/' or '@'.
-_USERINFO = re.compile(r"(?P<head>[a-z][a-z0-9+.-]*://[^:/@\s?#]*:)[^/\s?#]*@", re.I)
+# scheme://user:password@host — the password is everything up to the last '@' on the line: a
+# password typed raw into a configuration may hold '@', '#', '/', '?' or a space, and any of
+# them ended a narrower match early, leaving the rest in clear. Hiding too much (a second
+# address later on the same line) is the safe way to be wrong. The user part has no ':', '/'
+# or '@'.
+_USERINFO = re.compile(r"(?P<head>[a-z][a-z0-9+.-]*://[^:/@\s?#]*:).*@", re.I)
 # name=value in a query string or an FFmpeg option list (&, ?, ; and | separate pairs).
 _PARAMETER = re.compile(r"(?P<sep>[?&;|])(?P<name>[A-Za-z0-9_.-]+)=(?P<value>[^&;|#\s]*)")
 
