@@ -68,6 +68,12 @@ _SERIAL_WRITE_TIMEOUT_S = 0.2
 CLOSE_WAIT_S = 0.2
 # A jump of the autopilot's boot clock larger than this is a reboot, not network jitter.
 _REBOOT_JUMP_S = 1.0
+# The autopilot's clock is asked for (TIMESYNC, which ArduPilot answers with its boot time)
+# this often, and a net plane goes out only while an answer (or a message's time_boot_ms) that
+# agrees with the clock in use came within the last _CLOCK_CONFIRMED_S: after a reboot the old
+# clock would stamp every plane hours into the new one's future until its streams start.
+_CLOCK_ASK_PERIOD_S = 0.25
+_CLOCK_CONFIRMED_S = 0.75
 # How far two crystals may disagree (parts per million; a watch crystal is within 20-50): the
 # earliest boot estimate is allowed to move later by this much per second, so stamps follow an
 # autopilot clock slower than ours instead of running into its future.
@@ -239,8 +245,9 @@ class MavlinkLink(AutopilotLink):
         self._autopilot_alive = False
         self._autopilot_boot: float | None = None
         self._autopilot_boot_at: float = 0.0  # our clock when that estimate was last updated
+        self._clock_confirmed_at = -math.inf  # when a sample last agreed with the clock in use
         self._sent: SendTimes = dict.fromkeys(
-            ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT", "STATUSTEXT"), 0
+            ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT", "STATUSTEXT", "TIMESYNC"), 0
         )
         self._texts: collections.deque[tuple[int, str]] = collections.deque(
             maxlen=_MAX_QUEUED_TEXTS)
@@ -409,6 +416,7 @@ class MavlinkLink(AutopilotLink):
         next_heartbeat = now
         next_distance = now
         next_plane = now
+        next_clock_ask = now
         last_capture_sent = -math.inf
         period = self.settings.period_s
         while not self._stop.is_set():
@@ -428,12 +436,15 @@ class MavlinkLink(AutopilotLink):
                     next_distance = _advance(next_distance, period, now)
             # The net plane keeps the fixed schedule the net-hold applet was proved with in
             # SITL (its closing-speed filter counts messages, not seconds).
+            if now >= next_clock_ask:
+                self._ask_clock(conn, now)
+                next_clock_ask = _advance(next_clock_ask, _CLOCK_ASK_PERIOD_S, now)
             if now >= next_plane:
                 self._send_plane(conn, now)
                 self._send_texts(conn)
                 next_plane = _advance(next_plane, period, now)
             self._check_autopilot_timeout(now)
-            wait = min(next_heartbeat, next_distance, next_plane) - self._clock()
+            wait = min(next_heartbeat, next_distance, next_plane, next_clock_ask) - self._clock()
             if wait > 0:
                 self._wait(conn, min(wait, _POLL_LIMIT_S))
             for _ in range(_MAX_MESSAGES_PER_TURN):
@@ -528,11 +539,26 @@ class MavlinkLink(AutopilotLink):
                 ),
             )
 
+    def _ask_clock(self, conn: Any, now: float) -> None:
+        """TIMESYNC request (tc1 = 0): the autopilot answers with its boot clock in ns. Only
+        while the net plane goes out (its stamps are what the clock is for)."""
+        if not self.settings.send_net_plane or self._autopilot is None:
+            return
+        self._send(conn, "TIMESYNC", lambda: conn.mav.timesync_send(0, int(now * 1e9)))
+
     def _send_plane(self, conn: Any, now: float) -> None:
         if not self.settings.send_net_plane:
             return
         with self._lock:
             plane = self._plane
+            clock_confirmed = now - self._clock_confirmed_at <= _CLOCK_CONFIRMED_S
+        if not clock_confirmed:
+            # Held, not stamped on a clock the autopilot may no longer have (a reboot): the
+            # applet stops thrust on the silence, as it must.
+            self._note_sending("net_plane", False, now,
+                               "the autopilot's clock is not confirmed (not yet known, or it "
+                               "rebooted): net plane held")
+            return
         max_age = self.settings.max_age_s
         # A fresh plane goes out whether it confirms the net or not (a zero vector: "no net in
         # that frame"), so the applet stops at once rather than at its timeout.
@@ -602,6 +628,10 @@ class MavlinkLink(AutopilotLink):
         time_boot_ms = getattr(msg, "time_boot_ms", None)
         if isinstance(time_boot_ms, int):
             self._update_boot_time(now - time_boot_ms / 1000.0, now)
+        elif kind == "TIMESYNC" and int(msg.tc1) > 0:
+            # The answer to our request: the autopilot's boot clock when it answered, which was
+            # between our request and now (the min-filter keeps the least delayed).
+            self._update_boot_time(now - int(msg.tc1) / 1e9, now)
 
     def _update_boot_time(self, boot: float, now: float) -> None:
         """`boot`: when the autopilot booted on our clock, as one of its messages says (late by
@@ -618,6 +648,7 @@ class MavlinkLink(AutopilotLink):
                 self._autopilot_boot = min(old + drift, boot)
                 rebooted = False
             self._autopilot_boot_at = now
+            self._clock_confirmed_at = now
         if rebooted:
             log.warning("MAVLink: autopilot clock jumped by %.1f s (reboot?)", boot - (old or 0))
 

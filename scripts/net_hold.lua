@@ -631,4 +631,6 @@ end
 
 setup()
 say(SEV_INFO, string.format("loaded, set point %.2f m, button %d", set_point(), math.floor(get("BTN"))))
-return protected_update, 1000
+-- The first run at once: a command in the first second after loading (the pilot engaging
+-- right after a reboot) got no COMMAND_ACK at all, the command being blocked for the applet.
+return protected_update, UPDATE_MS

@@ -233,6 +233,10 @@ class FakeAutopilot(Closeable):
         self.flight_sw_version = flight_sw_version
         self.echo = echo
         self.heartbeats_enabled = True
+        # SYSTEM_TIME with each heartbeat (ArduSub streams it; a rebooted one only after a
+        # while, `reboot`), and answers to TIMESYNC requests (as GCS_MAVLINK does).
+        self.system_time_enabled = True
+        self.timesync_enabled = True
         self._boot = time.monotonic() - boot_offset_s
         m = _mavlink2()
         self.mavlink = m
@@ -257,6 +261,17 @@ class FakeAutopilot(Closeable):
     def boot_ms(self, t: float | None = None) -> int:
         """The autopilot's time_boot_ms at monotonic time t (now by default)."""
         return int(((time.monotonic() if t is None else t) - self._boot) * 1000)
+
+    def reboot(self, down_s: float, streams_after_s: float) -> None:
+        """Silent for `down_s` (rebooting), then up with a new boot clock: heartbeats at once,
+        SYSTEM_TIME only `streams_after_s` later (ArduSub SITL: 1.2 s). Blocks until then."""
+        self.heartbeats_enabled, self.system_time_enabled, self.timesync_enabled = (
+            False, False, False)
+        time.sleep(down_s)
+        self._boot = time.monotonic()
+        self.heartbeats_enabled = self.timesync_enabled = True
+        time.sleep(streams_after_s)
+        self.system_time_enabled = True
 
     # ---- lifecycle --------------------------------------------------------------------------
 
@@ -335,7 +350,8 @@ class FakeAutopilot(Closeable):
         self._mav.heartbeat_send(
             self.MAV_TYPE_SUBMARINE, self.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3
         )
-        self._mav.system_time_send(int(time.time() * 1e6), self.boot_ms())
+        if self.system_time_enabled:
+            self._mav.system_time_send(int(time.time() * 1e6), self.boot_ms())
 
     def _consume(self, data: bytes) -> None:
         msgs = self._mav.parse_buffer(data) or []
@@ -352,6 +368,10 @@ class FakeAutopilot(Closeable):
     def _answer(self, msg: Any) -> None:
         kind = msg.get_type()
         m = self.mavlink
+        if kind == "TIMESYNC" and msg.tc1 == 0 and self.timesync_enabled:
+            # GCS_MAVLINK::handle_timesync: our boot clock in ns, their ts1 echoed.
+            self._mav.timesync_send(self.boot_ms() * 1_000_000, msg.ts1)
+            return
         if kind == "PARAM_REQUEST_READ" and msg.target_system == self.sysid:
             name = msg.param_id
             with self._lock:

@@ -479,6 +479,30 @@ def test_net_plane_fields_time_and_staleness() -> None:
     assert stale == [] and status.sending_net_plane is False
 
 
+def test_no_net_plane_is_stamped_in_a_rebooted_autopilots_future() -> None:
+    """ArduSub rebooted (SITL: up again in 1.3 s) while netpose ran: its heartbeats came back
+    at once, its time_boot_ms streams 1.2 s later, and until then every NET_PLANE went out
+    stamped on the old boot clock, 19 s in the new one's future (the old uptime, hours on a
+    vehicle). The link now asks the autopilot's clock itself (TIMESYNC, as ArduPilot answers)
+    and holds the plane while the clock is not confirmed: nothing in the future, and planes
+    again soon after the reboot."""
+    plane = NetPlane.from_distance_normal(0.0, 1.25, (0.0, 0.0, -1.0))
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link:
+            wait_status(link, "state", "connected")
+            with feeding(link, plane=plane):
+                autopilot.wait_for("DEBUG_VECT", count=3)
+                autopilot.reboot(down_s=1.3, streams_after_s=1.2)
+                rebooted_at = time.monotonic() - 1.2
+                time.sleep(1.0)
+            planes = [r for r in autopilot.received("DEBUG_VECT") if r.t >= rebooted_at]
+    assert planes, "no net plane after the reboot"
+    ahead_ms = [r.msg.time_usec / 1000 - autopilot.boot_ms(r.t) for r in planes]
+    assert max(ahead_ms) <= 5.0, max(ahead_ms)
+    assert planes[0].t - rebooted_at <= 1.0  # asked for, not waited for the streams
+
+
 def test_signed_link_is_accepted_only_with_the_right_key(tmp_path: Path) -> None:
     key = os.urandom(32)
     (tmp_path / "good.key").write_bytes(key)

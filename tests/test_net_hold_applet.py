@@ -458,3 +458,12 @@ def test_a_distance_that_jumps_pauses_and_a_jump_that_stays_hands_back() -> None
     assert not applet.engaged
     assert any("OFF, net distance jumped (0.9" in s for _, s in applet.texts())  # -> 1.9x m
     assert vehicle.min_distance_seen > 0.9
+
+
+def test_a_command_right_after_loading_is_answered() -> None:
+    """The first run came a second after loading, and MAV_CMD_USER_1 is blocked for the applet:
+    a pilot engaging right after a reboot got no COMMAND_ACK at all (SITL: 3 tries in 0.9 s)."""
+    applet = Applet()
+    applet.receive(command_user_1(True), chan=1)
+    applet.run_until(0.05)
+    assert applet.acks() == [(MAV_CMD_USER_1, 2)]  # denied (no net yet), and said so

@@ -200,8 +200,9 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             results["blocked_min_distance_m"] = min(v.distance_m for _, v in after_block)
 
             # -- E: the pilot's joystick falls silent while holding ---------------------------
-            # (ArduSub's own pilot failsafe, FS_PILOT_INPUT, warns only by default, and only
-            # after FS_PILOT_TIMEOUT, 3 s: the applet must hand back by itself.)
+            # (ArduSub's own pilot failsafe, FS_PILOT_INPUT, disarms after FS_PILOT_TIMEOUT, 3 s,
+            # in this build, and may be set to warn only: the applet hands back by itself
+            # first.)
             blind.unlink()
             pilot.wait_for("netpose tracking again", lambda: fresh_planes(pilot, 2.0), 20)
             holding_at = time.monotonic()
