@@ -327,3 +327,19 @@ def test_the_plot_breaks_where_telemetry_stopped(tmp_path: Path) -> None:
     assert all(math.isnan(v) for v in plot.samples[gap - 1][1:])  # the break before the gap
     plot.update()
     assert (tmp_path / "plot.png").stat().st_size > 1000
+
+
+def test_two_daemons_under_one_vehicle_name_are_flagged() -> None:
+    """Two daemons publishing as 'demo' were shown as one vehicle whose distance jumped between
+    theirs, live and unflagged. Their interleaved seq gives them away (one restart, a seq that
+    goes back once, does not)."""
+    state = MonitorState()
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(500)), 0.0)
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(1)), 0.1)  # a restart
+    for i in range(2, 12):
+        state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(i)), 0.1 * i)
+    assert not any("two daemons" in p for p in state.vehicles[VEHICLE].problems)
+    for i in range(12, 24):  # another daemon, 1000 frames ahead, interleaved
+        state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(i)), 0.1 * i)
+        state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(i + 1000)), 0.1 * i)
+    assert any("two daemons publish as" in p for p in state.vehicles[VEHICLE].problems)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import json
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,6 +70,10 @@ class VehicleView:
     preview_meta: dict[str, Any] | None = None
     problems: set[str] = field(default_factory=set)
     holes: list[dict[str, Any]] = field(default_factory=list)  # newest last
+    # Times the estimate's seq went backwards: once is a restart of the daemon; again and
+    # again, two daemons publishing under one vehicle name.
+    seq_backwards: deque[float] = field(default_factory=deque)
+    last_seq: int | None = None
 
     def stream(self, name: str) -> StreamStats:
         if name not in self.streams:
@@ -114,6 +119,24 @@ def _decode_json(data: bytes | None) -> dict[str, Any] | None:
     except (UnicodeDecodeError, ValueError):
         return None
     return value if isinstance(value, dict) else None
+
+
+# The estimate's seq going backwards this often within the window: two publishers.
+SEQ_BACKWARDS_LIMIT = 3
+SEQ_WINDOW_S = 10.0
+
+
+def _note_seq(view: VehicleView, seq: Any, now_mono: float) -> None:
+    if not isinstance(seq, int) or isinstance(seq, bool):
+        return
+    if view.last_seq is not None and seq < view.last_seq:
+        view.seq_backwards.append(now_mono)
+    view.last_seq = seq
+    while view.seq_backwards and now_mono - view.seq_backwards[0] > SEQ_WINDOW_S:
+        view.seq_backwards.popleft()
+    if len(view.seq_backwards) >= SEQ_BACKWARDS_LIMIT:
+        view.problems.add("estimate: seq goes back and forth: two daemons publish as "
+                          f"'{view.name}' (give each its own telemetry.vehicle)")
 
 
 class MonitorState:
@@ -162,6 +185,7 @@ class MonitorState:
             # the last good message stays on screen rather than one the views trip over.
             return Received(vehicle, kind, key, payload, len(data))
         if kind == ESTIMATE_SUFFIX:
+            _note_seq(view, payload.get("seq"), now_mono)
             view.estimate = payload
         elif kind == STATUS_SUFFIX:
             view.status = payload
