@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from drivers.net import free_port
@@ -721,3 +722,16 @@ def test_the_documented_tether_security_example_is_a_valid_zenoh_configuration(
     assert json.loads(config.get_json("transport/link/tls/enable_mtls")) is True
     acl = json.loads(config.get_json("access_control"))
     assert acl["enabled"] and acl["default_permission"] == "deny"
+
+
+@pytest.mark.parametrize(("fps", "hz"), [(10.0, 5.0), (10.0, 2.0), (30.0, 4.0)])
+def test_previews_come_at_the_configured_rate(fps: float, hz: float) -> None:
+    """With a 10 frames/s camera, preview_hz 5 gave 4 a second and 2 gave 1.75: each preview
+    was due a period after the frame that drew the last, so a frame a hair early waited for
+    the next. Over 20 s of frames with a millisecond of jitter, the rate is the one set."""
+    recorder = RecordingPublisher(TelemetrySettings(preview_hz=hz))
+    rng = np.random.default_rng(0)
+    with recorder:
+        frames = np.arange(0.0, 20.0, 1.0 / fps) + rng.uniform(-0.001, 0.001, int(20 * fps))
+        drawn = sum(recorder.wants_preview(float(t)) for t in frames)
+    assert abs(drawn - 20 * hz) <= 1
