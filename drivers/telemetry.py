@@ -514,6 +514,12 @@ class ZenohPublisher(TelemetryPublisher):
             thread.join(timeout)
             if thread.is_alive():
                 log.warning("telemetry worker still opening a Zenoh session; not waiting longer")
+        with self._lock:
+            unsent = len(self._damage)
+        if unsent:
+            # Each was logged when confirmed; that it never reached the topside is said too.
+            log.warning("telemetry: %d confirmed hole(s) never reached a subscriber of the "
+                        "damage key (each is in the log above)", unsent)
         self._online = False
         self._state = "closed"
 

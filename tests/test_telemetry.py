@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import re
 import socket
@@ -735,3 +736,18 @@ def test_previews_come_at_the_configured_rate(fps: float, hz: float) -> None:
         frames = np.arange(0.0, 20.0, 1.0 / fps) + rng.uniform(-0.001, 0.001, int(20 * fps))
         drawn = sum(recorder.wants_preview(float(t)) for t in frames)
     assert abs(drawn - 20 * hz) <= 1
+
+
+def test_holes_that_never_reached_the_topside_are_said_at_stop(
+    publisher_factory: Callable[..., ZenohPublisher], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A stop with holes still waiting for a subscriber (no router all dive) dropped them
+    without a word: 'stopped cleanly' and nothing else."""
+    publisher = publisher_factory(mode="client", connect=(endpoint(),))  # nobody there
+    publisher.start()
+    publisher.publish_damage(_hole(1))
+    publisher.publish_damage(_hole(2))
+    caplog.set_level(logging.WARNING)
+    publisher.close()
+    assert any("2 confirmed hole(s) never reached a subscriber" in r.getMessage()
+               for r in caplog.records)
