@@ -7,6 +7,7 @@ real encode/decode round trip the test can check that frame `index` really is fr
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 from pathlib import Path
 
@@ -341,6 +342,24 @@ def test_looping_file_removed_and_put_back_comes_back(
         moved.rename(clip)
         back = [f for f in (source.read(0.3) for _ in range(10)) if f is not None]
     assert back, "frames did not come back after the file returned"
+
+
+def test_an_image_folder_deleted_under_the_service_is_an_outage(tmp_path: Path) -> None:
+    """The folder deleted mid-run: each vanished file counted as a corrupt frame, and the
+    status said "streaming" for the 2 s until the stall timeout. Down at once, with the
+    reason; frames again when the folder is back."""
+    folder = tmp_path / "frames"
+    write_images(folder, 6)
+    options = SourceOptions(wait_at_start=True, reconnect_min_s=0.05, reconnect_max_s=0.2)
+    with open_source(f"images:{folder}?loop=1", options) as source:
+        assert source.read(0.5) is not None and source.read(0.5) is not None
+        shutil.rmtree(folder)
+        assert source.read(0.1) is None
+        assert source.state is SourceState.DOWN and "is gone" in source.stats().error
+        assert source.stats().corrupt == 0
+        write_images(folder, 3)
+        back = [f for f in (source.read(0.3) for _ in range(10)) if f is not None]
+    assert back
 
 
 def test_a_missing_file_at_start_is_waited_for(videos: dict[str, Path], tmp_path: Path) -> None:

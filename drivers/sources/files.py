@@ -23,7 +23,7 @@ import cv2
 from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
-from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
+from drivers.sources.paced import EndOfMediaError, MediaFrame, MediaGoneError, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
 from service.core.grey import IMAGE_SUFFIXES, DamagedImageError, decode_gray, is_image_name
 
@@ -213,6 +213,8 @@ class ImageFolderSource(PacedSource):
             # Decoded in colour and converted like every other frame (one grey conversion), and
             # refused when truncated: a half-written JPEG would otherwise decode with a grey band.
             image = decode_gray(path.read_bytes())[1]
+        except FileNotFoundError:
+            raise MediaGoneError(f"{path} is gone (the folder changed under the source)") from None
         except OSError as exc:
             self._note_damage(f"{path.name}: {exc.strerror or exc}")
         except DamagedImageError as exc:

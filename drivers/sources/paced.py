@@ -40,6 +40,11 @@ class EndOfMediaError(Exception):
     """Raised by _next_media() after the last frame."""
 
 
+class MediaGoneError(Exception):
+    """Raised by _next_media() when the medium vanished under it (a folder deleted or
+    unmounted): an outage, not a corrupt frame."""
+
+
 @dataclass(frozen=True, eq=False)
 class MediaFrame:
     """One frame as the medium holds it. `image` None: this frame cannot be decoded."""
@@ -237,6 +242,17 @@ class PacedSource(FrameSource):
         while True:
             try:
                 media = self._next_media()
+            except MediaGoneError as exc:
+                if not self._options.wait_at_start:
+                    raise SourceError(self.url, str(exc)) from None
+                # Down at once, with the reason (not a string of "corrupt" frames until the
+                # stall timeout), and re-opened with backoff like a camera unplugged.
+                self._stop()
+                self._state, self._error = SourceState.DOWN, str(exc)
+                log.warning("frame source %s down: %s; retrying with backoff",
+                            redact_text(self.url), self._error)
+                self._retry_at = time.monotonic() + self._backoff.next_delay(time.monotonic())
+                return None
             except EndOfMediaError:
                 if self.loop and self._good_since_rewind > 0:
                     # The next pass continues the numbering and the clock after this one.
