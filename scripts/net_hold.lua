@@ -62,7 +62,7 @@ local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
 local PARAMS = {
   {"ENABLE", 1, 0, 1},            -- 0: the applet does nothing
   {"DIST", 1.0, 0.3, 10},         -- set point, m (clamped to 0.5..3)
-  {"DIST_MIN", 0.4, 0.3, 5},      -- hard minimum, m: no thrust toward the net at or below it
+  {"DIST_MIN", 0.4, 0.3, 2.9},    -- hard minimum, m: no thrust toward the net at or below it
   {"DIST_MAX", 4.0, 0.5, 20},     -- refuse to engage (and disengage) beyond this distance, m
   {"TIMEOUT", 0.4, 0.1, 1.0},     -- a plane older than this (from its capture) stops thrust, s
   {"GRACE", 3.0, 0.5, 10},        -- no fresh plane for this long disengages, s
@@ -172,6 +172,23 @@ local function param_or(name, default)
   return v
 end
 
+-- The ground station's system id: MAV_GCS_SYSID (4.7), SYSID_MYGCS before. Bound once (a lookup
+-- by name searches the parameter table), read each run: ArduSub takes the pilot from the live
+-- value, so must net hold.
+local gcs_param = nil
+
+local function bind_gcs_param()
+  for _, name in ipairs({"MAV_GCS_SYSID", "SYSID_MYGCS"}) do
+    local ok, p = pcall(Parameter, name)
+    if ok and p ~= nil and p:get() ~= nil then return p end
+  end
+  return nil
+end
+
+local function read_gcs_sysid()
+  if gcs_param ~= nil then gcs_sysid = math.floor(gcs_param:get()) end
+end
+
 local function setup()
   setup_params()
   fwd_rc = math.floor(param_or("RCMAP_FORWARD", 5))
@@ -180,6 +197,7 @@ local function setup()
   yaw_channel = rc:get_channel(yaw_rc)
   lateral_rc = math.floor(param_or("RCMAP_LATERAL", 6))
   my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
+  gcs_param = bind_gcs_param()
   -- Four message ids; a queue of 20 holds a quarter second of the pilot's and netpose's
   -- messages should the scripting thread stall (a full queue drops what comes).
   mavlink:init(4, 20)
@@ -190,10 +208,6 @@ local function setup()
   mavlink:block_command(MAV_CMD_USER_1)
 end
 
-local function read_gcs_sysid()
-  -- Read each run: ArduSub takes the pilot from the live value, so must net hold.
-  gcs_sysid = math.floor(param_or("MAV_GCS_SYSID", param_or("SYSID_MYGCS", 255)))
-end
 
 -- Geometry: the plane vector into a level frame (x forward, y right), from the camera tilt and
 -- the vehicle's roll and pitch.
@@ -263,14 +277,19 @@ local function on_plane(msg, now)
     no_net_at(now)
     return
   end
+  local rebased = false
   if plane ~= nil and (t < plane.t - CLOCK_REBASE_S or now < plane.arrival) then
-    -- A new clock (netpose re-based, this clock wrapped): nothing before it is comparable.
-    plane, prev_plane, no_net_t, closing_speed, doubt, jump = nil, nil, nil, 0, 0, nil
+    -- A new clock (netpose re-based, this clock wrapped): stamps before it are not
+    -- comparable with its own. The distance believed still is, and a doubt about it stays:
+    -- the next plane is compared with it by arrival time.
+    rebased = true
+    plane.clock_ended = true
+    no_net_t, closing_speed = nil, 0
   end
-  if plane ~= nil and t <= plane.t then return end  -- repeated or out of order
+  if plane ~= nil and not rebased and t <= plane.t then return end  -- repeated, out of order
   local d = math.sqrt(x * x + y * y + z * z)
   if x == 0 and y == 0 and z == 0 then  -- netpose: this frame did not confirm the net
-    doubt_why = nil
+    if doubt == 0 then doubt_why = nil end
     no_net_at(t)
     return
   end
@@ -289,14 +308,20 @@ local function on_plane(msg, now)
     if doubt == 0 then doubt_why = nil end
     return
   end
+  -- The time the vehicle had to move: by the stamps, but never more than by this clock (a
+  -- stamp shifted by a clock re-base is not time the vehicle moved), and across a new clock by
+  -- this clock alone.
   local dt = plane.t - prev_plane.t
-  if dt >= 1.0 then
+  local elapsed = now - prev_plane.arrival
+  if not prev_plane.clock_ended then elapsed = math.min(dt, elapsed) end
+  if dt >= 1.0 or prev_plane.clock_ended then
     closing_speed = 0  -- after a gap the speed before it says nothing
-    if doubt == 0 then doubt_why = nil end
-  elseif math.abs(plane.d - prev_plane.d) > JUMP_SPEED * dt + JUMP_SLACK_M
+  end
+  if math.abs(plane.d - prev_plane.d) > JUMP_SPEED * math.max(elapsed, 0) + JUMP_SLACK_M
       + JUMP_SLACK_SHARE * prev_plane.d then
-    -- Faster than the vehicle moves: doubtful until the next frames agree with this one.
-    if jump == nil then jump = {d = prev_plane.d, t = prev_plane.t} end
+    -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
+    -- next frames agree with this one.
+    if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival} end
     doubt, doubt_why, closing_speed = CONFIRM_FRAMES, "net distance jumped", 0
   else
     if doubt > 0 then
@@ -305,7 +330,7 @@ local function on_plane(msg, now)
         -- The frames agree again. Back where the net was: a glitch, hold on. Somewhere the
         -- vehicle cannot have gone since: one of the two readings is wrong, and which one
         -- cannot be told here, so the pilot takes over.
-        if math.abs(plane.d - jump.d) > JUMP_SPEED * (plane.t - jump.t) + JUMP_SLACK_M
+        if math.abs(plane.d - jump.d) > JUMP_SPEED * (now - jump.arrival) + JUMP_SLACK_M
             + JUMP_SLACK_SHARE * jump.d then
           level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
         end
@@ -313,7 +338,7 @@ local function on_plane(msg, now)
       end
     end
     if doubt == 0 then doubt_why = nil end
-    if dt > 0.01 then
+    if dt > 0.01 and dt < 1.0 and not prev_plane.clock_ended then
       local rate = (prev_plane.d - plane.d) / dt
       closing_speed = closing_speed + 0.35 * (rate - closing_speed)
     end
@@ -351,8 +376,8 @@ local function on_rc_override(msg, now)
   local limit = get("PILOT_DZ") * 0.2
   for _, channel in ipairs({fwd_rc, yaw_rc}) do
     local pwm = override_of(msg, channel)
-    -- 0 and 65535: the channel is released or left alone.
-    if engaged and pwm ~= 0 and pwm ~= 65535 and math.abs(pwm - NEUTRAL) > limit then
+    -- Only a pulse width is a stick (0, 65534 and 65535 release or leave the channel alone).
+    if engaged and pwm >= 800 and pwm <= 2200 and math.abs(pwm - NEUTRAL) > limit then
       disengage("pilot input", false)
       return
     end
@@ -362,7 +387,7 @@ end
 local function on_command(msg, chan, from_gcs)
   local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
   if command ~= MAV_CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
-  if not from_gcs then  -- only the pilot's ground station engages or disengages
+  if p1 >= 0.5 and not from_gcs then  -- only the pilot's ground station engages
     send_ack(chan, command, MAV_RESULT_DENIED)
     return
   end
@@ -457,7 +482,7 @@ engage = function()
     return false
   end
   if doubt > 0 then
-    say(SEV_WARNING, "not engaged: " .. doubt_why)
+    say(SEV_WARNING, "not engaged: " .. (doubt_why or "net distance not steady"))
     return false
   end
   engaged, paused, yaw_rate_cmd = true, false, 0

@@ -26,7 +26,9 @@ MAV_CMD_USER_1 = 31010
 ALT_HOLD = 2
 
 STUBS = r"""
-stub = {now_ms = 0, params = {}, overrides = {}, history = {}, texts = {}, named = {},
+-- ArduSub 4.7's own parameters the applet reads (its identity and the ground station's).
+stub = {now_ms = 0, params = {MAV_SYSID = 1, MAV_GCS_SYSID = 255}, overrides = {}, history = {},
+        texts = {}, named = {},
         rx = {}, sent = {}, blocked = {}, buttons = {0, 0, 0, 0}, armed = true, mode = 2,
         roll = 0, pitch = 0, yaw = 0, logs = 0, rx_ids = {}}
 function millis()

@@ -467,3 +467,100 @@ def test_a_command_right_after_loading_is_answered() -> None:
     applet.receive(command_user_1(True), chan=1)
     applet.run_until(0.05)
     assert applet.acks() == [(MAV_CMD_USER_1, 2)]  # denied (no net yet), and said so
+
+
+# -- a review of the review's fixes (2026-11-27) ------------------------------------------------
+
+
+def test_a_jump_after_a_gap_is_not_believed() -> None:
+    """Net not seen for 1.2 s (inside NETH_GRACE), then readings of 3.5 m with the vehicle
+    still at 1 m: a gap of a second or more skipped the jump check, and the hold drove to
+    0.28 m, inside the hard minimum. The vehicle cannot have moved 2.5 m while thrust was off."""
+    vehicle = NetVehicle(distance_m=1.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 1.2, sees_net=lambda t: False)
+    real = vehicle.distance_m
+    original = vehicle.plane
+
+    def wrong() -> tuple[float, float, float]:
+        x, y, z = original()
+        return x * 3.5 / real, y * 3.5 / real, z * 3.5 / real
+
+    vehicle.plane = wrong  # type: ignore[method-assign]
+    trace = run_closed_loop(applet, vehicle, 8.0)
+    assert max(fwd for _, _, _, fwd, _ in trace) <= 1500
+    assert vehicle.min_distance_seen > 0.9 and not applet.engaged
+    assert any("OFF, net distance jumped" in text for _, text in applet.texts())
+
+
+def _step(applet: Applet, t: float, d: float | None = None, stamp: float = 0.0) -> None:
+    """The pilot's joystick, a plane straight ahead at `d` (0: no net) stamped `stamp`, and
+    the applet's runs up to `t`."""
+    applet.receive(manual_control())
+    if d is not None:
+        applet.receive(debug_vect(b"NET_PLANE", stamp, 0.0, 0.0, d))
+    applet.run_until(t)
+
+
+def test_a_clock_re_base_does_not_clear_a_doubt() -> None:
+    """A 3.5 m reading after 1.0 m ones (doubted), then one plane stamped 1.5 s back (netpose
+    re-based on a late message) and the rest on time: the re-base cleared the doubt and the
+    3.5 m was believed, 1557 us toward the net. The doubt is about the distance, not the
+    clock: it stays until frames agree, and a level that stays hands back."""
+    applet = Applet()
+    for k in range(2, 21):
+        _step(applet, k * 0.1, 1.0, k * 0.1 - 0.15)
+    applet.press(1)
+    _step(applet, 2.05)
+    assert applet.engaged
+    _step(applet, 2.1, 3.5, 1.95)
+    _step(applet, 2.2, 3.5, 2.05 - 1.5)
+    forward = []
+    for k in range(3, 12):
+        _step(applet, 2.0 + k * 0.1, 3.5, 2.0 + k * 0.1 - 0.15)
+        forward.append(applet.override(FWD) or 1500)
+    assert max(forward) <= 1500
+    assert not applet.engaged and "OFF, net distance jumped" in applet.texts()[-1][1]
+
+
+def test_refusing_to_engage_in_doubt_after_a_no_net_frame_is_said_not_an_error() -> None:
+    """A jump, a frame without the net, an agreeing plane, then the pilot's command: the
+    refusal text was built from a reason the no-net frame had cleared, a Lua error ("internal
+    error, OFF") and no COMMAND_ACK."""
+    applet = Applet()
+    for k, d in enumerate((2.0, 2.0, 1.0, 0.0, 1.0)):  # 0.0: a frame without the net
+        t = 0.1 * (k + 1)
+        _step(applet, t, d, t - 0.05)
+    applet.receive(command_user_1(True), chan=1)
+    _step(applet, 0.7)
+    assert applet.acks() == [(MAV_CMD_USER_1, 2)]
+    assert not any("internal error" in text for _, text in applet.texts())
+
+
+def test_a_hard_minimum_the_set_point_cannot_stay_above_is_refused() -> None:
+    """NETH_DIST_MIN 4 with the set point clamped to at most 3 m put the set point inside
+    the minimum (the loop pushing toward the net until the brake): the minimum is at most
+    2.9 m, 10 cm under the largest set point."""
+    applet = Applet({"NETH_DIST_MIN": 4.0, "NETH_DIST": 6.0, "NETH_DIST_MAX": 10.0})
+    run_closed_loop(applet, NetVehicle(distance_m=5.0), 1.0, t0=0.0)
+    applet.press(1)
+    applet.run_until(applet.now + 0.05)
+    assert not applet.engaged and "NETH_DIST_MIN" in applet.texts()[-1][1]
+
+
+def test_anyone_may_switch_net_hold_off() -> None:
+    """Off is never unsafe: a second ground station or a companion that asks for it was
+    DENIED while net hold kept thrusting. Only engaging is the pilot's ground station's."""
+    applet, vehicle = holding_applet()
+    applet.receive(command_user_1(False, sysid=42), chan=1)
+    run_closed_loop(applet, vehicle, 0.1)
+    assert not applet.engaged and applet.acks()[-1] == (MAV_CMD_USER_1, 0)
+
+
+def test_a_released_channel_in_an_rc_override_is_not_a_stick() -> None:
+    """65534 releases channels 9-18 (and 0, 65535 leave any channel alone): not a pulse
+    width, so not the pilot moving a stick, wherever forward and yaw are mapped."""
+    applet, vehicle = holding_applet()
+    applet.receive(rc_override({FWD: 65534, YAW: 0}))
+    run_closed_loop(applet, vehicle, 0.3)
+    assert applet.engaged
