@@ -130,7 +130,8 @@ class _State:
 class _Session:
     """One recording in progress: its folder, its writer thread and its counters."""
 
-    def __init__(self, folder: Path, max_bytes: int, on_stop: Callable[[str], None]) -> None:
+    def __init__(self, folder: Path, max_bytes: int,
+                 on_stop: Callable[[_Session, str], None]) -> None:
         self.folder = folder
         self.max_bytes = max_bytes
         self.started_unix = time.time()
@@ -212,7 +213,7 @@ class _Session:
             self._queue.clear()
         self.error = why
         log.warning("recording %s stopped: %s", self.folder.name, why)
-        self._on_stop(why)
+        self._on_stop(self, why)
 
 
 def _contents_of(folder: Path) -> dict[str, int]:
@@ -245,7 +246,7 @@ class Recorder(Closeable):
         that changes one rolls the recording over); None: any change does."""
         self.root = root
         self._recorded_sections = recorded_sections
-        self._rolling: threading.Thread | None = None
+        self._finishing: list[threading.Thread] = []  # recordings ended by a reload
         self._pipeline_state = pipeline_state
         self._vehicle = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle) or "rov"
         self._setup = setup
@@ -280,19 +281,26 @@ class Recorder(Closeable):
     def observe_reload(self, changed: frozenset[str]) -> None:
         """Settings the recording describes changed: it ends at the last frame made with the
         old ones and the next begins with the new ones (its netpose.toml, its pipeline state
-        at its first frame). Frames stop going to the old one at once, on the loop; the files
-        are finished, and the next begun, on a thread of the recorder's own."""
+        at its first frame), here on the loop, between two frames, so none is lost or goes
+        to the wrong one. Finishing the old one's files (its writer drains its queue) is done
+        on a thread of the recorder's own, which `stop` waits for."""
         if self._recorded_sections is not None and not changed & self._recorded_sections:
             return
-        with self._lock:
-            session, self._session = self._session, None
-            if session is None:
+        with self._lock:  # one hold: a stop from the page sees the old or the new, not none
+            old, setup = self._session, self._session_setup
+            if old is None or setup is None:
                 return
-        log.info("recording %s ends here: settings changed (%s); a new one starts",
-                 session.folder.name, ", ".join(sorted(changed)))
-        self._rolling = threading.Thread(target=self._roll_over, args=(session,),
-                                         name="recorder roll-over", daemon=True)
-        self._rolling.start()
+            self._session = None
+            log.info("recording %s ends here: settings changed (%s); a new one starts",
+                     old.folder.name, ", ".join(sorted(changed)))
+            try:
+                self._begin_locked()
+            except RecorderError as exc:
+                log.warning("recording after the settings changed: %s", exc)
+            finishing = threading.Thread(target=self._finish, args=(old, setup),
+                                         name="recorder finish", daemon=True)
+            self._finishing.append(finishing)
+        finishing.start()
 
     def close(self) -> None:
         self.stop()
@@ -300,68 +308,65 @@ class Recorder(Closeable):
     # -- control ---------------------------------------------------------------------------------
     def begin(self) -> RecorderStatus:
         with self._lock:
-            if self._session is not None:
-                raise RecorderError(f"already recording {self._session.folder.name}")
-            try:
-                self.root.mkdir(parents=True, exist_ok=True)
-                free = shutil.disk_usage(self.root).free
-            except OSError as exc:
-                raise RecorderError(
-                    f"recordings folder {self.root}: {exc.strerror or exc}") from None
-            if free < MIN_FREE_BYTES:
-                raise RecorderError(f"only {free >> 20} MB free in {self.root}; 200 MB needed")
-            setup = self._setup()
-            folder = self._new_folder()
-            try:
-                (folder / FRAMES_DIR).mkdir(parents=True)
-                save_camera(setup.camera, folder / CAMERA_FILE)
-                (folder / TUNING_FILE).write_text(setup.tuning_toml, encoding="utf-8")
-                session = _Session(folder, self._max_bytes, self._stopped_by_itself)
-            except OSError as exc:
-                shutil.rmtree(folder, ignore_errors=True)
-                raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
-            try:
-                self._manifest(session, setup, finished=False)
-            except OSError as exc:
-                session.close()  # its writer thread too
-                shutil.rmtree(folder, ignore_errors=True)
-                raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
-            self._session_setup = setup
-            self._session = session
-            log.info("recording started: %s", folder)
-            return self._status_of(session)
+            return self._begin_locked()
 
-    def _roll_over(self, session: _Session) -> None:
-        with self._lock:
-            self._finish(session)
+    def _begin_locked(self) -> RecorderStatus:
+        if self._session is not None:
+            raise RecorderError(f"already recording {self._session.folder.name}")
         try:
-            self.begin()
-        except RecorderError as exc:
-            log.warning("recording after the settings changed: %s", exc)
+            self.root.mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(self.root).free
+        except OSError as exc:
+            raise RecorderError(
+                f"recordings folder {self.root}: {exc.strerror or exc}") from None
+        if free < MIN_FREE_BYTES:
+            raise RecorderError(f"only {free >> 20} MB free in {self.root}; 200 MB needed")
+        setup = self._setup()
+        folder = self._new_folder()
+        try:
+            (folder / FRAMES_DIR).mkdir(parents=True)
+            save_camera(setup.camera, folder / CAMERA_FILE)
+            (folder / TUNING_FILE).write_text(setup.tuning_toml, encoding="utf-8")
+            session = _Session(folder, self._max_bytes, self._stopped_by_itself)
+        except OSError as exc:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
+        try:
+            self._manifest(session, setup, finished=False)
+        except OSError as exc:
+            session.close()  # its writer thread too
+            shutil.rmtree(folder, ignore_errors=True)
+            raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
+        self._session_setup = setup
+        self._session = session
+        log.info("recording started: %s", folder)
+        return self._status_of(session)
 
     def stop(self) -> RecorderStatus:
-        rolling = self._rolling
-        if rolling is not None and rolling is not threading.current_thread():
-            rolling.join()  # a roll-over under way: stop what it began
+        with self._lock:
+            finishing, self._finishing = self._finishing, []
+        for thread in finishing:
+            if thread is not threading.current_thread():
+                thread.join()  # a recording a reload ended: its manifest is written first
         with self._lock:
             session, self._session = self._session, None
             if session is None:
                 return self._last
-            return self._finish(session)
+            assert self._session_setup is not None
+            return self._finish(session, self._session_setup)
 
-    def _finish(self, session: _Session) -> RecorderStatus:
-        """Close a session's files and write its finished manifest (the lock held)."""
+    def _finish(self, session: _Session, setup: RecordingSetup) -> RecorderStatus:
+        """Close a session's files and write its finished manifest."""
         session.close()
         error = session.error
-        if self._session_setup is not None:
-            try:
-                self._manifest(session, self._session_setup, finished=True)
-            except OSError as exc:
-                # The frames written stay; the recording is not marked finished (a replay
-                # can still read it), and the page says why.
-                why = f"cannot finish the recording's manifest: {exc.strerror or exc}"
-                error = f"{error}; {why}" if error else why
-                log.warning("recording %s: %s", session.folder.name, why)
+        try:
+            self._manifest(session, setup, finished=True)
+        except OSError as exc:
+            # The frames written stay; the recording is not marked finished (a replay can
+            # still read it), and the page says why.
+            why = f"cannot finish the recording's manifest: {exc.strerror or exc}"
+            error = f"{error}; {why}" if error else why
+            log.warning("recording %s: %s", session.folder.name, why)
         self._last = RecorderStatus(name=session.folder.name, frames=session.frames,
                                     dropped=session.dropped, bytes=session.bytes,
                                     started_unix=session.started_unix, error=error)
@@ -419,9 +424,15 @@ class Recorder(Closeable):
             folder = self.root / f"{base}-{n}"
         return folder
 
-    def _stopped_by_itself(self, why: str) -> None:
-        # Called on the writer thread: finish the recording from another one (stop() joins it).
-        threading.Thread(target=self.stop, name="recorder stop", daemon=True).start()
+    def _stopped_by_itself(self, session: _Session, why: str) -> None:
+        # Called on the writer thread: finish the recording from another one (stop() joins
+        # it). Only that recording: one that filled up while a roll-over finished it must not
+        # stop the next.
+        def stop_it() -> None:
+            if self._session is session:
+                self.stop()
+
+        threading.Thread(target=stop_it, name="recorder stop", daemon=True).start()
 
     def _status_of(self, session: _Session) -> RecorderStatus:
         return RecorderStatus(active=True, name=session.folder.name, frames=session.frames,
