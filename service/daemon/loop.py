@@ -288,8 +288,8 @@ class Daemon:
     def reload(self) -> bool:
         """Re-read the configuration file (SIGHUP). Filter, estimator, mesh and log level take
         effect at once; camera (the calibration file's contents too), MAVLink, telemetry and web
-        changes need a restart (logged). A bad
-        new configuration is rejected and the running one kept."""
+        changes need a restart (logged). A bad new configuration is rejected and the running
+        one kept."""
         if self._load_config is None:
             log.warning("reload requested, but this daemon has no configuration file to re-read")
             return False
