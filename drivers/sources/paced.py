@@ -128,11 +128,7 @@ class PacedSource(FrameSource):
                 raise
             # Not there yet (a file still being copied, a folder not mounted): retried by
             # read() with backoff, like a camera that is not plugged in.
-            if self._state is not SourceState.DOWN or exc.reason != self._error:
-                log.warning("frame source %s down: %s; retrying with backoff",
-                            redact_text(self.url), exc.reason)
-            self._state, self._error = SourceState.DOWN, exc.reason
-            self._retry_at = time.monotonic() + self._backoff.next_delay(time.monotonic())
+            self._go_down(exc.reason)
             return
         if self._state is SourceState.DOWN:
             # Back after an outage: a new clock origin, frame numbers carry on after the last.
@@ -153,6 +149,14 @@ class PacedSource(FrameSource):
             ", looping" if self.loop else "",
             ", paced in real time" if self.realtime else "",
         )
+
+    def _go_down(self, reason: str) -> None:
+        """An outage: said once per reason, re-opened by read() with backoff."""
+        if self._state is not SourceState.DOWN or reason != self._error:
+            log.warning("frame source %s down: %s; retrying with backoff",
+                        redact_text(self.url), reason)
+        self._state, self._error = SourceState.DOWN, reason
+        self._retry_at = time.monotonic() + self._backoff.next_delay(time.monotonic())
 
     def read(self, timeout_s: float) -> Frame | None:
         if self._state is SourceState.DOWN:
@@ -248,10 +252,7 @@ class PacedSource(FrameSource):
                 # Down at once, with the reason (not a string of "corrupt" frames until the
                 # stall timeout), and re-opened with backoff like a camera unplugged.
                 self._stop()
-                self._state, self._error = SourceState.DOWN, str(exc)
-                log.warning("frame source %s down: %s; retrying with backoff",
-                            redact_text(self.url), self._error)
-                self._retry_at = time.monotonic() + self._backoff.next_delay(time.monotonic())
+                self._go_down(str(exc))
                 return None
             except EndOfMediaError:
                 if self.loop and self._good_since_rewind > 0:
@@ -267,12 +268,7 @@ class PacedSource(FrameSource):
                     # Nothing decodable in a whole pass (a folder emptied, a file replaced):
                     # for a service that is an outage, retried, not the end.
                     self._stop()
-                    self._state = SourceState.DOWN
-                    self._error = "no decodable frame in a whole pass"
-                    log.warning("frame source %s down: %s; retrying with backoff",
-                                redact_text(self.url), self._error)
-                    self._retry_at = time.monotonic() + self._backoff.next_delay(
-                        time.monotonic())
+                    self._go_down("no decodable frame in a whole pass")
                     return None
                 if self.loop:
                     log.warning("frame source %s: no decodable frame to loop",
