@@ -597,27 +597,49 @@ def test_a_slow_search_before_the_net_is_found_does_not_cut_the_tracking_work(
     assert h.daemon.budget.cost_s(0) == pytest.approx(0.2 / FPS, rel=0.3)
 
 
-def _recorder(tmp_path: Path, cfg: Any, holder: list[Any]) -> Any:
-    """The web page's recorder into tmp_path/rec, taking the filter state from the harness
-    that `holder` will hold."""
+def _recorder(tmp_path: Path, holder: list[Any]) -> Any:
+    """The web page's recorder into tmp_path/rec, taking the settings in force and the filter
+    state from the harness that `holder` will hold."""
     from drivers.recorder import Recorder, RecordingSetup
     from service.daemon.settings_editor import tuning_toml
 
-    return Recorder(tmp_path / "rec", "test",
-                    lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(cfg), 0.025,
-                                           90.0),
-                    1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    def setup() -> RecordingSetup:
+        config = holder[0].daemon.config
+        return RecordingSetup(builtin_camera(640, 360), tuning_toml(config),
+                              config.mesh.bar_length_m, config.mesh.opening_angle_deg)
+
+    return Recorder(tmp_path / "rec", "test", setup, 1 << 30,
+                    lambda: holder[0].daemon.pipeline.snapshot())
+
+
+def _replay(tmp_path: Path, recording: str, out: str = "replay",
+            *extra: str) -> subprocess.CompletedProcess[str]:
+    """`netpose replay` of tmp_path/rec/<recording> into tmp_path/<out>."""
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / recording),
+         "--no-video", "--out", str(tmp_path / out), "--progress", "off", *extra],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def _filtered_agree(rows: dict[int, dict[str, str]], live: dict[int, Any]) -> int:
+    """Each replayed row has the daemon's filter state, and its filtered distance to the 6
+    decimals of the daemon's messages; how many distances were compared."""
+    compared = 0
+    for index, row in rows.items():
+        message = live[index]
+        assert row["filter_state"] == message.filtered.state
+        if message.filtered.distance_m is not None:
+            assert float(row["filtered_distance_m"]) == pytest.approx(
+                message.filtered.distance_m, abs=1e-6 + 1e-12)
+            compared += 1
+    return compared
 
 
 def _replayed_rows(tmp_path: Path, recording: str) -> dict[int, dict[str, str]]:
     """`netpose replay --filter` of tmp_path/rec/<recording>: its CSV rows by frame number."""
-    out = tmp_path / "replay"
-    proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / recording),
-         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = _replay(tmp_path, recording, "replay", "--filter")
     assert proc.returncode == 0, proc.stderr
-    with (out / "estimates.csv").open() as fh:
+    with (tmp_path / "replay" / "estimates.csv").open() as fh:
         return {int(r["frame"]): r for r in csv.DictReader(fh)}
 
 
@@ -630,7 +652,7 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
     slow = SlowCpu(None, 2.5 / FPS)
     holder: list[Any] = []
     cfg = demo_config("budget.max_level=3")
-    recorder = _recorder(tmp_path, cfg, holder)
+    recorder = _recorder(tmp_path, holder)
     seq = frames_at([*frames, *frames, *frames], FPS, 100.0)[::3]  # the newest frame only
     h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(slow, recorder))
     holder.append(h)
@@ -642,15 +664,7 @@ def test_a_recording_made_under_budget_replays_at_the_same_levels(
     assert max(levels) == 3 and status.frames >= len(seq) - 2
     rows = _replayed_rows(tmp_path, status.name)
     live = dict(slow.frames)  # by the source's frame number
-    compared = 0
-    for index, row in rows.items():
-        message = live[index]
-        assert row["filter_state"] == message.filtered.state
-        if message.filtered.distance_m is not None:
-            assert float(row["filtered_distance_m"]) == pytest.approx(
-                message.filtered.distance_m, abs=1e-6 + 1e-12)
-            compared += 1
-    assert compared >= len(rows) // 2
+    assert _filtered_agree(rows, live) >= len(rows) // 2
 
 
 def test_a_reload_mid_recording_ends_it_and_starts_the_next_with_the_new_settings(
@@ -667,14 +681,7 @@ def test_a_reload_mid_recording_ends_it_and_starts_the_next_with_the_new_setting
     cfg = load_daemon_config(str(path))
     holder: list[Any] = []
     observer = RecordingObserver()
-    from drivers.recorder import Recorder, RecordingSetup
-    from service.daemon.settings_editor import tuning_toml
-
-    recorder = Recorder(
-        tmp_path / "rec", "test",
-        lambda: RecordingSetup(builtin_camera(640, 360), tuning_toml(holder[0].daemon.config),
-                               holder[0].daemon.config.mesh.bar_length_m, 90.0),
-        1 << 30, lambda: holder[0].daemon.pipeline.snapshot())
+    recorder = _recorder(tmp_path, holder)
     h = make_harness(cfg, [Step(frame=f) for f in frames_at([*frames, *frames], FPS, 100.0)],
                      load_config=lambda: load_daemon_config(str(path)),
                      observers=(observer, recorder))
@@ -694,12 +701,7 @@ def test_a_reload_mid_recording_ends_it_and_starts_the_next_with_the_new_setting
     for name in names:
         rows = _replayed_rows(tmp_path, name)
         assert len(rows) >= len(frames) - 3
-        for index, row in rows.items():
-            message = live[index]
-            assert row["filter_state"] == message.filtered.state
-            if message.filtered.distance_m is not None:
-                assert float(row["filtered_distance_m"]) == pytest.approx(
-                    message.filtered.distance_m, abs=1e-6 + 1e-12)
+        _filtered_agree(rows, live)
 
 
 def test_a_recording_cut_short_replays_up_to_where_it_was_cut(
@@ -712,7 +714,7 @@ def test_a_recording_cut_short_replays_up_to_where_it_was_cut(
     there would make the rest differ from the vehicle."""
     holder: list[Any] = []
     cfg = demo_config()
-    recorder = _recorder(tmp_path, cfg, holder)
+    recorder = _recorder(tmp_path, holder)
     h = make_harness(cfg, [Step(frame=f) for f in frames_at(frames, FPS, 100.0)],
                      observers=(recorder,))
     holder.append(h)
@@ -723,21 +725,14 @@ def test_a_recording_cut_short_replays_up_to_where_it_was_cut(
     text = log_path.read_bytes()
     lines = text.splitlines(keepends=True)
     log_path.write_bytes(b"".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2] + b"\0" * 64)
-    out = tmp_path / "replay"
-    proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
-         "--filter", "--no-video", "--out", str(out), "--progress", "off"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = _replay(tmp_path, status.name, "replay", "--filter")
     assert proc.returncode == 0, proc.stderr
     assert "frames.jsonl ends in 1 damaged line" in proc.stderr
-    with (out / "estimates.csv").open() as fh:
+    with (tmp_path / "replay" / "estimates.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == len(lines) - 1
     middle = lines[:3] + [b"{not json\n"] + lines[3:-1]
     log_path.write_bytes(b"".join(middle))
-    proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", "replay", str(tmp_path / "rec" / status.name),
-         "--no-video", "--out", str(tmp_path / "again"), "--progress", "off"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
+    proc = _replay(tmp_path, status.name, "again")
     assert proc.returncode != 0 and "line 4 is damaged" in proc.stderr
 
 
@@ -748,26 +743,20 @@ def test_a_recordings_pipeline_state_damaged_or_missing_is_said(
     replay that differed from the vehicle's on its first frames without a word."""
     holder: list[Any] = []
     cfg = demo_config()
-    recorder = _recorder(tmp_path, cfg, holder)
+    recorder = _recorder(tmp_path, holder)
     h = make_harness(cfg, [Step(frame=f) for f in frames_at(frames[:8], FPS, 100.0)],
                      observers=(recorder,))
     holder.append(h)
     recorder.begin()
     h.run_script()
-    folder = tmp_path / "rec" / recorder.stop().name
-
-    def replay() -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [sys.executable, "-m", "service.cli", "replay", str(folder), "--no-video",
-             "--out", str(tmp_path / "out"), "--progress", "off"],
-            cwd=REPO, capture_output=True, text=True, timeout=300)
-
+    name = recorder.stop().name
+    folder = tmp_path / "rec" / name
     (folder / "pipeline_state.json").write_text('{"pipeline": {"x": 1}}')
-    done = replay()
+    done = _replay(tmp_path, name, "out")
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert "pipeline_state.json: damaged" in done.stderr
     (folder / "pipeline_state.json").unlink()
-    done = replay()
+    done = _replay(tmp_path, name, "out")
     assert done.returncode == 0, done.stderr
     assert "has no pipeline_state.json: the replay starts without the vehicle's filter" in (
         done.stderr)
@@ -785,7 +774,7 @@ def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
 
     holder: list[Any] = []
     cfg = demo_config()
-    recorder = _recorder(tmp_path, cfg, holder)
+    recorder = _recorder(tmp_path, holder)
     h = make_harness(cfg, steps(frames[:20]), observers=(recorder,))
     holder.append(h)
     recorder.begin()
@@ -933,7 +922,7 @@ def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
     observer = RecordingObserver()
     holder: list[Any] = []
     cfg = demo_config("budget.search_hz=5")
-    recorder = _recorder(tmp_path, cfg, holder)
+    recorder = _recorder(tmp_path, holder)
     h = make_harness(cfg, [Step(frame=f) for f in seq], observers=(observer, recorder))
     holder.append(h)
     recorder.begin()
