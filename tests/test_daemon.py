@@ -156,6 +156,27 @@ def test_status_line_and_status_message(frames: list[Frame]) -> None:
     assert h.telemetry.state is not None and h.telemetry.state.status is status
 
 
+def test_status_says_since_when_the_camera_streams(frames: list[Frame]) -> None:
+    """`frame_source.up_since_mono` is the first frame's arrival after the source (last) came
+    up: what a topside needs to tell a long-running camera from one that keeps reconnecting,
+    and what the soak benchmark measures start-up from (a subscriber may join after the
+    first estimates)."""
+    cfg = demo_config("service.status_interval_s=0.5", "camera.stale_after_s=0.5")
+    first = list(frames_at(frames[:10], FPS, 100.0))
+    again = list(frames_at(frames[10:20], FPS, 103.5))  # after a 3 s outage
+    script = [*(Step(frame=f) for f in first), *[Step(wait_s=0.3)] * 10,
+              *(Step(frame=f) for f in again)]
+    h = make_harness(cfg, script)
+    h.run_script()
+    statuses = h.telemetry.statuses
+    streaming = [s for s in statuses if s.frame_source.state == "streaming"]
+    since = sorted({s.frame_source.up_since_mono for s in streaming})
+    assert since == [pytest.approx(first[0].t_monotonic, abs=0.05),
+                     pytest.approx(again[0].t_monotonic, abs=0.05)], since
+    down = [s for s in statuses if s.frame_source.state == "reconnecting"]
+    assert down and all(s.frame_source.up_since_mono is None for s in down)
+
+
 def test_observers_get_every_frame_and_status_and_are_closed(frames: list[Frame]) -> None:
     observer = RecordingObserver()
     h = make_harness(demo_config("service.status_interval_s=0.5"), steps(frames[:15]),

@@ -272,10 +272,14 @@ def run_case(case: SoakCase, video: Path, calibration: Path, duration_s: float,
     if arrivals:
         first_arrival = min(a.t_received for a in arrivals)
         report.launch_s = first_arrival - launched
-        frame_times = [float(e["frame_time_mono"]) for e in estimates
-                       if e.get("frame_time_mono") is not None]
-        if frame_times:
-            report.startup_s = first_arrival - min(frame_times)
+        # From the daemon's own word (every status says since when the source streams), not
+        # from the first estimate this subscriber saw: the daemon's Zenoh session may come up
+        # after its first frames, and their estimates then reach no one.
+        came_up = [float(s["frame_source"]["up_since_mono"]) for s in statuses
+                   if isinstance(s.get("frame_source"), dict)
+                   and s["frame_source"].get("up_since_mono") is not None]
+        if came_up:
+            report.startup_s = first_arrival - min(came_up)
     if status != 0:
         report.notes.append("daemon stderr tail: " + " | ".join(tail[-5:]))
     return report

@@ -164,6 +164,9 @@ class FrameSourceHealth:
     dropped: int = doc("frames not processed because the estimator was busy (total)", 0)
     corrupt: int = doc("frames that could not be decoded (total)", 0)
     last_frame_age_s: float | None = doc("time since the last frame", None)
+    up_since_mono: float | None = doc(
+        "monotonic capture time of the first frame since the source (last) came up; null "
+        "before it and while the source is down", None)
     error: str = doc("why the source is not streaming (empty while it is)", "")
 
 

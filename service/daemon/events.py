@@ -76,10 +76,13 @@ class SourceWatch:
         self._started_at = started_at
         self.up: bool | None = None  # None: no frame yet
         self.last_frame_at: float | None = None
+        # Capture time of the first frame since the source (last) came up; None while down.
+        self.up_since: float | None = None
 
-    def frame(self, width: int, height: int, now: float) -> None:
+    def frame(self, width: int, height: int, now: float, captured_at: float) -> None:
         if not self.up:
             log.info("frame source up: %dx%d from %s", width, height, self._url)
+            self.up_since = captured_at
         self.up = True
         self.last_frame_at = now
 
@@ -87,6 +90,7 @@ class SourceWatch:
         last = self.last_frame_at if self.last_frame_at is not None else self._started_at
         if now - last >= self.stale_after_s and self.up is not False:
             self.up = False
+            self.up_since = None
             log.warning("frame source down: no frame for %.1f s (%s)", now - last, self._url)
 
 

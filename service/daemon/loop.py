@@ -167,7 +167,7 @@ class Daemon:
             self.source_watch.idle(now)
         else:
             h, w = frame.image.shape[:2]
-            self.source_watch.frame(w, h, now)
+            self.source_watch.frame(w, h, now, frame.t_monotonic)
             if self.search.due(frame.t_monotonic):
                 result = self.pipeline.measure(frame.image, frame.t_monotonic, frame.index,
                                                budget=self.budget.level)

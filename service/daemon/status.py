@@ -184,6 +184,7 @@ class StatusReporter:
                 dropped=ctx.stats.skipped + counters.drops, corrupt=counters.corrupt,
                 last_frame_age_s=None if watch.last_frame_at is None
                 else now - watch.last_frame_at,
+                up_since_mono=watch.up_since,
                 error=counters.error,
             ),
             autopilot=link,
