@@ -22,21 +22,32 @@ from drivers.mavlink_link import (
 )
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key
 
-# ArduSub 4.5 names the limits in cm (RNGFND1_MIN_CM/MAX_CM), 4.7 in metres (RNGFND1_MIN/MAX);
+# ArduPilot has up to ten rangefinder instances, RNGFND1_ .. RNGFND9_ and RNGFNDA_ (one on
+# boards without the flash for more), and hands every DISTANCE_SENSOR to each instance that is
+# not off; an instance of type MAVLink keeps the readings of its own orientation. So netpose can
+# use any free instance: a BlueROV2's Ping altimeter (usually RNGFND1, facing down for SURFTRAK)
+# stays as it is.
+RANGEFINDER_INSTANCES = tuple("123456789A")
+# ArduSub 4.5 names the limits in cm (RNGFNDn_MIN_CM/MAX_CM), 4.7 in metres (RNGFNDn_MIN/MAX);
 # asking for both tells which firmware generation answered.
+INSTANCE_SUFFIXES = ("TYPE", "ORIENT", "MIN_CM", "MAX_CM", "MIN", "MAX")
+
+
+def instance_params(instance: str) -> tuple[str, ...]:
+    return tuple(f"RNGFND{instance}_{suffix}" for suffix in INSTANCE_SUFFIXES)
+
+
 RANGEFINDER_PARAMS = (
-    "RNGFND1_TYPE",
-    "RNGFND1_ORIENT",
-    "RNGFND1_MIN_CM",
-    "RNGFND1_MAX_CM",
-    "RNGFND1_MIN",
-    "RNGFND1_MAX",
+    *(name for instance in RANGEFINDER_INSTANCES for name in instance_params(instance)),
     "RNGFND_SQ_MIN",
 )
 # Lua scripting, and two parameters the net-hold applet (scripts/net_hold.lua) creates once it runs.
 NET_HOLD_PARAMS = ("SCR_ENABLE", "NETH_ENABLE", "NETH_DIST")
 
+RNGFND_TYPE_NONE = 0
 RNGFND_TYPE_MAVLINK = 10
+# The types a companion computer's operator meets (AP_RangeFinder_Params.cpp), for the advice.
+RNGFND_TYPE_NAMES = MappingProxyType({0: "none", 10: "MAVLink", 23: "Blue Robotics Ping"})
 ORIENTATION_NAMES = MappingProxyType({0: "forward", 4: "backward", 24: "up", 25: "down"})
 _MAV_CMD_REQUEST_MESSAGE = 512
 _MSG_ID_AUTOPILOT_VERSION = 148
@@ -68,6 +79,9 @@ class AutopilotReport:
 class Advice:
     changes: list[str]  # parameter or configuration changes that are needed
     notes: list[str]  # things worth knowing that need no change
+    # The rangefinder instance ("1" .. "9", "A") that takes netpose's readings, or should;
+    # None when the autopilot reported none.
+    instance: str | None = None
 
 
 def _is_autopilot_heartbeat(msg: Any) -> bool:
@@ -179,20 +193,10 @@ def advise(report: AutopilotReport, settings: MavlinkSettings, net_hold: bool = 
     if report.sysid != settings.source_system:
         changes.append(f"set mavlink.source_system = {report.sysid} in netpose's configuration "
                        "(netpose must use the vehicle's system id)")
-    rng_type = p.get("RNGFND1_TYPE")
-    if rng_type is None:
-        changes.append("the autopilot did not report RNGFND1_TYPE: use a firmware with "
-                       "rangefinder support")
-    elif int(rng_type) != RNGFND_TYPE_MAVLINK:
-        changes.append(f"set RNGFND1_TYPE = {RNGFND_TYPE_MAVLINK} (MAVLink; now "
-                       f"{_fmt(rng_type)}) and reboot the autopilot")
-    orient = p.get("RNGFND1_ORIENT")
     want = settings.orientation
-    want_name = ORIENTATION_NAMES.get(want, f"rotation {want}")
-    if orient is not None and int(orient) != want:
-        changes.append(f"set RNGFND1_ORIENT = {want} ({want_name}; now {_fmt(orient)}): the "
-                       "autopilot ignores DISTANCE_SENSOR of any other orientation")
-    changes.extend(_limit_changes(p, settings, notes))
+    instance = _rangefinder_changes(p, want, changes, notes)
+    if instance is not None:
+        changes.extend(_limit_changes(p, instance, settings, notes))
     sq_min = p.get("RNGFND_SQ_MIN")
     if sq_min is not None and sq_min > 0:
         if want == 25:
@@ -212,17 +216,87 @@ def advise(report: AutopilotReport, settings: MavlinkSettings, net_hold: bool = 
                            "autopilot's scripts folder and reboot (docs/net-hold.md)")
         if not settings.send_net_plane:
             changes.append("set mavlink.send_net_plane = true: the applet needs the net plane")
-    return Advice(changes=changes, notes=notes)
+    return Advice(changes=changes, notes=notes, instance=instance)
 
 
-def _limit_changes(p: dict[str, float], settings: MavlinkSettings, notes: list[str]) -> list[str]:
+def _type_name(value: float) -> str:
+    return RNGFND_TYPE_NAMES.get(int(value), f"type {_fmt(value)}")
+
+
+def _orientation_name(value: float) -> str:
+    return ORIENTATION_NAMES.get(int(value), f"rotation {_fmt(value)}")
+
+
+def _rangefinder_changes(
+    p: dict[str, float], want: int, changes: list[str], notes: list[str]
+) -> str | None:
+    """Which rangefinder instance takes netpose's readings (or should), and what to change so
+    it does; None when the autopilot reported no rangefinder parameters at all."""
+    present = [n for n in RANGEFINDER_INSTANCES if f"RNGFND{n}_TYPE" in p]
+    if not present:
+        changes.append("the autopilot did not report RNGFND1_TYPE: use a firmware with "
+                       "rangefinder support")
+        return None
+
+    def kind(n: str) -> int:
+        return int(p[f"RNGFND{n}_TYPE"])
+
+    def facing(n: str) -> int | None:
+        value = p.get(f"RNGFND{n}_ORIENT")
+        return None if value is None else int(value)
+
+    want_name = _orientation_name(want)
+    ours = [n for n in present if kind(n) == RNGFND_TYPE_MAVLINK and facing(n) == want]
+    chosen = ours[0] if ours else None
+    free = [n for n in present if kind(n) == RNGFND_TYPE_NONE]
+    elsewhere = [n for n in present if kind(n) == RNGFND_TYPE_MAVLINK]
+    if chosen is None:
+        if free:
+            chosen = free[0]
+            changes.append(f"set RNGFND{chosen}_TYPE = {RNGFND_TYPE_MAVLINK} (MAVLink; a free "
+                           "rangefinder instance) and reboot the autopilot")
+            for n in elsewhere:
+                notes.append(f"RNGFND{n} is a MAVLink rangefinder facing "
+                             f"{_orientation_name(facing(n) or 0)}: left as it is (another "
+                             f"sensor may send to it); netpose's readings face {want_name}")
+        elif elsewhere:
+            chosen = elsewhere[0]
+        else:
+            # Every instance holds a sensor: one of them has to give way; not the one facing down
+            # if there is a choice (ArduSub's SURFTRAK and the pilot's altitude read it).
+            chosen = next((n for n in present if facing(n) != 25), present[0])
+            changes.append(f"set RNGFND{chosen}_TYPE = {RNGFND_TYPE_MAVLINK} (MAVLink; now "
+                           f"{_type_name(kind(chosen))}, which this replaces: every rangefinder "
+                           "instance of this autopilot is in use) and reboot the autopilot")
+    orient = facing(chosen)
+    if orient is not None and orient != want:
+        changes.append(f"set RNGFND{chosen}_ORIENT = {want} ({want_name}; now {_fmt(orient)}):"
+                       " the autopilot ignores DISTANCE_SENSOR of any other orientation")
+    # Asked for "the forward rangefinder" (the net-hold applet, the ground station), the
+    # autopilot answers with the first instance of that orientation that has a good reading,
+    # else the first of it: another sensor facing the same way would answer for netpose
+    # whenever netpose has nothing, or whenever it comes first.
+    for n in present:
+        if (n != chosen and kind(n) not in (RNGFND_TYPE_NONE, RNGFND_TYPE_MAVLINK)
+                and facing(n) == want):
+            changes.append(
+                f"RNGFND{n} ({_type_name(kind(n))}) also faces {want_name}: the autopilot "
+                f"would read it as netpose's (RNGFND{chosen}); set RNGFND{n}_ORIENT to where "
+                f"that sensor really looks, or RNGFND{n}_TYPE = 0")
+    return chosen
+
+
+def _limit_changes(
+    p: dict[str, float], instance: str, settings: MavlinkSettings, notes: list[str]
+) -> list[str]:
     # ArduPilot uses the narrower of its parameters and the message's min/max, so its minimum
     # must not exceed ours and its maximum must not fall short of ours.
     ours_min, ours_max = settings.min_distance_m, settings.max_distance_m
     changes: list[str] = []
+    prefix = f"RNGFND{instance}_"
     for low, high, scale, unit in (
-        ("RNGFND1_MIN_CM", "RNGFND1_MAX_CM", 100.0, "cm"),
-        ("RNGFND1_MIN", "RNGFND1_MAX", 1.0, "m"),
+        (f"{prefix}MIN_CM", f"{prefix}MAX_CM", 100.0, "cm"),
+        (f"{prefix}MIN", f"{prefix}MAX", 1.0, "m"),
     ):
         if low not in p and high not in p:
             continue
@@ -233,6 +307,6 @@ def _limit_changes(p: dict[str, float], settings: MavlinkSettings, notes: list[s
             changes.append(f"set {high} = {_fmt(round(ours_max * scale, 2))} (now "
                            f"{_fmt(p[high])} {unit}): readings above it are 'out of range'")
         return changes
-    notes.append("neither RNGFND1_MIN_CM/MAX_CM nor RNGFND1_MIN/MAX reported: range limits not "
-                 "checked")
+    notes.append(f"neither {prefix}MIN_CM/MAX_CM nor {prefix}MIN/MAX reported: range limits "
+                 "not checked")
     return changes

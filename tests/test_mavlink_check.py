@@ -100,8 +100,79 @@ def test_advice_on_missing_rangefinder_support() -> None:
     report = AutopilotReport(1, 1, 12, 3, 2, None, params={})
     advice = advise(report, MavlinkSettings())
     assert any("did not report RNGFND1_TYPE" in c for c in advice.changes)
-    assert any("range limits not checked" in n for n in advice.notes)
+    assert advice.instance is None
     assert report.firmware is None
+
+
+def ardusub_47(**instances: tuple[int, int]) -> dict[str, float]:
+    """ArduSub 4.7's rangefinder parameters on a board with ten instances (every one is
+    reported, off unless set): `instances` maps "1".."9", "A" to (TYPE, ORIENT)."""
+    params: dict[str, float] = {"RNGFND_SQ_MIN": 0}
+    for n in "123456789A":
+        kind, orient = instances.get(f"i{n}", (0, 25))
+        params |= {f"RNGFND{n}_TYPE": kind, f"RNGFND{n}_ORIENT": orient,
+                   f"RNGFND{n}_MIN": 0.2, f"RNGFND{n}_MAX": 10}
+    return params
+
+
+PING = 23  # Blue Robotics Ping, the BlueROV2's downward altimeter
+
+
+def test_a_ping_altimeter_on_rngfnd1_is_left_alone(capsys: pytest.CaptureFixture[str]) -> None:
+    """ArduPilot hands a DISTANCE_SENSOR to every rangefinder instance that is not off, and a
+    MAVLink instance keeps those of its orientation: netpose can use any free instance. The
+    check asked about RNGFND1 only and told a BlueROV2's owner to turn the Ping altimeter
+    (RNGFND1, facing down, what SURFTRAK holds altitude with) into netpose's."""
+    with FakeAutopilot(UdpServerTransport(), params=ardusub_47(i1=(PING, 25))) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1"])
+    out = capsys.readouterr().out
+    assert code == 3
+    changes = out.split("To change:")[1]
+    assert "set RNGFND2_TYPE = 10" in changes and "set RNGFND2_ORIENT = 0" in changes
+    assert "RNGFND1" not in changes
+    assert "RNGFND1_TYPE     23" in out  # shown, as the sensor it is
+
+    # Set up that way, the vehicle is ready.
+    ready = ardusub_47(i1=(PING, 25), i2=(10, 0))
+    with FakeAutopilot(UdpServerTransport(), params=ready) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "RNGFND2_MAX      10" in out and "RNGFND3_TYPE" not in out  # free ones not listed
+
+
+def test_another_sensor_facing_the_same_way_is_named() -> None:
+    """The autopilot answers "the forward rangefinder" with the first instance of that
+    orientation that has a good reading: a second forward sensor would stand in for netpose's
+    whenever netpose has none (no net in view), and the net-hold applet would follow it."""
+    report = AutopilotReport(1, 1, 12, 3, 2, None, params=ardusub_47(i1=(PING, 0), i3=(10, 0)))
+    advice = advise(report, MavlinkSettings())
+    assert advice.instance == "3"
+    assert len(advice.changes) == 1
+    assert "RNGFND1 (Blue Robotics Ping) also faces forward" in advice.changes[0]
+
+
+def test_a_mavlink_instance_facing_elsewhere_is_not_taken_over() -> None:
+    """A MAVLink instance facing down may be another companion sensor's (a DVL's altitude):
+    netpose gets a free instance of its own while there is one."""
+    params = ardusub_47(i1=(10, 25))
+    advice = advise(AutopilotReport(1, 1, 12, 3, 2, None, params=params), MavlinkSettings())
+    assert advice.instance == "2"
+    assert any("RNGFND1 is a MAVLink rangefinder facing down" in n for n in advice.notes)
+    # With no instance free (a board with one), the MAVLink one is re-pointed.
+    one = {k: v for k, v in params.items() if k.startswith(("RNGFND1_", "RNGFND_"))}
+    advice = advise(AutopilotReport(1, 1, 12, 3, 2, None, params=one), MavlinkSettings())
+    assert advice.instance == "1"
+    assert advice.changes == ["set RNGFND1_ORIENT = 0 (forward; now 25): the autopilot ignores "
+                              "DISTANCE_SENSOR of any other orientation"]
+
+
+def test_a_board_with_every_instance_in_use_gives_up_the_one_not_facing_down() -> None:
+    params = {"RNGFND1_TYPE": PING, "RNGFND1_ORIENT": 25, "RNGFND2_TYPE": 1,
+              "RNGFND2_ORIENT": 24}  # a board with two instances: the altimeter, an up-looker
+    advice = advise(AutopilotReport(1, 1, 12, 3, 2, None, params=params), MavlinkSettings())
+    assert advice.instance == "2"
+    assert "set RNGFND2_TYPE = 10 (MAVLink; now type 1, which this replaces" in advice.changes[0]
 
 
 def test_command_line_entry_point(tmp_path: Path) -> None:

@@ -562,12 +562,15 @@ class Sitl:
 
 @contextmanager
 def ardusub_sitl(tmp_path: Path, settings_for: Any, *, lua: str | None = None,
-                 reading: RangeReading = READING) -> Iterator[Sitl]:
+                 reading: RangeReading = READING, instance_of_ours: str = "1",
+                 other_params: str = "", probe_port: bool = False) -> Iterator[Sitl]:
     """ArduSub SITL with a MAVLink rangefinder (and, optionally, a Lua script), our link
     feeding `reading`, and an observer that has sent its heartbeat (ArduSub forwards to a link
     only after hearing from it). Verified against ArduSub 4.7.0-dev SITL: `--model vectored`,
-    SERIAL0 is TCP 5760 + 10 * instance (the link), SERIAL1 is + 2 (the observer); unknown names
-    in a `--defaults` file are skipped silently."""
+    SERIAL0 is TCP 5760 + 10 * instance (the link), SERIAL1 is + 2 (the observer), and with
+    `probe_port` SERIAL2 is + 4 (for `mavlink-check`); unknown names in a `--defaults` file are
+    skipped silently. netpose's rangefinder is RNGFND`instance_of_ours`; `other_params` are
+    more lines of the defaults file."""
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
@@ -575,10 +578,11 @@ def ardusub_sitl(tmp_path: Path, settings_for: Any, *, lua: str | None = None,
     base_port = 5760 + 10 * instance
     # Both parameter namings: 4.5 knows the *_CM pair, 4.7 the metre pair (since Jan 2025);
     # AP_Param::read_param_defaults_file skips names the firmware does not know.
+    n = instance_of_ours
     defaults = (
-        f"RNGFND1_TYPE 10\nRNGFND1_ORIENT 0\nRNGFND1_MIN_CM {SITL_MIN_CM}\n"
-        f"RNGFND1_MAX_CM {SITL_MAX_CM}\nRNGFND1_MIN {SITL_MIN_CM / 100}\n"
-        f"RNGFND1_MAX {SITL_MAX_CM / 100}\n"
+        f"RNGFND{n}_TYPE 10\nRNGFND{n}_ORIENT 0\nRNGFND{n}_MIN_CM {SITL_MIN_CM}\n"
+        f"RNGFND{n}_MAX_CM {SITL_MAX_CM}\nRNGFND{n}_MIN {SITL_MIN_CM / 100}\n"
+        f"RNGFND{n}_MAX {SITL_MAX_CM / 100}\n{other_params}"
     )
     if lua is not None:
         defaults += "SCR_ENABLE 1\n"
@@ -587,13 +591,15 @@ def ardusub_sitl(tmp_path: Path, settings_for: Any, *, lua: str | None = None,
     (tmp_path / "netpose.parm").write_text(defaults)
     model = os.environ.get("NETPOSE_ARDUSUB_MODEL", "vectored")
     log_path = tmp_path / "sitl.log"
-    serials = [f"--serial{k}" for k in range(2, 9)]  # never --serial9 (crashes with --defaults)
+    # Never --serial9 (crashes with --defaults).
+    serials = [(f"--serial{k}", "tcp:4" if k == 2 and probe_port else "none")
+               for k in range(2, 9)]
     with log_path.open("wb") as log_file:
         sitl = subprocess.Popen(
             [str(SITL), "--model", model, "--speedup", "1", "-I", str(instance), "-w",
              "--defaults", str(tmp_path / "netpose.parm"),
              "--home", "33.810313,-118.393867,0,185",
-             *[arg for flag in serials for arg in (flag, "none")]],
+             *[arg for pair in serials for arg in pair]],
             cwd=tmp_path, stdout=log_file, stderr=subprocess.STDOUT,
         )
     link = MavlinkLink(settings_for(f"tcp:127.0.0.1:{base_port}"))
@@ -659,6 +665,40 @@ def test_ardusub_sitl_reports_our_distance(tmp_path: Path) -> None:
     assert echoed.current_distance in (sent_cm, sent_cm - 1), (echoed.current_distance, sent_cm)
     # The issue's requirement: within 1 cm of the distance handed to the link.
     assert abs(echoed.current_distance - 100 * READING.distance_m) <= 1.0
+
+
+@pytest.mark.skipif(not SITL, reason="set NETPOSE_ARDUSUB_SITL to an ArduSub SITL binary")
+@pytest.mark.timeout(180)
+def test_ardusub_sitl_takes_our_distance_beside_a_downward_altimeter(tmp_path: Path) -> None:
+    """A BlueROV2 keeps its Ping altimeter on RNGFND1 (here SITL's simulated rangefinder,
+    type 100, facing down); netpose's readings go to RNGFND2. ArduSub reports our forward
+    distance, and `netpose mavlink-check` finds the vehicle ready without touching RNGFND1."""
+    from pymavlink import mavutil
+
+    sent_cm = distance_sensor_fields(READING, sitl_settings("tcp:127.0.0.1:1")).current_distance
+    forward = None
+    with ardusub_sitl(tmp_path, sitl_settings, instance_of_ours="2", probe_port=True,
+                      other_params="RNGFND1_TYPE 100\nRNGFND1_ORIENT 25\n") as sitl:
+        sitl.observer.mav.command_long_send(
+            1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+            mavutil.mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, 100_000, 0, 0, 0, 0, 0)
+        deadline = time.monotonic() + 30.0
+        while forward is None and time.monotonic() < deadline:
+            msg = sitl.observer.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=1.0)
+            if msg is not None and msg.get_srcComponent() == 1 and msg.orientation == 0:
+                forward = msg
+        port = 5760 + 10 * int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "7")) + 4
+        check = subprocess.run(
+            [sys.executable, "-m", "service.cli", "mavlink-check", "--url",
+             f"tcp:127.0.0.1:{port}", "--min-distance", str(SITL_MIN_CM / 100),
+             "--max-distance", str(SITL_MAX_CM / 100), "--timeout", "20"],
+            capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[1],
+        )
+        context = sitl.context()
+    assert forward is not None, f"ArduSub never reported a forward DISTANCE_SENSOR\n{context}"
+    assert forward.current_distance in (sent_cm, sent_cm - 1), (forward.current_distance, sent_cm)
+    assert check.returncode == 0, check.stdout + check.stderr
+    assert "RNGFND1_TYPE     100" in check.stdout and "RNGFND2_TYPE     10" in check.stdout
 
 
 # ArduPilot's RangeFinder::Status, as Lua's rangefinder:status_orient() returns it.

@@ -11,7 +11,15 @@ import argparse
 from typing import Any
 
 from drivers.mavlink_link import import_mavutil
-from drivers.mavlink_probe import NET_HOLD_PARAMS, RANGEFINDER_PARAMS, advise, probe_autopilot
+from drivers.mavlink_probe import (
+    NET_HOLD_PARAMS,
+    RANGEFINDER_INSTANCES,
+    RNGFND_TYPE_NONE,
+    AutopilotReport,
+    advise,
+    instance_params,
+    probe_autopilot,
+)
 from drivers.mavlink_settings import MavlinkSettings
 from service.core.errors import ConfigError
 
@@ -67,6 +75,23 @@ def _enum_name(enum: str, value: int) -> str:
     return f"{entry.name} ({value})" if entry is not None else str(value)
 
 
+def _shown_params(report: AutopilotReport, instance: str | None,
+                  net_hold: bool) -> list[str]:
+    """The parameters worth printing: every setting of the instance netpose uses (or should),
+    the type and orientation of the other instances that hold a sensor, not the empty ones."""
+    chosen = instance or RANGEFINDER_INSTANCES[0]
+    names: list[str] = []
+    for n in RANGEFINDER_INSTANCES:
+        if n == chosen:
+            names.extend(instance_params(n))
+        elif report.params.get(f"RNGFND{n}_TYPE", RNGFND_TYPE_NONE) != RNGFND_TYPE_NONE:
+            names.extend(instance_params(n)[:2])
+    names.append("RNGFND_SQ_MIN")
+    if net_hold:
+        names.extend(NET_HOLD_PARAMS)
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.timeout > 0:
         raise ConfigError("--timeout", f"must be > 0, got {args.timeout}")
@@ -79,13 +104,12 @@ def run(args: argparse.Namespace) -> int:
           f"{_enum_name('MAV_TYPE', report.mav_type)}, "
           f"{_enum_name('MAV_AUTOPILOT', report.autopilot)}, MAVLink {report.mavlink_version}, "
           f"firmware {firmware}")
+    advice = advise(report, settings, net_hold=args.net_hold)
     print("Parameters:")
-    names = RANGEFINDER_PARAMS + (NET_HOLD_PARAMS if args.net_hold else ())
-    for name in names:
+    for name in _shown_params(report, advice.instance, args.net_hold):
         value = report.params.get(name)
         shown = "(not on this firmware)" if value is None else f"{value:g}"
         print(f"  {name:<16} {shown}")
-    advice = advise(report, settings, net_hold=args.net_hold)
     for note in advice.notes:
         print(f"Note: {note}")
     if not advice.changes:
