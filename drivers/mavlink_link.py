@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import fcntl
 import functools
 import logging
 import math
@@ -177,6 +178,25 @@ def import_mavutil() -> Any:
     return mavutil
 
 
+def _claim_serial_port(conn: Any, device: str) -> None:
+    """Hold the serial port alone, or fail saying who may have it.
+
+    A tty opened twice splits its incoming bytes between the two readers: the daemon and a
+    `mavlink-check` run beside it each lost half the autopilot's messages (the check then
+    advised a firmware "with rangefinder support", the daemon lost its link). The lock is the
+    one pyserial's `exclusive=True` takes (flock), which pymavlink does not ask for: it keeps
+    out a second netpose; other programs may not take it, hence the router advice.
+    """
+    try:
+        fcntl.flock(conn.port.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        conn.close()
+        raise MavlinkLinkError(
+            f"{device} is in use by another netpose process (the service?): a serial port "
+            "has one reader; stop it, or share the autopilot through a MAVLink router "
+            f"(docs/mavlink.md) ({exc.strerror})") from exc
+
+
 def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any:
     """Open a pymavlink connection whose failures raise instead of printing and retrying.
 
@@ -190,10 +210,10 @@ def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any
         "autoreconnect": False,
     }
     if settings.is_serial:
-        conn = mavutil.mavlink_connection(
-            serial_device(settings.url), baud=settings.baud, **common
-        )
+        device = serial_device(settings.url)
+        conn = mavutil.mavlink_connection(device, baud=settings.baud, **common)
         conn.port.write_timeout = _SERIAL_WRITE_TIMEOUT_S
+        _claim_serial_port(conn, device)
     elif settings.url.startswith("tcp:"):
         conn = mavutil.mavlink_connection(settings.url, retries=0, **common)
 

@@ -8,10 +8,17 @@ from pathlib import Path
 
 import pytest
 
+from drivers.mavlink_link import MavlinkLink
 from drivers.mavlink_probe import RANGEFINDER_PARAMS, AutopilotReport, advise
 from drivers.mavlink_settings import MavlinkSettings
 from service.cli import main
-from tests.fake_autopilot import FakeAutopilot, TcpServerTransport, UdpServerTransport
+from tests.fake_autopilot import (
+    FakeAutopilot,
+    PtyTransport,
+    TcpServerTransport,
+    UdpServerTransport,
+)
+from tests.test_mavlink_link import wait_status
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -184,3 +191,25 @@ def test_command_line_entry_point(tmp_path: Path) -> None:
         )
     assert done.returncode == 3, done.stderr
     assert "set RNGFND1_TYPE = 10" in done.stdout
+
+
+def test_a_serial_port_the_service_holds_is_not_shared(
+    capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A tty opened twice splits the autopilot's bytes between the readers: run beside the
+    service, the check lost half the parameters and advised "a firmware with rangefinder
+    support" while the service lost its link. The port is held by one netpose at a time."""
+    with FakeAutopilot(PtyTransport(), params=READY_47) as autopilot:
+        service_link = MavlinkLink(MavlinkSettings(url=autopilot.url))
+        service_link.start()
+        try:
+            wait_status(service_link, "state", "connected", timeout=10.0)
+            code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "1"])
+            err = capsys.readouterr().err
+            assert code == 1
+            assert "is in use by another netpose process" in err and err.count("\n") == 1
+            assert service_link.status().state == "connected"  # the service kept its link
+        finally:
+            service_link.close()
+        # Once the service lets go, the check has the port.
+        assert main(["mavlink-check", "--url", autopilot.url, "--timeout", "2"]) == 0
