@@ -175,7 +175,7 @@ def test_a_mavlink_instance_facing_elsewhere_is_not_taken_over() -> None:
 
 
 def test_a_board_with_every_instance_in_use_gives_up_the_one_not_facing_down() -> None:
-    params = {"RNGFND1_TYPE": PING, "RNGFND1_ORIENT": 25, "RNGFND2_TYPE": 1,
+    params: dict[str, float] = {"RNGFND1_TYPE": PING, "RNGFND1_ORIENT": 25, "RNGFND2_TYPE": 1,
               "RNGFND2_ORIENT": 24}  # a board with two instances: the altimeter, an up-looker
     advice = advise(AutopilotReport(1, 1, 12, 3, 2, None, params=params), MavlinkSettings())
     assert advice.instance == "2"
