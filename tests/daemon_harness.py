@@ -61,6 +61,9 @@ class Step:
     frame: Frame | None = None
     wait_s: float = 0.0
     processing_s: float = 0.02  # time the loop spends on a frame (the clock moves on)
+    # False: the frame's stamp does not bring the clock along (a file read faster than real
+    # time, a recording's own clock): only processing_s passes.
+    clock_follows: bool = True
 
 
 class ScriptedSource:
@@ -82,7 +85,10 @@ class ScriptedSource:
         if step is None or step.frame is None:
             self._clock.now += timeout_s if step is None else max(step.wait_s, 0.0)
             return None
-        self._clock.now = max(self._clock.now, step.frame.t_monotonic + step.processing_s)
+        if step.clock_follows:
+            self._clock.now = max(self._clock.now, step.frame.t_monotonic + step.processing_s)
+        else:
+            self._clock.now += step.processing_s
         return step.frame
 
     def stats(self) -> Any:

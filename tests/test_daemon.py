@@ -88,6 +88,28 @@ def test_dead_camera_withdraws_the_distance_within_the_coasting_time(
     assert h.notifier.messages[0].startswith("READY=1")
 
 
+def test_frames_stamped_ahead_of_the_clock_still_coast_out_in_real_time(
+    frames: list[Frame]
+) -> None:
+    """A file read faster than real time (`realtime=0`) stamps its frames with media time, ahead
+    of the loop's clock, and a recording replays its own clock. When such frames stopped, the
+    filter's time since the last frame (tick time minus frame time) stayed negative: the
+    distance went out as TRACKING at 10 Hz for as long as the stamps were ahead, seconds to a
+    day. Between frames, time passes from the last frame by what the clock measures."""
+    coast, report = 0.6, 0.2
+    cfg = demo_config(f"filter.coast_timeout_s={coast}", f"filter.report_coasting_s={report}")
+    # One frame a second of media time, read 50 a second: 24 s ahead when they stop.
+    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 1.0, 100.0)]
+    h = make_harness(cfg, [*ahead, *[Step(wait_s=0.2)] * 15])
+    h.run_script()
+    assert any(r.status is RangeStatus.GOOD for r in h.link.ranges[:25])
+    after = h.link.ranges[25:]  # one reading per 0.2 s of waiting (and the script's end)
+    assert len(after) >= 15
+    good_after = sum(r.status is RangeStatus.GOOD for r in after)
+    assert good_after <= round(report / 0.2) + 1, [r.status for r in after]
+    assert after[-1].status is RangeStatus.NONE
+
+
 def test_a_coasting_prediction_goes_out_at_half_the_quality_of_a_measurement(
     frames: list[Frame]
 ) -> None:

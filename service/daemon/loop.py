@@ -153,6 +153,8 @@ class Daemon:
         self.last: TrackOutput | None = None
         self.last_index: int | None = None  # the source's number of the last frame processed
         self._last_pass: float | None = None
+        # (capture stamp, loop clock at arrival) of the newest frame.
+        self._last_frame: tuple[float, float] | None = None
         self._closed = False
 
     # -- the loop ----------------------------------------------------------------------------
@@ -163,9 +165,10 @@ class Daemon:
         self._note_stall(now)
         self.parts.notifier.watchdog(now)
         if frame is None:
-            result = self.pipeline.tick(now)
+            result = self.pipeline.tick(self._tick_time(now))
             self.source_watch.idle(now)
         else:
+            self._last_frame = (frame.t_monotonic, now)
             h, w = frame.image.shape[:2]
             self.source_watch.frame(w, h, now, frame.t_monotonic)
             if self.search.due(frame.t_monotonic):
@@ -192,6 +195,20 @@ class Daemon:
         self.last = result.track
         self.reporter.tick(now, self.last)
         return result
+
+    def _tick_time(self, now: float) -> float:
+        """The time of a pass without a frame, in the frames' time base.
+
+        Frame stamps and the loop's clock may run apart: a file read faster than real time is
+        stamped with media time, a recording with its own clock. Between frames, time passes
+        from the last frame by what the clock measures, so the filter's coasting ends
+        `coast_timeout_s` of real time after the last frame whatever the stamps said (the
+        clock itself when it is ahead: a live camera's frames arrive after their capture).
+        """
+        if self._last_frame is None:
+            return now
+        t_frame, arrived = self._last_frame
+        return max(now, t_frame + (now - arrived))
 
     def _note_stall(self, now: float) -> None:
         """A pass of the loop that took as long as half the systemd watchdog's interval (at
