@@ -39,8 +39,11 @@ class Streamer:
 
     def __init__(self, exe: str, output: list[str], first_number: int = 0, *,
                  frames: Sequence[npt.NDArray[np.uint8]] | None = None, fps: int = FPS,
-                 gop: int | None = None) -> None:
+                 gop: int | None = None, pause: tuple[int, float] | None = None) -> None:
+        """`pause`: (frame number, seconds) — before that frame, nothing is sent for that
+        long (a tether hiccup), then the stream goes on at its rate."""
         self._frames = frames
+        self._pause = pause
         height, width = (HEIGHT, WIDTH) if frames is None else frames[0].shape[:2]
         self._size = (width, height)
         self._fps = fps
@@ -67,6 +70,9 @@ class Streamer:
         start, first = time.monotonic(), self.sent
         try:
             while not self._stop.is_set():
+                if self._pause is not None and self.sent == self._pause[0]:
+                    self._stop.wait(self._pause[1])
+                    start += self._pause[1]
                 if self._frames is None:
                     image = numbered_pattern(self.sent, *self._size)
                 else:
@@ -220,14 +226,15 @@ class RtspServer:
 
 def rtp_to_rtsp(exe: str, tmp_path: Path, streamers: list[Streamer],
                 frames: Sequence[npt.NDArray[np.uint8]] | None = None,
-                fps: int = FPS, gop: int | None = None) -> tuple[str, socket.socket]:
+                fps: int = FPS, gop: int | None = None,
+                pause: tuple[int, float] | None = None) -> tuple[str, socket.socket]:
     """Start an RTP streamer into a fresh UDP socket; the SDP the RTSP server will describe."""
     rtp_in = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rtp_in.bind(("127.0.0.1", 0))
     sdp_file = tmp_path / "rtsp.sdp"
     streamers.append(Streamer(exe, ["-f", "rtp", "-sdp_file", str(sdp_file),
                                     f"rtp://127.0.0.1:{rtp_in.getsockname()[1]}"],
-                              frames=frames, fps=fps, gop=gop))
+                              frames=frames, fps=fps, gop=gop, pause=pause))
     assert wait_for(lambda: sdp_file.exists() and "rtpmap" in sdp_file.read_text(), 10.0)
     sdp = re.sub(r"c=IN IP4 \S+", "c=IN IP4 0.0.0.0", sdp_file.read_text()).strip()
     return "\r\n".join([*sdp.splitlines(), "a=control:trackID=0", ""]), rtp_in

@@ -11,6 +11,7 @@ each frame is; stopping the streamer or the server is a real stall.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import socket
 import time
@@ -151,10 +152,11 @@ def test_rtsp_decodes_with_a_four_core_pi_s_decoder_threads(
 
 
 @contextlib.contextmanager
-def _rtsp_stream(streamers: list[Streamer], tmp_path: Path) -> Iterator[str]:
+def _rtsp_stream(streamers: list[Streamer], tmp_path: Path,
+                 pause: tuple[int, float] | None = None) -> Iterator[str]:
     """An RTSP server on loopback relaying a fresh H.264 stream (appended to `streamers`), as
     BlueOS's camera manager serves one; yields its URL."""
-    sdp, rtp_in = rtp_to_rtsp(ffmpeg_exe(), tmp_path, streamers)
+    sdp, rtp_in = rtp_to_rtsp(ffmpeg_exe(), tmp_path, streamers, pause=pause)
     server = RtspServer(sdp, rtp_in)
     try:
         yield f"rtsp://127.0.0.1:{server.port}/video_stream__dev_video2"
@@ -215,6 +217,38 @@ def test_an_rtsp_frames_time_leaves_out_the_decoders_threads(
     median = float(np.median(offsets[20:]))
     period = 1.0 / FPS
     assert 0.0 < median < 1.5 * period, (median, period)
+
+
+def test_a_pause_of_the_stream_neither_turns_time_back_nor_makes_held_frames_new(
+    streamers: list[Streamer], tmp_path: Path, four_decoder_threads: None
+) -> None:
+    """RTSP with a four-core Pi's decoder threads, and a tether hiccup of one second (under
+    the stall time, so no re-open). Counted in frame periods at the rate frames arrive, the
+    decoder's hold made the first frame after the pause two seconds older than the frame
+    before it (the rate had dropped to one a second), and the frames held through the pause
+    came out stamped as new, a second fresher than they were. Frame times keep increasing,
+    and a frame held back is stamped when it went into the decoder."""
+    pause_at, pause_s = 100, 1.0  # 4 s in: the source has joined the stream by then
+    with _rtsp_stream(streamers, tmp_path, pause=(pause_at, pause_s)) as url, \
+            open_source(url, OPTIONS) as source:
+        stamps: list[tuple[int, float]] = []
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline and (not stamps or stamps[-1][0] < pause_at + 40):
+            frame = source.read(0.5)
+            if frame is not None:
+                stamps.append((read_pattern_number(frame.image), frame.t_monotonic))
+    sent_at = streamers[-1].sent_at
+    numbers = [n for n, _ in stamps]
+    assert min(numbers) < pause_at - 10 and max(numbers) >= pause_at + 30, numbers
+    times = [t for _, t in stamps]
+    assert all(b > a for a, b in itertools.pairwise(times)), "a frame time went back"
+    period = 1.0 / FPS
+    offsets = {n: t - sent_at[n] for n, t in stamps}
+    assert min(offsets.values()) > -0.5 * period  # never before the frame existed
+    # Fresher than it was by more than two periods: only a frame the RTSP relay itself held
+    # through the pause (it sends a frame on when the next one comes: one frame).
+    late = [n for n, offset in offsets.items() if offset > 2 * period]
+    assert len(late) <= 1 and all(pause_at - 3 <= n < pause_at for n in late), offsets
 
 
 def test_stalled_stream_goes_down_and_recovers_when_restarted(

@@ -12,15 +12,20 @@ The decoder runs one frame thread per core (OpenCV's choice; OpenCV 4.6 has no w
 it), and each thread past the first holds every frame back by one frame period: measured on
 loopback, (1 for RTSP, 2 for MPEG-TS) + (threads - 1) frames from the encoder to read(), i.e.
 3 frame periods more on a four-core Pi than with one thread. A frame's time is when read()
-returned less that many frame periods, for a codec the decoder frame-threads
-(`decoder_frames_held`; OpenCV 4.6 names no codec for MPEG-TS, whose frames stay late by it:
-docs/sources.md).
+returned less the frames held, for a codec the decoder frame-threads (`decoder_frames_held`;
+OpenCV 4.6 names no codec for MPEG-TS, whose frames stay late by it: docs/sources.md). Held
+frames, not periods: a decoder holding H frames lets frame n out when frame n + H comes in, so
+frame n came in when frame n - H came out, and that is its time. Counted in periods, a pause of
+the stream (a tether hiccup) shrank the measured rate, so the first frame after it was stamped
+seconds before it existed, and the frames held through it were stamped as new.
 
 `sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
 payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import cv2
 
@@ -75,6 +80,9 @@ class StreamSource(LiveSource):
             opts.ffmpeg_options if opts.ffmpeg_options is not None else default_ffmpeg_options(url)
         )
         self._frames_held = 0  # by the decoder of the capture open now (decoder_frames_held)
+        # When the capture's last `frames_held` frames came out of read() (monotonic).
+        self._came_out: deque[float] = deque(maxlen=1)
+        self._last_stamp = float("-inf")
 
     @property
     def ffmpeg_options(self) -> str:
@@ -92,16 +100,24 @@ class StreamSource(LiveSource):
             read_timeout_s=opts.stall_timeout_s,
         )
         self._frames_held = decoder_frames_held(cap)
+        self._came_out = deque(maxlen=max(1, self._frames_held))
         return cap
 
     def _capture_time(self, cap: VideoCaptureLike, received_mono: float) -> float:
-        """When read() returned, less the frames the decoder held back (frame periods at the
-        rate frames arrive, or the stream's own rate until that is measured)."""
-        if self._frames_held <= 0:
+        """When the frame went into the decoder: when the frame `frames_held` before it came
+        out (module docstring). The first frames of an open have none: when they came out,
+        less that many frame periods at the stream's own rate."""
+        held = self._frames_held
+        if held <= 0:
             return received_mono
-        fps = self._arrival_rate(received_mono)
-        if not fps > 0.0:
+        came_out = self._came_out
+        if len(came_out) == held:
+            t = came_out[0]
+        else:
             fps = float(cap.get(cv2.CAP_PROP_FPS))
-        if not 0.5 <= fps <= 1000.0:
-            return received_mono  # no usable rate: the time the frame arrived
-        return received_mono - self._frames_held / fps
+            t = received_mono - held / fps if 0.5 <= fps <= 1000.0 else received_mono
+        came_out.append(received_mono)
+        # Never after the time it came out, never before the frame stamped last.
+        t = min(max(t, self._last_stamp + 1e-6), received_mono)
+        self._last_stamp = t
+        return t
