@@ -371,3 +371,37 @@ def test_a_missing_file_at_start_is_waited_for(videos: dict[str, Path], tmp_path
         target.write_bytes(videos["mjpg"].read_bytes())
         frame = next((f for f in (source.read(0.3) for _ in range(10)) if f is not None), None)
     assert frame is not None and frame.index == 0
+
+
+def test_a_recording_paced_in_real_time_skips_what_a_slow_reader_missed(tmp_path: Path) -> None:
+    """A recording's frame numbers are the vehicle's, which start where the recording started
+    (70,000 frames into a dive, for one made from the web page). Paced in real time (the
+    service's default), it compared those numbers with the frame periods since open() and
+    never skipped: a reader slower than the recording fell behind without end (3.5 s after
+    16 s, the distance withheld as stale). It skips by recorded time, like a camera."""
+    import json
+
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    (folder / "recording.json").write_text("{}")
+    period = 1.0 / 90.0
+    rows = []
+    for i in range(180):
+        name = f"f{i:04d}.png"
+        cv2.imwrite(str(folder / name), numbered_pattern(i, 160, 120))
+        rows.append(json.dumps({"frame": name, "index": 70_000 + i, "t_mono": 5000.0 + i * period,
+                                "t_unix": 1.7e9 + i * period}))
+    (folder / "frames.jsonl").write_text("\n".join(rows) + "\n")
+    ages = []
+    with open_source(f"recording:{folder}?realtime=1") as source:
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            frame = source.read(0.5)
+            if frame is None:
+                break
+            ages.append(time.monotonic() - frame.t_monotonic)
+            time.sleep(0.03)  # a reader slower than 90 frames/s
+        drops = source.stats().drops
+    assert len(ages) >= 10
+    assert drops > len(ages)  # about two of three frames came due while the reader slept
+    assert max(ages) < 2 * period + 0.01, max(ages)  # the newest frame, not a growing backlog

@@ -141,8 +141,16 @@ class RecordingSource(PacedSource):
                           budget=budget, measured=measured)
 
     def _skip_to(self, number: int) -> int:
+        """Skip the frames recorded before `number` frame periods of media time. By time, not
+        by the recorded numbers: those are the vehicle's, which start wherever the recording
+        started, so a paced reader compared with them never skipped and fell behind."""
+        if not self._entries:
+            return 0
+        due_s = number * self._period
+        t_first = self._entries[0][2]
         skipped = 0
-        while self._position < len(self._entries) and self._entries[self._position][1] < number:
+        while (self._position < len(self._entries)
+               and self._entries[self._position][2] - t_first < due_s):
             self._position += 1
             skipped += 1
         return skipped
