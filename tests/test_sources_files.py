@@ -405,3 +405,37 @@ def test_a_recording_paced_in_real_time_skips_what_a_slow_reader_missed(tmp_path
     assert len(ages) >= 10
     assert drops > len(ages)  # about two of three frames came due while the reader slept
     assert max(ages) < 2 * period + 0.01, max(ages)  # the newest frame, not a growing backlog
+
+
+def test_a_video_whose_timestamps_jump_plays_on(tmp_path: Path) -> None:
+    """Two MPEG-TS files joined end to end (an encoder restarted mid-dive, a recording cut and
+    rejoined): the second one's timestamps start afresh. Read as a frame number, the jump was
+    about 26 hours, and a file paced in real time waited that long for its next frame, up and
+    without an error. A jump in the timestamps is played on without the gap, and said."""
+    import subprocess
+
+    from tests.stream_peers import ffmpeg_exe
+
+    exe = ffmpeg_exe()
+    parts = []
+    for name, first, offset in (("late", 0, 36_000), ("early", 100, 0)):
+        path = tmp_path / f"{name}.ts"
+        frames = np.stack([numbered_pattern(first + i, 160, 120) for i in range(50)])
+        subprocess.run([exe, "-hide_banner", "-loglevel", "error", "-f", "rawvideo",
+                        "-pix_fmt", "gray", "-s", "160x120", "-r", "25", "-i", "-",
+                        "-c:v", "libx264", "-preset", "ultrafast", "-pix_fmt", "yuv420p",
+                        "-output_ts_offset", str(offset), "-f", "mpegts", str(path)],
+                       input=frames.tobytes(), check=True, timeout=60)
+        parts.append(path.read_bytes())
+    joined = tmp_path / "joined.ts"
+    joined.write_bytes(b"".join(parts))
+    numbers: list[int] = []
+    with open_source(f"file:{joined}?realtime=1") as source:
+        deadline = time.monotonic() + 6.0
+        while time.monotonic() < deadline and (not numbers or numbers[-1] < 140):
+            frame = source.read(0.5)
+            if frame is not None:
+                numbers.append(read_pattern_number(frame.image))
+                last_index = frame.index
+    assert numbers and numbers[-1] >= 140, numbers[-5:]  # into the second part, on time
+    assert last_index < 200  # numbered on, not 26 hours on

@@ -35,6 +35,8 @@ DEFAULT_IMAGE_FPS = 10.0
 # backend returns False both for a frame the decoder rejects (and goes on with the next one) and
 # at the end, so failures only count as corrupt frames once a good frame follows them.
 END_AFTER_FAILED_READS = 8
+# A gap in a video's timestamps longer than this is a discontinuity, not missing frames.
+MAX_TIMESTAMP_GAP_S = 2.0
 
 
 def _parse(url: str, scheme: str) -> SourceUrl:
@@ -119,8 +121,18 @@ class VideoFileSource(PacedSource):
             # Containers such as MPEG-TS start at a non-zero time; the first frame is frame 0.
             self._origin_ms = media_ms - 1000.0 * number / self._fps
         if media_ms >= 0.0:
-            # The frame's own presentation time gives its true number, across skipped frames.
-            number = max(number, round((media_ms - self._origin_ms) / 1000.0 * self._fps))
+            # The frame's own presentation time gives its true number, across skipped frames,
+            # unless it jumps further than frames go missing: files joined end to end (an
+            # encoder restarted) start their timestamps afresh, which reads as a jump of hours,
+            # and a paced source would wait that long for the next frame.
+            by_time = round((media_ms - self._origin_ms) / 1000.0 * self._fps)
+            if by_time - number > max(MAX_TIMESTAMP_GAP_S * self._fps, 10):
+                log.warning("%s: the timestamps jump by %.1f s at frame %d (files joined, an "
+                            "encoder restarted?): played on without the gap", self.path,
+                            (by_time - number) / self._fps, number)
+                self._origin_ms = media_ms - 1000.0 * number / self._fps
+            else:
+                number = max(number, by_time)
         self._decoded = number + 1
         return MediaFrame(
             image=image,
