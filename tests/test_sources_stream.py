@@ -325,3 +325,11 @@ def test_rtsp_over_tcp_and_a_restarted_server(
         server.close()
         rtp_in.close()
     assert len([r for r in caplog.records if " down: " in r.getMessage()]) == 1
+
+
+def test_a_missing_sdp_file_is_named(tmp_path: Path) -> None:
+    """FFmpeg fails at once on an SDP file that is not there and says why only on stderr: the
+    source said "nothing there, no stream yet" and retried for ever."""
+    missing = tmp_path / "camera.sdp"
+    with pytest.raises(SourceError, match="no such SDP file"):
+        open_source(f"sdp:{missing}", SourceOptions(open_timeout_s=2.0))

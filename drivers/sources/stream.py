@@ -26,9 +26,11 @@ payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stre
 from __future__ import annotations
 
 from collections import deque
+from pathlib import Path
 
 import cv2
 
+from drivers.errors import SourceError
 from drivers.sources.base import SourceOptions
 from drivers.sources.live import LiveSource
 from drivers.sources.opencv_capture import (
@@ -90,6 +92,12 @@ class StreamSource(LiveSource):
 
     def _connect(self) -> VideoCaptureLike:
         opts = self._options
+        if self.url.startswith("sdp:"):
+            # FFmpeg fails at once on a missing file and says so only on stderr: the log said
+            # "nothing there, no stream yet" for ever.
+            sdp = Path(ffmpeg_target(self.url)).expanduser()
+            if not sdp.is_file():
+                raise SourceError(self.url, f"no such SDP file: {sdp.resolve()}")
         # The read time limit is the stall timeout: a stream that sends nothing for that long
         # makes read() fail instead of blocking, and the grabber re-opens it.
         cap = open_ffmpeg_capture(
