@@ -15,7 +15,10 @@
 #
 #   - with the web page on in that file (PROFILE=blueos), $CONF_DIR writable by the service
 #     (a drop-in: ReadWritePaths, group-writable), so the page can save settings and recordings;
-#   - an upgrade (re-running it) restarts a running service on the new code.
+#   - an upgrade (re-running it) restarts a running service on the new code. When the new code
+#     rejects the configuration in $CONF_DIR, nothing is started or restarted (a running service
+#     keeps the previous version), the script says what runs and exits with the check's status
+#     (78 for a configuration error, as the service would).
 #
 # Variables: PREFIX (/opt/netpose), CONF_DIR (/etc/netpose), UNIT_DIR (/etc/systemd/system),
 # PROFILE (raspberrypi), CONFIG (a file to install instead of the profile: relative to this
@@ -139,7 +142,10 @@ if command -v runuser >/dev/null 2>&1; then
 else
     as_service="setpriv --reuid=$SERVICE_USER --regid=$SERVICE_USER --init-groups"
 fi
-if $as_service "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" --check; then
+check_status=0
+$as_service "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" --check \
+    || check_status=$?
+if [ "$check_status" -eq 0 ]; then
     if [ "$START" = "1" ]; then
         systemctl restart netpose.service
         systemctl --no-pager status netpose.service || true
@@ -150,7 +156,22 @@ if $as_service "$PREFIX/venv/bin/netpose" run --config "$CONF_DIR/netpose.toml" 
         echo "netpose: installed and enabled; start with: systemctl start netpose"
     fi
 else
-    echo "netpose: installed and enabled, but not started: fix $CONF_DIR/netpose.toml as the" >&2
-    echo "         line above says, check again with: $as_service $PREFIX/venv/bin/netpose run \\" >&2
-    echo "         --config $CONF_DIR/netpose.toml --check; then: systemctl start netpose" >&2
+    # The new code is on disk and enabled, but it will not start on this configuration. A
+    # running unit is still the previous version: `systemctl start` does nothing to it, and at
+    # the next boot it exits 78 and stays down. So that is said, and the check's exit status
+    # (78 for a configuration error) tells automation that the install did not take.
+    if systemctl is-active --quiet netpose.service; then
+        echo "netpose: installed and enabled, but the new version rejects $CONF_DIR/netpose.toml" >&2
+        echo "         (the line above). The running service keeps the previous version until" >&2
+        echo "         the configuration is fixed; as it is, the service will not start again" >&2
+        echo "         (at the next boot either). Fix the file, check again with:" >&2
+        then_do="systemctl restart netpose"
+    else
+        echo "netpose: installed and enabled, but not running: it rejects $CONF_DIR/netpose.toml" >&2
+        echo "         (the line above). Fix the file, check again with:" >&2
+        then_do="systemctl start netpose"
+    fi
+    echo "         $as_service $PREFIX/venv/bin/netpose run --config $CONF_DIR/netpose.toml --check" >&2
+    echo "         then: $then_do" >&2
+    exit "$check_status"
 fi

@@ -1,0 +1,153 @@
+"""systemd/install.sh run for real (`sh install.sh` in a subprocess), in a sandbox.
+
+PREFIX, CONF_DIR and UNIT_DIR point into a temporary folder. What would change the machine or
+needs root is a stand-in first on PATH: `id` (root), `useradd`/`usermod`/`getent` (the netpose
+user), `dpkg`/`apt-get` (Debian packages), `install` (without -o/-g: no netpose group here),
+`runuser` (the check runs as this user), `systemd-analyze` and `systemctl`, which records its
+calls and answers `is-active` as the test says. The configuration check is the real `netpose run
+--check`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+INSTALL = REPO / "systemd" / "install.sh"
+
+_STANDINS = {
+    "id": 'case "$1" in -u) echo 0 ;; esac\n',  # root; and the netpose user exists
+    "useradd": 'echo "useradd $*" >> "$SANDBOX_LOG"\n',
+    "usermod": 'echo "usermod $*" >> "$SANDBOX_LOG"\n',
+    "getent": "exit 0\n",
+    "dpkg": "exit 0\n",  # every Debian package is present: apt-get is not needed
+    "apt-get": 'echo "apt-get $*" >> "$SANDBOX_LOG"; exit 1\n',
+    "systemd-analyze": "exit 0\n",
+    "runuser": 'while [ "$1" != "--" ]; do shift; done; shift; exec "$@"\n',
+    "systemctl": (
+        'echo "systemctl $*" >> "$SANDBOX_LOG"\n'
+        'case "$1" in is-active) [ "$SANDBOX_UNIT_ACTIVE" = 1 ] ;; esac\n'
+    ),
+    # install(1) without -o/-g: the sandbox has no netpose group and need not be root.
+    "install": (
+        'n=$#\n'
+        'while [ "$n" -gt 0 ]; do\n'
+        '    a=$1; shift; n=$((n - 1))\n'
+        '    case "$a" in\n'
+        '        -o|-g) shift; n=$((n - 1)) ;;\n'
+        '        *) set -- "$@" "$a" ;;\n'
+        '    esac\n'
+        'done\n'
+        'exec {install} "$@"\n'
+    ),
+}
+
+
+@dataclass
+class Sandbox:
+    root: Path
+    prefix: Path
+    conf_dir: Path
+    unit_dir: Path
+    log: Path
+    env: dict[str, str]
+
+    def calls(self) -> list[str]:
+        return self.log.read_text().splitlines() if self.log.exists() else []
+
+
+def make_sandbox(root: Path) -> Sandbox:
+    bin_dir = root / "bin"
+    bin_dir.mkdir()
+    real_install = shutil.which("install")
+    assert real_install is not None
+    for name, body in _STANDINS.items():
+        path = bin_dir / name
+        path.write_text("#!/bin/sh\n" + body.replace("{install}", real_install))
+        path.chmod(0o755)
+    sandbox = Sandbox(root, root / "opt" / "netpose", root / "etc" / "netpose",
+                      root / "systemd", root / "calls.log", {})
+    sandbox.unit_dir.mkdir(parents=True)
+    sandbox.env = {
+        **os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+        "PREFIX": str(sandbox.prefix), "CONF_DIR": str(sandbox.conf_dir),
+        "UNIT_DIR": str(sandbox.unit_dir), "SANDBOX_LOG": str(sandbox.log),
+        "SANDBOX_UNIT_ACTIVE": "0",
+    }
+    return sandbox
+
+
+def stand_in_venv(sandbox: Sandbox) -> None:
+    """$PREFIX/venv as install.sh finds it on an upgrade, with pip recorded (and doing
+    nothing), and netpose this checkout's."""
+    venv_bin = sandbox.prefix / "venv" / "bin"
+    venv_bin.mkdir(parents=True)
+    (venv_bin / "python").write_text(
+        "#!/bin/sh\n"
+        'if [ "$1 $2" = "-m pip" ]; then\n'
+        '    echo "$*" >> "$SANDBOX_LOG"\n'
+        "    exit 0\n"
+        "fi\n"
+        f'exec "{sys.executable}" "$@"\n'
+    )
+    (venv_bin / "netpose").write_text(
+        f'#!/bin/sh\nPYTHONPATH="{REPO}" exec "{sys.executable}" -m service.cli "$@"\n')
+    for path in venv_bin.iterdir():
+        path.chmod(0o755)
+
+
+def run_install(sandbox: Sandbox, **env: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["sh", str(INSTALL)], cwd=sandbox.root, capture_output=True,
+                          text=True, timeout=300, env={**sandbox.env, **env}, check=False)
+
+
+def _rejected_upgrade(
+    tmp_path: Path, active: bool
+) -> tuple[Sandbox, subprocess.CompletedProcess[str]]:
+    """An upgrade whose new code rejects the configuration in /etc (here: the profile's mesh
+    size was never set)."""
+    sandbox = make_sandbox(tmp_path)
+    stand_in_venv(sandbox)
+    done = run_install(sandbox, SANDBOX_UNIT_ACTIVE="1" if active else "0")
+    return sandbox, done
+
+
+def test_a_rejected_configuration_while_the_old_version_runs_fails_the_upgrade(
+        tmp_path: Path) -> None:
+    """The check of the new code failed, yet the script said "not started ... then: systemctl
+    start netpose" and exited 0, while the unit was running the previous version: a start
+    does nothing to an active unit, so the new code never loaded (and at the next boot the
+    unit exits 78 and stays down). It says what runs, asks for a restart, and exits 78."""
+    sandbox, done = _rejected_upgrade(tmp_path, active=True)
+    assert done.returncode == 78, done.stdout + done.stderr
+    assert "mesh.bar_length_m" in done.stderr  # the check's own line, naming the key
+    assert "keeps the previous version" in done.stderr
+    assert "systemctl restart netpose" in done.stderr
+    assert "systemctl start netpose" not in done.stderr
+    assert not [c for c in sandbox.calls() if c.startswith(("systemctl restart",
+                                                            "systemctl start"))]
+    assert "systemctl enable netpose.service" in sandbox.calls()
+
+
+def test_a_rejected_configuration_of_a_stopped_service_fails_the_install(tmp_path: Path) -> None:
+    sandbox, done = _rejected_upgrade(tmp_path, active=False)
+    assert done.returncode == 78, done.stdout + done.stderr
+    assert "not running" in done.stderr and "systemctl start netpose" in done.stderr
+    assert "previous version" not in done.stderr
+    assert not [c for c in sandbox.calls() if c.startswith(("systemctl restart",
+                                                            "systemctl start"))]
+
+
+def test_an_upgrade_with_a_valid_configuration_restarts_the_running_service(
+        tmp_path: Path) -> None:
+    sandbox = make_sandbox(tmp_path)
+    stand_in_venv(sandbox)
+    done = run_install(sandbox, CONFIG="config/demo.toml", SANDBOX_UNIT_ACTIVE="1")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "upgraded and restarted" in done.stdout
+    assert "systemctl restart netpose.service" in sandbox.calls()
