@@ -54,8 +54,10 @@ if command -v apt-get >/dev/null 2>&1; then
     # python3-lxml: pymavlink's XML parser, prebuilt (pip would compile it on a Pi).
     # python3-matplotlib: filterpy depends on it; from pip it would come in a version that
     # needs a newer numpy than Debian's, and pip would replace python3-numpy (or build it).
+    # python3-wheel: with the setuptools 66 python3-venv puts in the venv, the venv builds
+    # netpose itself, so a later upgrade needs no network (below).
     for pkg in python3-venv python3-numpy python3-scipy python3-opencv python3-yaml \
-               python3-serial python3-lxml python3-matplotlib; do
+               python3-serial python3-lxml python3-matplotlib python3-wheel; do
         dpkg -s "$pkg" >/dev/null 2>&1 || missing="$missing $pkg"
     done
     if [ -n "$missing" ]; then
@@ -73,6 +75,9 @@ for group in video dialout; do
     getent group "$group" >/dev/null && usermod -a -G "$group" "$SERVICE_USER"
 done
 
+work_dir=$(mktemp -d)
+trap 'rm -rf "$work_dir"' EXIT
+
 echo "netpose: code in $PREFIX"
 # A fresh copy: modules removed upstream must not linger from an earlier install.
 rm -rf "$PREFIX/src"
@@ -85,9 +90,23 @@ install -d -m 0755 "$PREFIX" "$PREFIX/src"
 if [ ! -x "$PREFIX/venv/bin/python" ]; then
     "$PYTHON" -m venv --system-site-packages "$PREFIX/venv"
 fi
+# pip builds netpose with pyproject.toml's backend (setuptools>=66), by default in an isolated
+# environment it downloads that backend into, even when the venv has it: an offline companion
+# could not install or upgrade. A trial build with no index, checked against those requirements
+# (pip's --check-build-dependencies), says whether the venv can build it itself: on a Pi it can
+# with Debian's python3-setuptools (66) and python3-wheel. Otherwise the usual, isolated build.
+build_isolation=--no-build-isolation
+if ! "$PREFIX/venv/bin/python" -m pip wheel --quiet --no-index --no-deps $build_isolation \
+        --check-build-dependencies --wheel-dir "$work_dir/wheel" "$PREFIX/src" >/dev/null 2>&1
+then
+    build_isolation=
+    echo "netpose: this venv cannot build netpose itself (setuptools>=66 and wheel): pip fetches"
+    echo "         them for the build (offline: a wheelhouse, docs/daemon.md)"
+fi
 # opencv-python is an extra, not a dependency: Debian's python3-opencv provides cv2.
 # Wheels where pip has a choice (pure-Python packages that exist only as sources are fine).
-"$PREFIX/venv/bin/python" -m pip install --quiet --prefer-binary --upgrade "$PREFIX/src"
+"$PREFIX/venv/bin/python" -m pip install --quiet --prefer-binary --upgrade $build_isolation \
+    "$PREFIX/src"
 if ! "$PREFIX/venv/bin/python" -c "import cv2" 2>/dev/null; then
     "$PREFIX/venv/bin/python" -m pip install --quiet "opencv-python-headless>=4.6"
 fi
@@ -105,9 +124,7 @@ fi
 echo "netpose: systemd unit"
 # The unit names the paths of this installation (PREFIX, CONF_DIR may differ from the defaults).
 # Checked under its own name: systemd-analyze refuses a file without the .service suffix.
-unit_dir_tmp=$(mktemp -d)
-trap 'rm -rf "$unit_dir_tmp"' EXIT
-unit_tmp=$unit_dir_tmp/netpose.service
+unit_tmp=$work_dir/netpose.service
 sed -e "s#/opt/netpose#$PREFIX#g" -e "s#/etc/netpose/netpose.toml#$CONF_DIR/netpose.toml#g" \
     "$SRC_DIR/systemd/netpose.service" > "$unit_tmp"
 if command -v systemd-analyze >/dev/null 2>&1 && ! systemd-analyze verify "$unit_tmp"; then

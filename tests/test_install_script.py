@@ -17,6 +17,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 INSTALL = REPO / "systemd" / "install.sh"
 
@@ -84,13 +86,15 @@ def make_sandbox(root: Path) -> Sandbox:
 
 def stand_in_venv(sandbox: Sandbox) -> None:
     """$PREFIX/venv as install.sh finds it on an upgrade, with pip recorded (and doing
-    nothing), and netpose this checkout's."""
+    nothing: `pip wheel` exits with SANDBOX_PIP_WHEEL, 0 unless told), and netpose this
+    checkout's."""
     venv_bin = sandbox.prefix / "venv" / "bin"
     venv_bin.mkdir(parents=True)
     (venv_bin / "python").write_text(
         "#!/bin/sh\n"
         'if [ "$1 $2" = "-m pip" ]; then\n'
         '    echo "$*" >> "$SANDBOX_LOG"\n'
+        '    [ "$3" = wheel ] && exit "${SANDBOX_PIP_WHEEL:-0}"\n'
         "    exit 0\n"
         "fi\n"
         f'exec "{sys.executable}" "$@"\n'
@@ -151,3 +155,93 @@ def test_an_upgrade_with_a_valid_configuration_restarts_the_running_service(
     assert done.returncode == 0, done.stdout + done.stderr
     assert "upgraded and restarted" in done.stdout
     assert "systemctl restart netpose.service" in sandbox.calls()
+
+
+# What pip and the build backend bring into a venv; the sandbox's venv keeps its own.
+_BUILD_TOOLS = ("pip", "setuptools", "wheel", "_distutils_hack", "pkg_resources",
+                "distutils-precedence", "netpose", "__editable__")
+
+
+def real_venv(sandbox: Sandbox, python: str) -> Path:
+    """$PREFIX/venv made as install.sh makes it, from `python`, holding netpose's dependencies
+    the way a vehicle's venv does after an earlier install: here, this test's own packages,
+    reached through a .pth (not netpose itself, pip or the build backend: the venv's own)."""
+    venv = sandbox.prefix / "venv"
+    subprocess.run([python, "-m", "venv", "--system-site-packages", str(venv)], check=True,
+                   capture_output=True, timeout=120)
+    deps = sandbox.root / "deps"
+    deps.mkdir()
+    site_packages = next(Path(p) for p in sys.path if p.endswith("site-packages")
+                         and Path(p).is_relative_to(sys.prefix))
+    for entry in site_packages.iterdir():
+        if not entry.name.startswith(_BUILD_TOOLS) and not entry.name.endswith(".pth"):
+            (deps / entry.name).symlink_to(entry)
+    venv_site = next((venv / "lib").glob("python3*/site-packages"))
+    (venv_site / "netpose-test-deps.pth").write_text(f"{deps}\n")
+    return venv
+
+
+def offline(env: dict[str, str]) -> dict[str, str]:
+    """No package index and no local wheels: pip config files and PIP_FIND_LINKS left out."""
+    kept = {k: v for k, v in env.items() if not k.startswith("PIP_")}
+    return {**kept, "PIP_NO_INDEX": "1", "PIP_CONFIG_FILE": os.devnull}
+
+
+def _python_with_build_backend() -> str | None:
+    """An interpreter whose venvs build netpose without downloading anything: setuptools>=66
+    (pyproject's build-system) and wheel, as Debian bookworm's python3-setuptools and
+    python3-wheel give a --system-site-packages venv on a Pi. Same minor version as this one:
+    the sandbox's venv shares this test's compiled packages."""
+    probe = ("import sys, setuptools, wheel; "
+             "sys.exit(int(setuptools.__version__.split('.')[0]) < 66)")
+    for candidate in (getattr(sys, "_base_executable", sys.executable), "/usr/bin/python3"):
+        if not Path(candidate).exists():
+            continue
+        version = subprocess.run(
+            [candidate, "-c", "import sys; print(sys.version_info[:2]); " + probe],
+            capture_output=True, text=True, timeout=60, check=False)
+        if version.returncode == 0 and version.stdout.strip() == str(sys.version_info[:2]):
+            return candidate
+    return None
+
+
+def test_an_upgrade_installs_offline_when_the_venv_has_the_build_backend(
+        tmp_path: Path) -> None:
+    """Fish-farm companions are often offline. pip built netpose in an isolated environment
+    and downloaded setuptools for it, even with every dependency and a suitable setuptools in
+    the venv: with no index the upgrade failed. It builds with the venv's own backend then."""
+    python = _python_with_build_backend()
+    if python is None:
+        pytest.skip("no Python with setuptools>=66 and wheel (Debian's python3-setuptools, "
+                    "python3-wheel) to make the sandbox's venv from")
+    sandbox = make_sandbox(tmp_path)
+    venv = real_venv(sandbox, python)
+    done = subprocess.run(["sh", str(INSTALL)], cwd=sandbox.root, capture_output=True,
+                          text=True, timeout=600, check=False,
+                          env=offline({**sandbox.env, "CONFIG": "config/demo.toml"}))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "installed and enabled" in done.stdout
+    shown = subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "show", "-f", "netpose"],
+                           capture_output=True, text=True, timeout=60, check=True).stdout
+    assert f"Location: {venv}" in shown  # in the sandbox's venv, from $PREFIX/src
+    assert "service/cli.py" in shown
+
+
+def test_a_venv_that_cannot_build_netpose_itself_builds_it_the_usual_way(tmp_path: Path) -> None:
+    """The trial build without an index failed (no suitable setuptools, or no wheel): pip
+    then builds netpose in its isolated environment, as before, and the script says that this
+    downloads the backend."""
+    sandbox = make_sandbox(tmp_path)
+    stand_in_venv(sandbox)
+    done = run_install(sandbox, CONFIG="config/demo.toml", SANDBOX_PIP_WHEEL="1")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "cannot build netpose itself" in done.stdout
+    trial, install = [c for c in sandbox.calls() if c.startswith("-m pip")]
+    assert "--no-index" in trial and "--no-build-isolation" in trial
+    assert install.startswith("-m pip install") and "--no-build-isolation" not in install
+    (tmp_path / "ok").mkdir()
+    ok = make_sandbox(tmp_path / "ok")
+    stand_in_venv(ok)
+    assert run_install(ok, CONFIG="config/demo.toml").returncode == 0
+    assert [c for c in ok.calls() if c.startswith("-m pip install")] == [
+        f"-m pip install --quiet --prefer-binary --upgrade --no-build-isolation {ok.prefix}/src"]
