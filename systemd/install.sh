@@ -23,6 +23,8 @@
 # Variables: PREFIX (/opt/netpose), CONF_DIR (/etc/netpose), UNIT_DIR (/etc/systemd/system),
 # PROFILE (raspberrypi), CONFIG (a file to install instead of the profile: relative to this
 # checkout, or absolute), PYTHON (python3), START (0).
+#
+# What needs the network, installing offline, and removing all of this: docs/daemon.md.
 set -eu
 
 SRC_DIR=$(CDPATH= cd -- "$(dirname -- "$0")/.." && pwd)
