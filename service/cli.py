@@ -14,13 +14,15 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from service import __version__
 from service.core.errors import CalibrationError, ConfigError, NetposeError
 from service.signals import EarlySignals
 
-# Exit status for configuration errors (sysexits.h EX_CONFIG); the systemd unit lists it in
-# RestartPreventExitStatus so a broken configuration does not restart forever.
+# Exit status for configuration errors (sysexits.h EX_CONFIG), a mistake on the command line
+# included; the systemd unit lists it in RestartPreventExitStatus so a broken configuration (or
+# ExecStart= line) does not restart forever.
 EXIT_CONFIG = 78
 
 # name: (module, one-line help shown by `netpose --help`)
@@ -39,8 +41,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
 Handler = Callable[[argparse.Namespace], int]
 
 
-def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, with a usage error exiting 78 (EX_CONFIG) rather than argparse's 2.
+
+    The docs promise 78 for bad arguments, and the unit does not restart on 78: with 2, a typo
+    in an ExecStart= of a drop-in restarted the service every 2 s for ever. Sub-commands' parsers
+    are made of the same class (add_subparsers' default), so this holds for every command.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_CONFIG, f"{self.prog}: error: {message}\n")
+
+
+def build_parser(argv: Sequence[str] | None = None) -> Parser:
+    parser = Parser(
         prog="netpose",
         description="Camera-only distance and orientation to a fish-net, for ArduSub/BlueOS ROVs.",
     )
@@ -91,9 +106,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     handler: Handler | None = getattr(args, "handler", None)
-    if handler is None:
+    if handler is None:  # no command: a command-line mistake too
         parser.print_help()
-        return 2
+        return EXIT_CONFIG
     try:
         return handler(args)
     except ConfigError as exc:

@@ -176,3 +176,23 @@ def test_a_signal_while_the_service_starts_is_acted_on_not_fatal(sig: str) -> No
         assert "configuration reloaded" in done.stderr
     else:
         assert "SIGTERM received: stopping" in done.stderr
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    # a typo in an ExecStart= of a drop-in
+    (["run", "--config", "/etc/netpose/netpose.toml", "--chek"], "unrecognized arguments: --chek"),
+    (["rn", "--config", "/etc/netpose/netpose.toml"], "invalid choice: 'rn'"),
+    (["mavlink-check", "--timeout", "soon"], "invalid float value: 'soon'"),
+    (["bench", "damage", "--frames", "0"], "--frames: must be at least 1"),
+    ([], "usage: netpose"),  # no command: the help, listing them
+])
+def test_command_line_mistakes_exit_78_as_the_docs_and_the_unit_say(
+        args: list[str], said: str) -> None:
+    """argparse exits 2 on a usage error, but the docs (and `mavlink-check --help`) said 78, and
+    the unit's RestartPreventExitStatus=78 did not cover 2: a typo in an ExecStart= of a
+    drop-in restarted the service every 2 s for ever. A mistake on the command line is a
+    configuration error like any other: 78 (EX_CONFIG), saying what is wrong."""
+    done = subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert done.returncode == 78, (done.returncode, done.stdout, done.stderr)
+    assert said in done.stdout + done.stderr and "Traceback" not in done.stderr

@@ -4,9 +4,10 @@ by."""
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
+
+from service.core.errors import ConfigError
 
 
 def add_parser(subparsers: Any) -> None:
@@ -107,8 +108,7 @@ def _damage(args: argparse.Namespace) -> int:
     width, _, height = args.size.partition("x")
     frames = damage.FRAMES_PER_PASS if args.frames is None else args.frames
     if frames < 1:
-        print("netpose bench damage: --frames must be at least 1", file=sys.stderr)
-        return 2
+        raise ConfigError("--frames", "must be at least 1")
     return damage.run(args.passes, args.seed, args.jobs, args.out, width=int(width),
                       height=int(height), real=not args.no_real, frames=frames)
 

@@ -31,7 +31,8 @@ def add_parser(subparsers: Any) -> None:
         "mavlink-check",
         help="check the autopilot link and its rangefinder parameters",
         description="Connect to the autopilot, print its identity and rangefinder parameters, "
-        "and say what to change. Exit 0 = ready, 3 = changes needed, 1 = no autopilot.",
+        "and say what to change. Exit 0 = ready, 3 = changes needed, 1 = no autopilot, "
+        "78 = bad arguments.",
     )
     p.add_argument("--url", default="tcp:127.0.0.1:5777",
                    help="udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device "
