@@ -253,7 +253,8 @@ def guess_board_size(image: npt.NDArray[Any]) -> tuple[int, int] | None:
     """The inner-corner size of whatever checkerboard `image` shows, or None.
 
     Asks the sector-based detector for any board at least 3x3 and reads the real size from its
-    meta data; used only to explain "no 9x6 board found" when the board is e.g. 7x4.
+    meta data; used only to explain "no 9x6 board found" when the board is e.g. 7x4. The size is
+    (columns, rows) as --board writes it, the larger count first (7x4, 9x6).
     """
     if not hasattr(cv2, "findChessboardCornersSBWithMeta"):
         return None
@@ -266,7 +267,10 @@ def guess_board_size(image: npt.NDArray[Any]) -> tuple[int, int] | None:
     if rows == cols or rows * cols < 12:
         # Tiny or square "boards" are what the detector sees in nets and tiled walls.
         return None
-    return (int(cols), int(rows))
+    # The detector lays the grid out either way round, from view to view (a landscape 7x4 board
+    # came out 4x7 in most views), and --board finds a board in either orientation: so the size
+    # is given in --board's order, which is also what lets the views' guesses agree.
+    return (int(max(rows, cols)), int(min(rows, cols)))
 
 
 # ---------------------------------------------------------------------------------------------
