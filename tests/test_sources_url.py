@@ -73,6 +73,10 @@ def test_factory_routes_each_scheme(url: str, kind: type) -> None:
         ("synthetic:?width=640&height=480", ["16:9"]),
         ("synthetic:?bar=2", ["bar", "outside"]),
         ("", ["empty"]),
+        # Mistyped schemes were taken for file names: refused as a recorded video, or retried
+        # as "no such file" for ever.
+        ("V4L2:/dev/video0", ["unknown scheme 'V4L2:'", "lower case: v4l2:"]),
+        ("synthetc:?fps=30", ["unknown scheme 'synthetc:'", "synthetic:"]),
     ],
 )
 def test_url_mistakes_are_configuration_errors_naming_the_problem(

@@ -145,6 +145,15 @@ def _bare_path(text: str) -> SourceUrl:
     if "://" in text:
         raise url_error(text, "not a netpose scheme (network URLs go to the stream source)")
     path, _, query = text.partition("?")
+    prefix = re.match(r"([A-Za-z][A-Za-z0-9+.-]+):", path)
+    if prefix is not None and not Path(path).exists():
+        # A mistyped scheme read as a file name: "V4L2:/dev/video0" was then refused as a
+        # recorded video (mavlink.allow_simulated), "synthetc:" retried "no such file" for ever.
+        name = prefix.group(1)
+        hint = (f"schemes are lower case: {name.lower()}:" if name.lower() in OWN_SCHEMES
+                else f"netpose's own are {', '.join(f'{s}:' for s in OWN_SCHEMES)} and sdp:; "
+                "network streams are rtsp://, udp://, ...")
+        raise url_error(text, f"unknown scheme {name + ':'!r} ({hint})")
     if path.startswith("/dev/video") or path.startswith("/dev/v4l/"):
         scheme = "v4l2"
     elif Path(path).is_dir() and (Path(path) / "recording.json").is_file():
