@@ -324,3 +324,35 @@ def test_an_operators_arena_limit_is_left_alone() -> None:
     out = subprocess.run([sys.executable, "-c", _ARENA_PROBE, "daemon"], check=True, env=env,
                          capture_output=True, text=True, timeout=60, cwd=REPO)
     assert int(out.stdout.strip()) > 2
+
+
+def test_a_recording_brings_its_own_camera(tmp_path: Path) -> None:
+    """A recording holds the vehicle's calibration (camera.yaml), so a bench run on it can say
+    `camera.calibration = "builtin"`, as docs/sources.md says; the service resolves its camera
+    before it opens the source, and the recording read its camera only at open(): refused,
+    "camera.calibration: required for recording: sources"."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from service.daemon.wiring import resolve_camera
+
+    folder = tmp_path / "netpose-rov-20260101T120000Z"
+    folder.mkdir()
+    (folder / "recording.json").write_text("{}")
+    cv2.imwrite(str(folder / "000000.png"), np.zeros((360, 640), np.uint8))
+    (folder / "frames.jsonl").write_text(json.dumps(
+        {"frame": "000000.png", "index": 0, "t_mono": 1.0, "t_unix": 1.7e9}) + "\n")
+    camera = builtin_camera(640, 360)
+    save_camera(camera, folder / "camera.yaml")
+    config = load_daemon_config(str(DEMO), [f"camera.url=recording:{folder}",
+                                            "camera.calibration=builtin"])
+    resolved = resolve_camera(config, build_source(config))
+    assert (resolved.width, resolved.height) == (640, 360)
+    assert (resolved.fx, resolved.cx) == pytest.approx((camera.fx, camera.cx))
+    # Without its camera.yaml it still needs a calibration file, and says which key.
+    (folder / "camera.yaml").unlink()
+    with pytest.raises(ConfigError) as err:
+        resolve_camera(config, build_source(config))
+    assert err.value.key == "camera.calibration" and "camera.yaml" in str(err.value)

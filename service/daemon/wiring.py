@@ -117,7 +117,8 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
         raise ConfigError(
             "camera.calibration",
             f"required for {source.url.split(':', 1)[0]}: sources (only rendered sources "
-            "describe their own camera): give the camera's calibration file",
+            "and recordings with their camera.yaml describe their own camera): give the "
+            "camera's calibration file",
         )
     return source.camera
 
