@@ -213,3 +213,24 @@ def test_a_serial_port_the_service_holds_is_not_shared(
             service_link.close()
         # Once the service lets go, the check has the port.
         assert main(["mavlink-check", "--url", autopilot.url, "--timeout", "2"]) == 0
+
+
+def test_the_check_reads_the_services_configuration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A plain Pi's user had to retype the service's URL, baud, orientation and limits by
+    hand; `--config` takes them from its [mavlink], and the options still win."""
+    params = {**READY_47, "RNGFND1_ORIENT": 25, "RNGFND1_MIN": 0.5}
+    with FakeAutopilot(UdpServerTransport(), params=params) as autopilot:
+        config = tmp_path / "netpose.toml"
+        config.write_text(f'[mesh]\nbar_length_m = 0.0275\n\n[mavlink]\nurl = "{autopilot.url}"\n'
+                          "orientation = 25\nmin_distance_m = 0.5\n")
+        assert main(["mavlink-check", "--config", str(config), "--timeout", "1"]) == 0
+        assert "Ready" in capsys.readouterr().out
+        # An option given on the command line overrides the file's.
+        code = main(["mavlink-check", "-c", str(config), "--orientation", "0", "--timeout", "1"])
+        assert code == 3
+        assert "set RNGFND1_ORIENT = 0 (forward; now 25)" in capsys.readouterr().out
+    config.write_text('[mavlink]\norientation = "ahead"\n')
+    assert main(["mavlink-check", "--config", str(config)]) == 78
+    assert "mavlink.orientation" in capsys.readouterr().err

@@ -8,6 +8,8 @@ lists what to change so ArduSub uses netpose's DISTANCE_SENSOR. Exit status: 0 =
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from pathlib import Path
 from typing import Any
 
 from drivers.mavlink_link import import_mavutil
@@ -21,6 +23,7 @@ from drivers.mavlink_probe import (
     probe_autopilot,
 )
 from drivers.mavlink_settings import MavlinkSettings
+from service.config import build_section, read_toml
 from service.core.errors import ConfigError
 
 EXIT_CHANGES_NEEDED = 3
@@ -34,14 +37,17 @@ def add_parser(subparsers: Any) -> None:
         "and say what to change. Exit 0 = ready, 3 = changes needed, 1 = no autopilot, "
         "78 = bad arguments.",
     )
-    p.add_argument("--url", default="tcp:127.0.0.1:5777",
+    p.add_argument("--config", "-c", default=None,
+                   help="take the link settings from this netpose configuration's [mavlink] "
+                   "(the options below override them)")
+    p.add_argument("--url", default=None,
                    help="udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial device "
-                   "(default: the BlueOS router, tcp:127.0.0.1:5777)")
-    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-    p.add_argument("--source-system", type=int, default=1, help="our system id (default 1)")
+                   "(default: the configuration's, else the BlueOS router, tcp:127.0.0.1:5777)")
+    p.add_argument("--baud", type=int, default=None, help="serial baud rate (default 115200)")
+    p.add_argument("--source-system", type=int, default=None, help="our system id (default 1)")
     p.add_argument("--source-component", type=int, default=None,
                    help="our component id (default 197)")
-    p.add_argument("--orientation", type=int, default=0,
+    p.add_argument("--orientation", type=int, default=None,
                    help="MAV_SENSOR_ORIENTATION netpose will send (0 forward, 25 down)")
     p.add_argument("--min-distance", type=float, default=None, help="netpose minimum, metres")
     p.add_argument("--max-distance", type=float, default=None, help="netpose maximum, metres")
@@ -53,18 +59,26 @@ def add_parser(subparsers: Any) -> None:
     p.set_defaults(handler=run)
 
 
-def _settings(args: argparse.Namespace) -> Any:
-    values: dict[str, Any] = {
-        "url": args.url,
-        "baud": args.baud,
-        "source_system": args.source_system,
-        "orientation": args.orientation,
-        "signing_key_file": args.signing_key,
-    }
+def _settings(args: argparse.Namespace) -> MavlinkSettings:
+    """The daemon's [mavlink] settings when --config names its file (so the check asks the
+    autopilot about what the service will send), then the options given."""
+    values: dict[str, Any] = {}
+    if args.config is not None:
+        path = Path(args.config).expanduser().resolve()
+        section = build_section("mavlink", MavlinkSettings, read_toml(path).get("mavlink", {}))
+        values = {f.name: getattr(section, f.name) for f in dataclasses.fields(section)}
+        key_file = section.signing_key_file
+        if key_file and not Path(key_file).expanduser().is_absolute():
+            values["signing_key_file"] = str(path.parent / Path(key_file).expanduser())
     for key, value in (
+        ("url", args.url),
+        ("baud", args.baud),
+        ("source_system", args.source_system),
         ("source_component", args.source_component),
+        ("orientation", args.orientation),
         ("min_distance_m", args.min_distance),
         ("max_distance_m", args.max_distance),
+        ("signing_key_file", args.signing_key),
     ):
         if value is not None:
             values[key] = value
