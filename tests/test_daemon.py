@@ -153,6 +153,7 @@ def test_unusable_frames_are_reported_once_and_nothing_is_sent(
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and "estimator cannot use frames" in warnings[0], warnings
     assert "aspect ratio" in warnings[0]
+    assert "camera.calibration" in warnings[0]  # the key to look at
     assert len(h.telemetry.estimates) == 10  # kept running and reporting every frame
     assert all("aspect ratio" in e.reason for e in h.telemetry.estimates)
     assert all(r.status is RangeStatus.NONE for r in h.link.ranges)

@@ -356,3 +356,24 @@ def test_a_recording_brings_its_own_camera(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         resolve_camera(config, build_source(config))
     assert err.value.key == "camera.calibration" and "camera.yaml" in str(err.value)
+
+
+def test_a_calibration_for_another_frame_shape_than_the_url_asks_for_is_refused(
+    tmp_path: Path
+) -> None:
+    """The Pi profile's camera asked for 1280x720 with a 640x480 calibration: `run --check`
+    said OK, the unit ran and refused every frame. What the URL states is checked before the
+    camera opens; the same sensor at another scale is fine."""
+    from service.core.camera import CameraModel
+
+    save_camera(CameraModel(width=640, height=480, fx=520.0, fy=520.0, cx=319.5, cy=239.5),
+                tmp_path / "cam640x480.yaml")
+    save_camera(builtin_camera(640, 360), tmp_path / "cam640x360.yaml")
+    url = "camera.url=v4l2:/dev/video0?width=1280&height=720&fps=30&fourcc=MJPG"
+    with pytest.raises(ConfigError) as err:
+        check_config(str(DEMO), [url, f"camera.calibration={tmp_path / 'cam640x480.yaml'}",
+                                 "mavlink.allow_simulated=false"])
+    assert err.value.key == "camera.calibration"
+    assert "640x480" in str(err.value) and "camera.url asks for 1280x720" in str(err.value)
+    assert check_config(str(DEMO), [url, f"camera.calibration={tmp_path / 'cam640x360.yaml'}",
+                                    "mavlink.allow_simulated=false"]).startswith("configuration OK")

@@ -91,6 +91,12 @@ class FrameSource(Closeable):
         return None
 
     @property
+    def stated_size(self) -> tuple[int, int] | None:
+        """(width, height) of the frames this source's URL asks for, known before open();
+        None when only the frames will tell (a stream, a file, a camera left to its driver)."""
+        return None
+
+    @property
     def rendered(self) -> bool:
         """True for sources that render a scene instead of filming one (synthetic:, sim:): their
         distances are not facts about the water and never reach an autopilot unless the

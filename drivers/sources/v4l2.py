@@ -145,6 +145,12 @@ class V4l2Source(LiveSource):
         self.granted: GrantedFormat | None = None
         self._use_driver_timestamps = True
 
+    @property
+    def stated_size(self) -> tuple[int, int] | None:
+        if self.settings.width is None or self.settings.height is None:
+            return None
+        return self.settings.width, self.settings.height
+
     def _connect(self) -> VideoCaptureLike:
         device = self.settings.device
         # OpenCV's V4L2 backend has no read time limit property: a camera that stops sending

@@ -26,7 +26,7 @@ from service.config import Config, config_digest
 from service.core.budget import BudgetController
 from service.core.camera import CameraModel
 from service.core.damage_track import NetInspector
-from service.core.errors import NetposeError
+from service.core.errors import CalibrationError, NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import RangeReading
 from service.core.redact import redact_text
@@ -293,6 +293,12 @@ class Daemon:
     def _note_errors(self, result: PipelineResult) -> None:
         if result.crashed:
             self.problems.problem("estimator-crash", "estimator failed on a frame: %s",
+                                  result.error)
+        elif isinstance(result.failure, CalibrationError):
+            # The frames' size is the camera's (camera.url may ask for one); the calibration
+            # is the file: the line says which keys to look at.
+            self.problems.problem("estimator-input", "estimator cannot use frames: %s "
+                                  "(camera.calibration, or the size camera.url asks for)",
                                   result.error)
         elif result.error:
             self.problems.problem("estimator-input", "estimator cannot use frames: %s",

@@ -110,9 +110,19 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
     path = config.calibration_path()
     if path is not None:
         try:
-            return load_camera(path)
+            camera = load_camera(path)
         except CalibrationError as exc:  # the service's errors name the key to fix
             raise ConfigError("camera.calibration", str(exc)) from None
+        size = source.stated_size
+        if size is not None:
+            # A calibration for another frame shape is known wrong before the camera opens:
+            # `run --check` passed and the unit ran, refusing every frame, no distance.
+            try:
+                camera.scaled_to(*size)
+            except CalibrationError as exc:
+                raise ConfigError("camera.calibration",
+                                  f"{exc} (camera.url asks for {size[0]}x{size[1]})") from None
+        return camera
     if source.camera is None:
         raise ConfigError(
             "camera.calibration",
