@@ -196,3 +196,28 @@ def test_command_line_mistakes_exit_78_as_the_docs_and_the_unit_say(
                           text=True, timeout=60, check=False)
     assert done.returncode == 78, (done.returncode, done.stdout, done.stderr)
     assert said in done.stdout + done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_camera_that_is_away_is_said_once_not_by_opencv_on_every_retry(tmp_path: Path) -> None:
+    """OpenCV's own warning came with every retry of a missing camera (17 lines in 4 s of a
+    service whose source already says why, once); the command quiets OpenCV's log unless the
+    user set OPENCV_LOG_LEVEL."""
+    import os
+
+    from drivers.sources.synthetic import builtin_camera
+    from service.core.camera import save_camera
+
+    save_camera(builtin_camera(1280, 720), tmp_path / "camera.yaml")
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_LOG_LEVEL"}
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "run", "--config",
+         str(Path(__file__).parents[1] / "config" / "demo.toml"),
+         "--set", "camera.url=v4l2:/dev/video77", "--set",
+         f"camera.calibration={tmp_path / 'camera.yaml'}", "--set",
+         "mavlink.allow_simulated=false", "--set", "telemetry.enabled=false",
+         "--duration", "3"],
+        capture_output=True, text=True, timeout=60, env=env, cwd=Path(__file__).parents[1],
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "frame source v4l2:/dev/video77 down: cannot open /dev/video77" in done.stderr
+    assert "WARN:" not in done.stderr, done.stderr[-2000:]
