@@ -355,3 +355,26 @@ def test_undistort_cli_reports_a_bad_calibration_in_one_line(tmp_path: Path) -> 
     result = _netpose("undistort", str(REAL_FRAME), "--camera", str(bad), "-o", str(out))
     _assert_one_line_calibration_error(result, "distortion_model 'equidistant'")
     assert not out.exists()
+
+
+def test_a_file_of_aliases_is_refused_before_it_expands(tmp_path: Path) -> None:
+    """Aliases of aliases: a 574-byte file whose camera_matrix expands to 400 million numbers
+    held the web page's upload (and the frame loop, through the GIL) for 25 s and 3.3 GB. A
+    calibration has no use for aliases: refused as they are met (here 10^6 numbers)."""
+    lines = ["a0: &a0 [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]"]
+    for depth in range(1, 6):
+        lines.append(f"a{depth}: &a{depth} [" + ", ".join([f"*a{depth - 1}"] * 10) + "]")
+    lines += ["image_width: 640", "image_height: 360",
+              "camera_matrix: {rows: 3, cols: 3, data: *a5}",
+              "distortion_coefficients: {rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}"]
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CalibrationError, match=r"aliases \(\*name\) are not allowed"):
+        load_camera(path)
+
+
+def test_yaml_nested_beyond_the_parsers_depth_is_a_calibration_error(tmp_path: Path) -> None:
+    path = tmp_path / "deep.yaml"
+    path.write_text("image_width: " + "[" * 20000 + "]" * 20000 + "\n")
+    with pytest.raises(CalibrationError, match="invalid YAML"):
+        load_camera(path)
