@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
@@ -345,6 +345,30 @@ def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:
     before = daemon.config.read_bytes()
     status, reply = _upload(daemon, "camera.yaml", b"x" * (65 * 1024))  # max_upload_kb: 64
     assert status == 413 and "64 KB" in reply["error"]
+    assert daemon.config.read_bytes() == before
+    assert not list(daemon.folder.glob("calibration-*"))
+
+
+def test_a_chunked_upload_is_bounded_too(daemon: WebDaemon) -> None:
+    """A chunked upload states no length: aiohttp 3.8 (Debian bookworm's, what the BlueOS
+    image runs) then let the whole part through, 1.5 GB to memory and disk. Counted as it
+    comes, it is refused past web.max_upload_kb like any other."""
+    boundary = "netposeboundary"
+    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; "
+            f"filename=\"camera.yaml\"\r\n\r\n").encode()
+
+    def body() -> Iterator[bytes]:
+        yield head
+        for _ in range(64):  # 4 MB in 64 KB chunks, against a 64 KB limit
+            yield b"#" * (64 * 1024)
+        yield f"\r\n--{boundary}--\r\n".encode()
+
+    before = daemon.config.read_bytes()
+    status, reply = daemon.request(
+        "POST", "/api/calibration", cast(bytes, body()), token=True,
+        headers={"Content-Type": f"multipart/form-data; boundary={boundary}",
+                 "Transfer-Encoding": "chunked"})
+    assert status == 413 and "64 KB" in reply["error"], (status, reply)
     assert daemon.config.read_bytes() == before
     assert not list(daemon.folder.glob("calibration-*"))
 

@@ -499,7 +499,19 @@ class WebPage(Generic[R]):
         if suffix not in CALIBRATION_SUFFIXES:
             return _error(400, f"{part.filename}: a calibration is a ROS camera_info YAML or an "
                           "OpenCV FileStorage file (.yaml, .yml or .xml)")
-        data = await part.read()  # bounded by client_max_size
+        # Counted here: aiohttp 3.8 (Debian bookworm's, the BlueOS image's) bounds a body by
+        # client_max_size only when it states its length, and a chunked upload of 1.5 GB went
+        # to memory and disk (4.7 GB RSS, a daemon that no longer stopped).
+        limit = self.settings.max_upload_kb * 1024
+        chunks: list[bytes] = []
+        size = 0
+        while chunk := await part.read_chunk(64 * 1024):
+            size += len(chunk)
+            if size > limit:
+                return _error(413, f"upload refused: more than {self.settings.max_upload_kb} KB "
+                              "(web.max_upload_kb)")
+            chunks.append(bytes(chunk))
+        data = b"".join(chunks)
         ident = uuid.uuid4().hex[:12]
         path = self._tmp / f"{ident}{suffix}"
         path.write_bytes(data)
