@@ -38,7 +38,7 @@ from drivers.web.live import (
     PlotHistory,
     plot_point,
 )
-from drivers.web.security import origin_allowed
+from drivers.web.security import origin_allowed, token_ok
 from drivers.web.settings import WebSettings
 from service.core.camera import save_camera
 from service.core.errors import ConfigError
@@ -347,6 +347,18 @@ def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:
     assert status == 413 and "64 KB" in reply["error"]
     assert daemon.config.read_bytes() == before
     assert not list(daemon.folder.glob("calibration-*"))
+
+
+def test_malformed_requests_get_a_clear_error_not_a_500(daemon: WebDaemon) -> None:
+    """A body nested beyond json's depth raised RecursionError (500, a traceback in the log);
+    a token header of bytes that are not UTF-8 failed to encode (500)."""
+    before = daemon.config.read_bytes()
+    status, reply = daemon.request("POST", "/api/settings", b"[" * 30_000 + b"]" * 30_000,
+                                   token=True, headers={"Content-Type": "application/json"})
+    assert status == 400 and "not JSON" in reply["error"]
+    assert daemon.config.read_bytes() == before
+    assert token_ok("secret", "\udcff\udcfe") is False  # how aiohttp hands such bytes over
+    assert token_ok("secret", "secret") and not token_ok("secret", None)
 
 
 def test_a_chunked_upload_is_bounded_too(daemon: WebDaemon) -> None:

@@ -718,7 +718,7 @@ def _error(status: int, text: str) -> web.Response:
 async def _json_body(request: web.Request) -> dict[str, Any]:
     try:
         body = await request.json()
-    except (ValueError, UnicodeDecodeError):
+    except (ValueError, UnicodeDecodeError, RecursionError):  # nested beyond json's depth
         raise web.HTTPBadRequest(text='{"error": "the request body is not JSON"}',
                                  content_type="application/json") from None
     if not isinstance(body, dict):

@@ -59,4 +59,10 @@ def origin_allowed(origin: str | None, host: str, allowed: Iterable[str] = ()) -
 def token_ok(required: str, given: str | None) -> bool:
     if not required:
         return True
-    return given is not None and hmac.compare_digest(required.encode(), given.encode())
+    if given is None:
+        return False
+    try:
+        offered = given.encode()
+    except UnicodeEncodeError:  # a header's undecodable bytes, kept as surrogates: not it
+        return False
+    return hmac.compare_digest(required.encode(), offered)
