@@ -38,7 +38,7 @@ from drivers.web.live import (
     PlotHistory,
     plot_point,
 )
-from drivers.web.security import origin_allowed, token_ok
+from drivers.web.security import host_trusted, origin_allowed, token_ok
 from drivers.web.settings import WebSettings
 from service.core.camera import save_camera
 from service.core.errors import ConfigError
@@ -339,6 +339,31 @@ def test_requests_from_another_origin_are_refused(daemon: WebDaemon) -> None:
         daemon.collect(1.0, origin="http://evil.example")
     texts, _ = daemon.collect(1.0, origin=daemon.base)  # its own origin is fine
     assert texts and texts[0]["kind"] == "hello"
+
+
+@pytest.mark.parametrize(("host", "ok"), [
+    ("192.168.2.2:8780", True), ("[fe80::1]:8780", True), ("localhost:8780", True),
+    ("blueos.local", True), ("raspberrypi:8780", True),  # mDNS, the LAN's own names
+    ("evil.example:8780", False), ("other.farm.example", False),
+    ("ROV.FARM.EXAMPLE:8780", True),  # listed in web.allowed_origins below
+])
+def test_host_rule(host: str, ok: bool) -> None:
+    assert host_trusted(host, ["http://rov.farm.example:8780"]) is ok
+
+
+def test_a_rebound_name_cannot_change_settings(daemon: WebDaemon) -> None:
+    """DNS rebinding: a site the topside browser visits points its own name at the vehicle,
+    and its script is then "the page's own origin" (Host and Origin agree). With no token, as
+    BlueOS ships, it could rewrite what the autopilot gets. Changes are taken only from a name
+    no website can be served under."""
+    port = daemon.base.rsplit(":", 1)[1]
+    before = daemon.config.read_bytes()
+    status, reply = daemon.request(
+        "POST", "/api/settings", {"changes": {"service.autopilot_distance": "perpendicular"}},
+        token=True, headers={"Host": f"evil.example:{port}",
+                             "Origin": f"http://evil.example:{port}"})
+    assert status == 403 and "web.allowed_origins" in reply["error"], (status, reply)
+    assert daemon.config.read_bytes() == before
 
 
 def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:

@@ -38,7 +38,7 @@ from aiohttp import BodyPartReader, WSCloseCode, WSMsgType, web
 
 from drivers.recorder import ObservedFrame, Recorder, RecorderError
 from drivers.web.live import ClientSlots, LiveFeed, PlotHistory
-from drivers.web.security import TOKEN_HEADER, origin_allowed, token_ok
+from drivers.web.security import TOKEN_HEADER, host_trusted, origin_allowed, token_ok
 from drivers.web.settings import WebSettings
 from service import __version__
 from service.core.camera import CameraModel, load_camera
@@ -264,10 +264,15 @@ class WebPage(Generic[R]):
                      ) -> web.StreamResponse:
         changes = request.method not in ("GET", "HEAD", "OPTIONS")
         upgrade = request.headers.get("Upgrade", "").lower() == "websocket"
+        origin = request.headers.get("Origin")
         if (changes or upgrade) and not origin_allowed(
-                request.headers.get("Origin"), request.host, self.settings.allowed_origins):
-            return _error(403, f"request from another origin ({request.headers.get('Origin')}) "
-                          "refused")
+                origin, request.host, self.settings.allowed_origins):
+            return _error(403, f"request from another origin ({origin}) refused")
+        if ((changes or upgrade) and origin is not None
+                and not host_trusted(request.host, self.settings.allowed_origins)):
+            return _error(403, f"the page was reached as {request.host}, a name any website "
+                          "could point at this vehicle: to change things from it, list "
+                          f"{origin} in web.allowed_origins (or use the vehicle's address)")
         if changes:
             if not token_ok(self.settings.token, request.headers.get(TOKEN_HEADER)):
                 return _error(401, "this change needs the token (web.token); enter it on the "

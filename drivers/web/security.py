@@ -5,6 +5,11 @@
   from the page's own origin, or from one listed in `web.allowed_origins`. Browsers always
   send `Origin` with those requests, so a page of another site cannot drive this one; tools
   such as curl send none and are let through (they are not a browser being abused).
+- A browser's change must also reach the page by a name no website can point at the
+  vehicle: an IP address, `localhost`, a name without a dot (the LAN's) or a `.local` (mDNS)
+  one, or the host of an origin listed in `web.allowed_origins`. Otherwise a site the topside
+  browser visits could resolve its own name to the vehicle (DNS rebinding) and be "the page's
+  own origin"; with no token set (BlueOS's default) it could then rewrite the settings.
 - With `web.token` set, every change also needs the token in the `X-Netpose-Token` header.
 - Request bodies are bounded (`web.max_upload_kb`).
 
@@ -16,6 +21,7 @@ names are compared.
 from __future__ import annotations
 
 import hmac
+import ipaddress
 from collections.abc import Iterable
 from urllib.parse import urlsplit
 
@@ -54,6 +60,23 @@ def origin_allowed(origin: str | None, host: str, allowed: Iterable[str] = ()) -
     if parts.hostname.lower() != name:
         return False
     return port is None or port == origin_port
+
+
+def host_trusted(host: str, allowed: Iterable[str] = ()) -> bool:
+    """Whether the name a browser reached the page by (the `Host` header) is one no other
+    website can be served under (module docstring)."""
+    name, _ = _split_host(host)
+    if not name:
+        return False
+    try:
+        ipaddress.ip_address(name)
+        return True
+    except ValueError:
+        pass
+    if name == "localhost" or "." not in name or name.endswith(".local"):
+        return True
+    listed = {(urlsplit(origin.strip()).hostname or "").lower() for origin in allowed}
+    return name in listed
 
 
 def token_ok(required: str, given: str | None) -> bool:
