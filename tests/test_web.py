@@ -22,6 +22,7 @@ import sys
 import tarfile
 import threading
 import time
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, cast
@@ -170,10 +171,60 @@ def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> N
         page.close()
         closing_s = time.monotonic() - t0
         assert closing_s < 5.0, closing_s
-        stalled = [t.name for t in threading.enumerate() if t.name.startswith("web files")]
+        stalled = [t.name for t in threading.enumerate()
+                   if t.name.startswith(("web files", "web downloads"))]
         assert stalled == []
     finally:
         client.close()
+
+
+def test_downloads_under_way_do_not_hold_up_recording_and_settings(tmp_path: Path) -> None:
+    """Two recordings downloading over a slow tether held both threads of the pool that also
+    starts and stops recordings and saves settings: "stop recording" waited 140 s while the
+    card filled. Downloads have threads of their own (and a limit)."""
+    import numpy as np
+
+    from drivers.net import free_port
+    from drivers.recorder import MANIFEST, Recorder, RecordingSetup
+    from drivers.web.page import MAX_DOWNLOADS, WebPage
+
+    name = "netpose-rov-20260101T120000Z"
+    folder = tmp_path / name
+    (folder / "frames").mkdir(parents=True)
+    (folder / MANIFEST).write_text(json.dumps({"finished": True}))
+    (folder / "frames" / "00000001.png").write_bytes(bytes(32 * 1024 * 1024))
+    port = free_port()
+
+    def no_recording() -> RecordingSetup:
+        raise AssertionError("this test records nothing")
+
+    no_settings: Any = object()
+    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
+                         lambda f, r: np.zeros((8, 8, 3), np.uint8), no_settings,
+                         Recorder(tmp_path, "rov", no_recording, 10**9))
+    page.start()
+    clients = []
+    try:
+        for _ in range(MAX_DOWNLOADS + 1):
+            client = socket.create_connection(("127.0.0.1", port))
+            client.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            client.sendall(f"GET /api/recordings/{name}.tar HTTP/1.1\r\n"
+                           f"Host: 127.0.0.1:{port}\r\n\r\n".encode())
+            clients.append(client)
+            time.sleep(0.3)  # each fills its buffers; nobody reads
+        heads = [c.recv(64) for c in clients]
+        assert all(h.startswith(b"HTTP/1.1 200") for h in heads[:MAX_DOWNLOADS]), heads
+        assert heads[-1].startswith(b"HTTP/1.1 503"), heads[-1]  # one too many, said so
+        t0 = time.monotonic()
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/recordings",
+                                    timeout=10) as reply:
+            listing = json.loads(reply.read())
+        assert time.monotonic() - t0 < 2.0
+        assert [r["name"] for r in listing["recordings"]] == [name]
+    finally:
+        for client in clients:
+            client.close()
+        page.close()
 
 
 def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> EstimateMessage:

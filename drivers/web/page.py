@@ -55,6 +55,10 @@ MAX_HOLES = 20  # confirmed holes listed on the page (newest first)
 # A recording download whose client takes nothing for this long is ended (its tar thread is
 # one of the two that also serve settings and calibrations).
 DOWNLOAD_STALL_S = 60.0
+# Recording downloads at once. Each holds a thread of its own for as long as it lasts (minutes
+# over a tether): in the two-thread pool for settings and recordings, two downloads kept a
+# pilot's "stop recording" and every settings change waiting for 140 s.
+MAX_DOWNLOADS = 3
 _CANCEL_POLL_S = 0.2
 
 R = TypeVar("R")
@@ -123,6 +127,8 @@ class WebPage(Generic[R]):
         self._started = threading.Event()
         self._draw_pool = ThreadPoolExecutor(1, thread_name_prefix="web draw")
         self._file_pool = ThreadPoolExecutor(2, thread_name_prefix="web files")
+        self._download_pool = ThreadPoolExecutor(MAX_DOWNLOADS,
+                                                 thread_name_prefix="web downloads")
         self._tmp = Path(tempfile.mkdtemp(prefix="netpose-web-"))
         self._calibrations: dict[str, _PendingCalibration] = {}
         self._last_push = 0.0
@@ -164,6 +170,7 @@ class WebPage(Generic[R]):
         self._feed.attach(None)
         self._draw_pool.shutdown(wait=True, cancel_futures=True)
         self._file_pool.shutdown(wait=True, cancel_futures=True)
+        self._download_pool.shutdown(wait=True, cancel_futures=True)
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     # -- the server thread -------------------------------------------------------------------
@@ -605,6 +612,9 @@ class WebPage(Generic[R]):
             folder = recorder.folder_of(name)
         except RecorderError as exc:
             return _error(404, str(exc))
+        if len(self._downloads) >= MAX_DOWNLOADS:
+            return _error(503, f"{MAX_DOWNLOADS} downloads are under way: try again when one "
+                          "has finished")
         response = web.StreamResponse(headers={
             "Content-Type": "application/x-tar",
             "Content-Disposition": f'attachment; filename="{name}.tar"'})
@@ -613,8 +623,8 @@ class WebPage(Generic[R]):
         chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=8)
         cancelled = threading.Event()
         self._downloads[cancelled] = request
-        producer = loop.run_in_executor(self._file_pool, _write_tar, folder, name, loop, chunks,
-                                        cancelled)
+        producer = loop.run_in_executor(self._download_pool, _write_tar, folder, name, loop,
+                                        chunks, cancelled)
         try:
             while (chunk := await chunks.get()) is not None:
                 await response.write(chunk)
@@ -623,6 +633,8 @@ class WebPage(Generic[R]):
         except ConnectionError:
             # The client went away, or the page is stopping (`_close_clients` cut it off).
             log.info("web page: download of %s ended before it was complete", name)
+        except OSError as exc:  # the tar thread gave up: a client that stopped reading
+            log.warning("web page: download of %s stopped: %s", name, exc)
         finally:
             self._downloads.pop(cancelled, None)
             cancelled.set()
