@@ -18,21 +18,21 @@ import logging
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy.typing as npt
 
 from service.core.damage_track import DamageReport, NetInspector
 from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
-from service.core.readings import NetPlane, RangeReading, RangeStatus
+from service.core.readings import DistanceAlong, NetPlane, RangeReading, RangeStatus
 from service.core.results import NetEstimate
 from service.core.state_io import from_plain, to_plain
 from service.core.tracking import NetTracker, Outcome, TrackOutput, TrackState
 
 log = logging.getLogger(__name__)
 
-AutopilotDistance = Literal["perpendicular", "optical_axis"]
+AutopilotDistance = DistanceAlong
 
 # Net inspection runs only at budget levels up to this: when the loop is behind the camera,
 # a fresh distance comes first.
@@ -251,6 +251,13 @@ class Pipeline:
                               reading=self._reading(track, None, t))
 
     def _reading(
+        self, track: TrackOutput, estimate: NetEstimate | None, t: float
+    ) -> RangeReading:
+        """What the autopilot is told, saying which distance it is (`along`)."""
+        return replace(self._untagged_reading(track, estimate, t),
+                       along=self._autopilot_distance)
+
+    def _untagged_reading(
         self, track: TrackOutput, estimate: NetEstimate | None, t: float
     ) -> RangeReading:
         if track.measurement in (Outcome.ACCEPTED, Outcome.RESET) and estimate is not None:

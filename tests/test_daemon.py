@@ -141,6 +141,19 @@ def test_the_autopilot_gets_the_distance_its_configuration_names(
     assert len(sent) >= 15
     expected = RANGE_M if kind == "optical_axis" else RANGE_M * math.cos(math.radians(TILT_DEG))
     assert float(np.median(sent)) == pytest.approx(expected, rel=0.02)
+    # Each frame's estimate says what the autopilot was given and which distance it is (the web
+    # page shows that, not the perpendicular distance whatever the setting).
+    by_frame = {r.t_capture: r for r in h.link.ranges}
+    assert len(h.telemetry.estimates) == 20
+    for message in h.telemetry.estimates:
+        assert message.frame_time_mono is not None
+        reading = by_frame[message.frame_time_mono]
+        assert reading.along == kind
+        f = message.filtered
+        assert f is not None and f.autopilot_along == kind
+        assert f.autopilot == reading.status.value
+        assert f.autopilot_distance_m == (
+            reading.distance_m if reading.status is RangeStatus.GOOD else None)
 
 
 def test_unusable_frames_are_reported_once_and_nothing_is_sent(

@@ -65,6 +65,13 @@ class FilteredView:
         "what the autopilot is told: `good` (distance sent), `too_close` (a reading below the "
         "rangefinder minimum is sent), `none` (nothing is sent)"
     )
+    autopilot_distance_m: float | None = doc(
+        "the distance handed to the autopilot with this frame (DISTANCE_SENSOR carries it, in "
+        "cm, while the link sends): `range_m` or `distance_m`, as `autopilot_along` says; null "
+        "unless `autopilot` is `good`", None)
+    autopilot_along: str | None = doc(
+        "which distance the autopilot gets (`service.autopilot_distance` for this frame): "
+        "`optical_axis` (along the camera's axis) or `perpendicular` (to the net plane)", None)
     state: str = doc("`tracking`, `coasting` or `lost`")
     measurement: str = doc(
         "fate of this frame's measurement: `accepted`, `rejected`, `none` or `reset`"

@@ -10,6 +10,11 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import Literal
+
+# Which distance a reading gives (`service.autopilot_distance`): along the camera's optical axis
+# (what a forward rangefinder would measure), or perpendicular to the net plane.
+DistanceAlong = Literal["optical_axis", "perpendicular"]
 
 
 class RangeStatus(enum.Enum):
@@ -31,6 +36,9 @@ class RangeReading:
     `t_capture` is the capture time of the frame it came from (monotonic seconds, the frames'
     clock), so the link can refuse stale readings and stamp what it sends with the frame's time.
     `sigma_m` is one standard deviation (nan = unknown); `quality` 0..1 (nan = unknown).
+    `along` says which distance `distance_m` is (the pipeline's setting when it made the
+    reading, also on a reading without a distance; None when nobody said), so whoever shows
+    the reading shows what the autopilot got, not another distance beside it.
     """
 
     status: RangeStatus
@@ -38,6 +46,7 @@ class RangeReading:
     distance_m: float = math.nan
     sigma_m: float = math.nan
     quality: float = math.nan
+    along: DistanceAlong | None = None
 
     def __post_init__(self) -> None:
         if self.status is RangeStatus.GOOD and not (

@@ -18,7 +18,7 @@ from service.core.messages import (
     StatusMessage,
     TruthView,
 )
-from service.core.readings import NetPlane, RangeReading
+from service.core.readings import NetPlane, RangeReading, RangeStatus
 from service.core.tracking import TrackOutput
 from service.daemon.damage_outputs import DamageOutputs
 from service.daemon.events import OnceLogger
@@ -35,10 +35,15 @@ class PreviewSettings:
 
 
 def filtered_view(track: TrackOutput, sent: RangeReading) -> FilteredView:
+    """The filter's view with what the autopilot was given (`sent`): a reader shows that
+    distance as the autopilot's, never re-derives it from the setting."""
     rate = track.distance_rate_mps
+    good = sent.status is RangeStatus.GOOD
     return FilteredView(
         valid=track.valid,
         autopilot=sent.status.value,
+        autopilot_distance_m=sent.distance_m if good else None,
+        autopilot_along=sent.along,
         state=track.state.value,
         measurement=track.measurement.value,
         distance_m=track.distance_m,
