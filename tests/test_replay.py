@@ -27,6 +27,7 @@ from service.core.camera import CameraModel, save_camera
 from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.mesh import MeshGeometry
+from service.core.readings import RangeReading, RangeStatus
 from service.core.results import NetEstimate, RoiResult
 from service.tools.annotate import FrameAnnotator, caption_lines, mesh_parallelogram, net_axes
 from service.tools.replay import (
@@ -495,6 +496,11 @@ def test_caption_lines() -> None:
     assert caption_lines(seen) == [
         "net seen, ~0.83 +- 0.03 m: no distance (plane too uncertain (range +- 4%, normal +- "
         "2 deg))"]
+    # The web page's live view adds what the autopilot was handed: another distance than `d`
+    # by default (along the axis), and it says which.
+    sent = RangeReading(RangeStatus.GOOD, 0.0, distance_m=0.8945, along="optical_axis")
+    assert caption_lines(estimate, sent=sent)[-1] == "autopilot 0.89 m along the axis"
+    assert caption_lines(estimate, sent=RangeReading.none(0.0))[-1] == "autopilot: nothing sent"
 
 
 def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:

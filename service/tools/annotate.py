@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from service.core.camera import CameraModel
 from service.core.damage_track import DamageReport
+from service.core.readings import RangeReading, RangeStatus
 from service.core.results import NetEstimate, RoiResult
 from service.core.tracking import TrackOutput, TrackState
 from service.tools.damage_report import draw_damage
@@ -41,8 +42,11 @@ def caption_lines(
     track: TrackOutput | None = None,
     truth: Truth | None = None,
     refused: str = "",
+    sent: RangeReading | None = None,
 ) -> list[str]:
-    """'d=0.82 m  tilt 23 deg  conf 0.91', then the filter's and the truth's lines if given."""
+    """'d=0.82 m  tilt 23 deg  conf 0.91', then the filter's, what the autopilot was handed
+    (`sent`: its distance is along the camera axis by default, not the `d` above) and the
+    truth's lines if given."""
     lines: list[str] = []
     if estimate is None:
         lines.append(f"no estimate ({refused})" if refused else "no estimate")
@@ -64,6 +68,8 @@ def caption_lines(
             lines.append("filter lost")
         else:
             lines.append(f"filter {track.state.value} (not reported)")
+    if sent is not None:
+        lines.append(sent_caption(sent))
     if truth is not None:
         if not truth.net_present:
             lines.append("truth: no net")
@@ -76,6 +82,16 @@ def caption_lines(
                 text += f"  err {100.0 * (estimate.distance_m - truth.distance_m):+.1f} cm"
             lines.append(text)
     return lines
+
+
+def sent_caption(sent: RangeReading) -> str:
+    """'autopilot 1.00 m along the axis': what the autopilot was handed for this frame."""
+    if sent.status is RangeStatus.TOO_CLOSE:
+        return "autopilot: too close (below its minimum)"
+    if sent.status is RangeStatus.NONE:
+        return "autopilot: nothing sent"
+    along = {"optical_axis": " along the axis", "perpendicular": " perpendicular"}
+    return f"autopilot {sent.distance_m:.2f} m{along.get(sent.along or '', '')}"
 
 
 def _plane_point(camera: CameraModel, normal: F64, distance: float, pixel: F64) -> F64 | None:
@@ -173,6 +189,7 @@ class FrameAnnotator:
         label: str = "",
         refused: str = "",
         damage: DamageReport | None = None,
+        sent: RangeReading | None = None,
     ) -> BGR:
         h, w = frame.shape[:2]
         out_width = w if self._width is None else min(w, self._width)
@@ -193,7 +210,7 @@ class FrameAnnotator:
                 self._draw_axes(image, estimate, w, h, scale, font, thick)
         draw_damage(image, damage, scale, font, thick)
 
-        lines = caption_lines(estimate, track, truth, refused)
+        lines = caption_lines(estimate, track, truth, refused, sent)
         step = round(30 * font) + 4
         for row, text in enumerate(lines):
             _put_text(image, text, (8, step * (row + 1)), font, thick)

@@ -1,8 +1,9 @@
 """The web page's live view: the replay's overlay (service/tools/annotate.py) on a daemon frame.
 
 ROI grid coloured by what each ROI contributed, the mesh cells and parallelograms, the net's
-axes and normal back-projected through the calibration, and the distance, tilt, confidence and
-filter state as text, net damage (candidates yellow, confirmed holes red): the picture
+axes and normal back-projected through the calibration, and the distance, tilt, confidence,
+filter state and the distance the autopilot was handed (which may be another one: along the
+camera axis) as text, net damage (candidates yellow, confirmed holes red): the picture
 `netpose replay` writes, drawn on the newest frame only
 when a page is open (drivers/web draws at `web.live_hz` on its own thread).
 """
@@ -30,4 +31,4 @@ class LiveView:
         image = color if color is not None else frame.image
         return self._annotator.annotate(image, result.estimate, track=result.track,
                                         label=f"frame {frame.index}", refused=result.error,
-                                        damage=result.damage)
+                                        damage=result.damage, sent=result.reading)
