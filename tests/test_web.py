@@ -227,14 +227,20 @@ def test_downloads_under_way_do_not_hold_up_recording_and_settings(tmp_path: Pat
         page.close()
 
 
-def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True) -> EstimateMessage:
+def _estimate(seq: int, t: float, detected: bool = True, valid: bool = True,
+              along: str = "optical_axis") -> EstimateMessage:
+    """A frame of a net tilted 35 deg: 1.0 m along the axis, 0.82 m perpendicular (raw 1.1 m
+    along the axis, 0.9 m perpendicular); the autopilot gets the distance `along` names."""
+    sent = (1.0 if along == "optical_axis" else 0.82) if valid else None
     filtered = FilteredView(valid=valid, autopilot="good" if valid else "none",
+                            autopilot_distance_m=sent, autopilot_along=along,
                             state="tracking" if valid else "lost", measurement="accepted",
-                            distance_m=1.0 if valid else None,
-                            normal=(0.0, 0.0, -1.0) if valid else None)
+                            distance_m=0.82 if valid else None, range_m=1.0 if valid else None,
+                            normal=(0.0, 0.5736, -0.8192) if valid else None)
     return EstimateMessage(vehicle="v", time_unix=t, time_mono=t, seq=seq, frame_time_mono=t,
-                           detected=detected, distance_m=1.1 if detected else None,
-                           tilt_deg=5.0 if detected else None, filtered=filtered)
+                           detected=detected, distance_m=0.9 if detected else None,
+                           range_m=1.1 if detected else None,
+                           tilt_deg=35.0 if detected else None, filtered=filtered)
 
 
 def test_a_busy_page_port_costs_the_page_not_the_distance(tmp_path: Path) -> None:
@@ -301,17 +307,36 @@ def test_plot_history_thins_but_keeps_the_gaps() -> None:
     for i in range(600):  # 20 s at 30 frames/s; no net from 5 s to 6 s
         t = i / 30
         history.add(_estimate(i, t, detected=not 5.0 <= t < 6.0, valid=not 5.0 <= t < 6.5))
-    times = [p[0] or 0.0 for p in history.points()]
+    times = [float(p[0] or 0.0) for p in history.points()]
     assert times[0] >= 20 - 10.0 - 0.05  # the last 10 s only
     assert len(times) <= 10 / HISTORY_STEP_S + 5
     history = PlotHistory(span_s=60.0)
     for i in range(600):
         t = i / 30
         history.add(_estimate(i, t, detected=not 5.0 <= t < 6.0, valid=not 5.0 <= t < 6.5))
-    gap = [p[0] or 0.0 for p in history.points() if p[1] is None]
+    gap = [float(p[0] or 0.0) for p in history.points() if p[1] is None]
     assert gap and abs(gap[0] - 5.0) < 1 / 30 + 1e-9  # the gap starts where it did
-    resumed = [p[0] or 0.0 for p in history.points() if (p[0] or 0.0) >= 6.0 and p[1] is not None]
+    resumed = [float(p[0] or 0.0) for p in history.points()
+               if float(p[0] or 0.0) >= 6.0 and p[1] is not None]
     assert abs(resumed[0] - 6.0) < 1 / 30 + 1e-9
+
+
+def test_plot_points_show_the_distance_the_autopilot_gets() -> None:
+    """The plot's line is the distance handed to the autopilot, its dots the raw estimate of the
+    same kind: along the camera axis by default, perpendicular when so configured. It plotted
+    the perpendicular distance as "what the autopilot gets" whatever the setting (0.82 m
+    drawn, 100 cm sent at 35 deg). A change of kind (a reload) is kept in the history."""
+    axis = plot_point(_estimate(1, 1.0))
+    assert axis[1] == 1.1 and axis[3] == 1.0 and axis[6] == "optical_axis"
+    square = plot_point(_estimate(2, 2.0, along="perpendicular"))
+    assert square[1] == 0.9 and square[3] == 0.82 and square[6] == "perpendicular"
+    assert plot_point(_estimate(3, 3.0, valid=False))[3] is None  # nothing sent: a gap
+    history = PlotHistory(span_s=60.0)
+    for i in range(90):  # 3 s at 30 frames/s; the setting changes at 1.5 s
+        t = i / 30
+        history.add(_estimate(i, t, along="optical_axis" if t < 1.5 else "perpendicular"))
+    changed = [float(p[0] or 0.0) for p in history.points() if p[6] == "perpendicular"]
+    assert changed and abs(changed[0] - 1.5) < 1 / 30 + 1e-9
 
 
 def test_plot_points_carry_a_net_seen_without_a_distance() -> None:
@@ -332,7 +357,7 @@ def test_plot_points_carry_a_net_seen_without_a_distance() -> None:
         if 4.0 <= t < 5.0:
             e = dataclasses.replace(e, net_seen=True, approx_range_m=0.8)
         history.add(e)
-    marked = [p[0] or 0.0 for p in history.points() if p[5] is not None]
+    marked = [float(p[0] or 0.0) for p in history.points() if p[5] is not None]
     assert marked and abs(marked[0] - 4.0) < 1 / 30 + 1e-9
 
 

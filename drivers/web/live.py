@@ -101,23 +101,37 @@ def _tilt_of(normal: tuple[float, float, float] | None) -> float | None:
     return math.degrees(math.acos(min(1.0, z))) if math.isfinite(z) else None
 
 
-def plot_point(message: EstimateMessage) -> list[float | None]:
-    """[capture time (monotonic s), raw distance, raw tilt, filtered distance, filtered tilt,
-    seen range]: None where there is nothing to plot (no net, or the filter does not believe
-    its value). The seen range is a net seen but too uncertain for a distance (its refused
-    range along the axis; the page draws it hollow). The page's `plotPoint` builds the same."""
+def plot_point(message: EstimateMessage) -> list[float | str | None]:
+    """[capture time (monotonic s), raw distance, raw tilt, distance sent to the autopilot,
+    filtered tilt, seen range, which distance]: None where there is nothing to plot.
+
+    The distances are the one the autopilot gets (`filtered.autopilot_along`, which follows
+    `service.autopilot_distance`): the raw estimate's range along the camera axis or its
+    perpendicular distance, and the distance this frame handed to the autopilot (None when
+    nothing was: no net, the filter does not believe its value, too close). The seen range is a
+    net seen but too uncertain for a distance (its refused range along the axis; the page draws
+    it hollow). The last place names the distance ("optical_axis", "perpendicular"; None
+    without a filter: then the perpendicular one). The page's `plotPoint` builds the same."""
     f = message.filtered
     valid = f is not None and f.valid
+    along = f.autopilot_along if f is not None else None
+    raw = message.range_m if along == "optical_axis" else message.distance_m
     t = message.frame_time_mono if message.frame_time_mono is not None else message.time_mono
     seen = not message.detected and message.net_seen
     return [
         round(t, 3),
-        message.distance_m if message.detected else None,
+        raw if message.detected else None,
         message.tilt_deg if message.detected else None,
-        f.distance_m if valid and f is not None else None,
+        f.autopilot_distance_m if f is not None else None,
         _tilt_of(f.normal) if valid and f is not None else None,
         message.approx_range_m if seen else None,
+        along,
     ]
+
+
+def _time_of(point: list[float | str | None]) -> float:
+    t = point[0]
+    return t if isinstance(t, float) else 0.0
 
 
 class PlotHistory:
@@ -125,26 +139,28 @@ class PlotHistory:
 
     def __init__(self, span_s: float) -> None:
         self.span_s = span_s
-        self._points: deque[list[float | None]] = deque()
-        self._last_kept: list[float | None] | None = None
+        self._points: deque[list[float | str | None]] = deque()
+        self._last_kept: list[float | str | None] | None = None
 
     def add(self, message: EstimateMessage) -> None:
         point = plot_point(message)
         last = self._last_kept
         t = point[0]
-        assert t is not None
+        assert isinstance(t, float)
         if last is not None:
             last_t = last[0]
-            assert last_t is not None
-            same_gaps = all((point[i] is None) == (last[i] is None) for i in (1, 3, 5))
+            assert isinstance(last_t, float)
+            # Where a gap starts or ends, and where the distance sent changes kind (a reload).
+            same_gaps = (all((point[i] is None) == (last[i] is None) for i in (1, 3, 5))
+                         and point[6] == last[6])
             if same_gaps and t - last_t < HISTORY_STEP_S:
                 return
         self._points.append(point)
         self._last_kept = point
-        while self._points and (self._points[0][0] or 0.0) < t - self.span_s:
+        while self._points and _time_of(self._points[0]) < t - self.span_s:
             self._points.popleft()
 
-    def points(self) -> list[list[float | None]]:
+    def points(self) -> list[list[float | str | None]]:
         return list(self._points)
 
 
