@@ -41,7 +41,8 @@ class Streamer:
                  frames: Sequence[npt.NDArray[np.uint8]] | None = None, fps: int = FPS,
                  gop: int | None = None, pause: tuple[int, float] | None = None) -> None:
         """`pause`: (frame number, seconds) — before that frame, nothing is sent for that
-        long (a tether hiccup), then the stream goes on at its rate."""
+        long (a tether hiccup), then the stream goes on at its rate. `held` (an Event): while
+        set, nothing is sent (ffmpeg waits for input: no flush), then the stream goes on."""
         self._frames = frames
         self._pause = pause
         height, width = (HEIGHT, WIDTH) if frames is None else frames[0].shape[:2]
@@ -62,6 +63,7 @@ class Streamer:
         # When each frame was handed to the encoder (frame number -> time.monotonic()).
         self.sent_at: dict[int, float] = {}
         self._stop = threading.Event()
+        self.held = threading.Event()
         self._thread = threading.Thread(target=self._feed, name="test-streamer", daemon=True)
         self._thread.start()
 
@@ -73,6 +75,10 @@ class Streamer:
                 if self._pause is not None and self.sent == self._pause[0]:
                     self._stop.wait(self._pause[1])
                     start += self._pause[1]
+                while self.held.is_set() and not self._stop.is_set():
+                    waited = time.monotonic()
+                    self._stop.wait(0.02)
+                    start += time.monotonic() - waited
                 if self._frames is None:
                     image = numbered_pattern(self.sent, *self._size)
                 else:
