@@ -12,15 +12,26 @@ extra); Playwright's own browser download is never used.
 
 from __future__ import annotations
 
+import concurrent.futures
+import math
 import os
 import re
 import shutil
+import socket
+import statistics
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from drivers.mavlink_observer import DistanceObserver
+from drivers.net import free_port
+from drivers.sources.synthetic import builtin_camera
+from service.core.camera import save_camera
+from tests.daemon_harness import render_frames
+from tests.stream_peers import Streamer, ffmpeg_exe
 from tests.web_harness import TOKEN, WebDaemon
 
 CHROMIUM = os.environ.get("NETPOSE_CHROMIUM") or shutil.which("chromium") or ""
@@ -31,6 +42,9 @@ NOMINAL_CAMERA = (b"image_width: 1280\nimage_height: 720\ncamera_name: nominal\n
                   b"data: [736, 0, 639.5, 0, 736, 359.5, 0, 0, 1]}\n"
                   b"distortion_model: plumb_bob\n"
                   b"distortion_coefficients: {rows: 1, cols: 5, data: [-0.28, 0.09, 0, 0, 0]}\n")
+
+# A net 1.0 m away along the camera axis, tilted 35 deg: 0.82 m perpendicular to it.
+TILTED_NET = "synthetic:?width=640&height=360&fps=10&realtime=1&trajectory=static&range=1.0&tilt=35"
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM, reason="no Chromium: install Debian's chromium package (apt-get install "
@@ -164,3 +178,163 @@ def test_the_cockpit_widget_page(daemon: WebDaemon, browser: Any, shots: Path) -
                            timeout=30_000)
     assert page.text_content("#distance") != ""
     page.screenshot(path=str(shots / "web-widget.png"))
+
+
+def _started(daemon: WebDaemon) -> WebDaemon:
+    """daemon.start() beside Playwright's event loop (its asyncio.run needs a thread without
+    one), for a daemon a test starts once the browser is up."""
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        return pool.submit(daemon.start).result()
+
+
+def _shown_m(page: Any) -> float:
+    """The header's distance, metres ("1.00 m")."""
+    text = page.text_content("#distance")
+    assert text.endswith(" m"), text
+    return float(text.removesuffix(" m"))
+
+
+def test_the_header_shows_the_distance_the_autopilot_gets(browser: Any, tmp_path: Path) -> None:
+    """Page and widget show what DISTANCE_SENSOR carries, named for what it is, and follow a
+    change of service.autopilot_distance. They showed the perpendicular distance as "along the
+    camera axis" while the autopilot got the range along the axis: 0.82 m against 100 cm at
+    35 deg tilt."""
+    observer = DistanceObserver(as_autopilot=True)
+    daemon = WebDaemon(tmp_path, sections={"camera": {"url": TILTED_NET},
+                                           "mavlink": {"url": observer.url}})
+    try:
+        _started(daemon)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        widget = browser.new_page(viewport={"width": 480, "height": 420})
+        errors: list[str] = []
+        for view in (page, widget):
+            view.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(daemon.base + "/")
+        widget.goto(daemon.base + "/widget")
+        cases = (("optical_axis", 1.0, "along the camera axis"),
+                 ("perpendicular", math.cos(math.radians(35.0)), "perpendicular to the net"))
+        for kind, expected_m, label in cases:
+            if kind != "optical_axis":  # the default first, then a change (page's API, reload)
+                status, reply = daemon.request(
+                    "POST", "/api/settings",
+                    {"changes": {"service.autopilot_distance": kind}}, token=True)
+                assert status == 200 and reply["message"] == "saved and applied", reply
+            for view in (page, widget):
+                view.wait_for_function(
+                    f"document.getElementById('distance-kind').textContent === "
+                    f"'to the autopilot, {label}'", timeout=30_000)
+            time.sleep(1.5)  # a second of DISTANCE_SENSOR of this kind
+            for view in (page, widget):
+                shown = _shown_m(view)
+                recent = [a.current_cm for a in observer.arrivals()
+                          if a.t_received > time.monotonic() - 1.0]
+                assert len(recent) >= 5, recent
+                sent_cm = statistics.median(recent)
+                print(f"{kind}: shown {shown:.2f} m, DISTANCE_SENSOR {sent_cm} cm")
+                assert abs(100.0 * shown - sent_cm) <= 1.0, (shown, recent)
+                assert shown == pytest.approx(expected_m, abs=0.03)  # 0.18 m from the other
+                assert label in view.get_attribute("#distance", "title")
+            # The plot draws the same distance, and says which.
+            point = page.evaluate("window.netpose.points[window.netpose.points.length - 1]")
+            assert point[6] == kind and point[3] == pytest.approx(expected_m, abs=0.03)
+            assert page.text_content("#plot-kind") == label
+        assert not errors, errors
+    finally:
+        assert daemon.stop() == 0, daemon.log()
+        observer.close()
+
+
+def _mpegts_to(port: int) -> list[str]:
+    return ["-f", "mpegts", "-muxdelay", "0", "-muxpreload", "0",
+            f"udp://127.0.0.1:{port}?pkt_size=1316"]  # fmt: skip
+
+
+def _looks_stale(view: Any) -> dict[str, Any]:
+    """What a person sees of the header and the live view, and the page's own judgement."""
+    return view.evaluate("""() => {
+        const $ = (id) => document.getElementById(id);
+        return {live: window.netpose.health.live, link: $("link").textContent,
+                linkClass: $("link").className, distance: $("distance").textContent,
+                state: $("state").textContent, stateClass: $("state").className,
+                tilt: $("tilt").textContent, imageStale: $("live").classList.contains("stale"),
+                note: $("live-note").hidden ? null : $("live-note").textContent}; }""")
+
+
+# Stale as a person sees it: the connection line is not "live" (red), no distance, the badge
+# says stale or camera down, the raw line no longer reads as current, the picture is greyed
+# with the reason over it.
+STALE_SHOWN = """() => {
+    const $ = (id) => document.getElementById(id);
+    return !window.netpose.health.live && $("link").textContent !== "live" &&
+        $("link").classList.contains("down") && $("distance").textContent === "–" &&
+        ["stale", "camera down"].includes($("state").textContent) &&
+        $("state").classList.contains("stale") && !$("tilt").textContent.startsWith("raw") &&
+        $("live").classList.contains("stale") && !$("live-note").hidden &&
+        $("live-note").textContent !== ""; }"""
+
+
+def test_a_stalled_camera_does_not_look_live(
+        browser: Any, shots: Path, tmp_path: Path) -> None:
+    """A UDP stream that stops sending: within a few seconds the page and the Cockpit widget
+    say the view is stale, then that the camera is reconnecting; no distance is shown as
+    current, the picture is greyed with the reason over it, the plot's "now" runs on past the
+    last point and the frame rate falls to none. They went on showing TRACKING, the last
+    distance, a green "live" and 2.4 frames/s for as long as the camera was away. When the
+    stream comes back, so does the live view."""
+    exe = ffmpeg_exe()
+    frames = [f.image for f in render_frames(
+        "synthetic:?width=640&height=360&trajectory=static&range=1.0&tilt=20", 10)]
+    save_camera(builtin_camera(640, 360), tmp_path / "camera.yaml")
+    port = free_port(socket.SOCK_DGRAM)
+    streamer = Streamer(exe, _mpegts_to(port), frames=frames, fps=10)
+    daemon = WebDaemon(tmp_path, sections={"camera": {"url": f"udp://127.0.0.1:{port}",
+                                                      "calibration": "camera.yaml"}})
+    try:
+        _started(daemon)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        widget = browser.new_page(viewport={"width": 480, "height": 420})
+        errors: list[str] = []
+        views = (page, widget)
+        for view, path in zip(views, ("/", "/widget"), strict=True):
+            view.on("pageerror", lambda exc: errors.append(str(exc)))
+            view.goto(daemon.base + path)
+        for view in views:
+            view.wait_for_function("window.netpose.health && window.netpose.health.live && "
+                                   "window.netpose.frames >= 2", timeout=60_000)
+            seen = _looks_stale(view)
+            assert seen["link"] == "live" and seen["distance"].endswith(" m"), seen
+            assert not seen["imageStale"] and seen["note"] is None, seen
+
+        streamer.held.set()  # the stream pauses: nothing arrives, nothing says so
+        held_at = time.monotonic()
+        for view in views:
+            view.wait_for_function(STALE_SHOWN, timeout=10_000)
+        stale_after_s = time.monotonic() - held_at
+        print(f"page and widget stale {stale_after_s:.1f} s after the stream paused")
+        assert stale_after_s < 5.0
+        # The status names the cause once the source gives up on the stream (stale_after_s 2).
+        for view in views:
+            view.wait_for_function(
+                "document.getElementById('link').textContent.startsWith('camera reconnecting')",
+                timeout=15_000)
+            seen = _looks_stale(view)
+            assert seen["state"] == "camera down" and "camera reconnecting" in seen["note"], seen
+        # The plot's time axis runs on (a gap after the last point), the frame rate falls.
+        page.wait_for_function("plotEnd() - window.netpose.points[window.netpose.points.length"
+                               " - 1][0] > 5", timeout=15_000)
+        page.wait_for_function(
+            "document.getElementById('live-rate').textContent.startsWith('no frame for')",
+            timeout=15_000)
+        page.screenshot(path=str(shots / "web-page-camera-down.png"))
+        widget.screenshot(path=str(shots / "web-widget-camera-down.png"))
+
+        streamer.held.clear()  # back: the source re-opens the stream, the view is live again
+        for view in views:
+            view.wait_for_function("window.netpose.health.live && document.getElementById("
+                                   "'distance').textContent.endsWith(' m')", timeout=60_000)
+            seen = _looks_stale(view)
+            assert seen["link"] == "live" and not seen["imageStale"], seen
+        assert not errors, errors
+    finally:
+        streamer.stop()
+        assert daemon.stop() == 0, daemon.log()

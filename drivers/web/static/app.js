@@ -6,11 +6,17 @@
 const $ = (id) => document.getElementById(id);
 const view = document.body.dataset.view;
 const page = {
-  points: [],            // [t, rawDistance, rawTilt, filteredDistance, filteredTilt]
-  spanS: 300, historyS: 300, tokenRequired: false,
+  points: [],            // plotPoint(): [t, raw, rawTilt, sent, filteredTilt, seen, along]
+  spanS: 300, historyS: 300, tokenRequired: false, liveHz: 4, pushHz: 10,
   frames: 0, frameTimes: [], estimates: 0, lastStatusAt: 0, liveUrl: null,
   settings: null, calibrationId: null, recording: null,
   groupMessages: {},     // the last message of each settings group (kept across re-renders)
+  // Freshness, judged here by the browser's clock (a stalled camera sends nothing to say so):
+  connected: false,
+  clockOffsetS: null,    // the daemon's monotonic clock minus performance.now(), s (see daemonNow)
+  estimateGapS: null,    // median time between estimates arriving, s
+  estimateArrivals: [], frameAt: null, statusAt: null, statusGapS: null,
+  health: null,          // the last judgement (judge()), for tests and the curious
 };
 window.netpose = page;   // for tests and the curious
 
@@ -25,9 +31,12 @@ let retryMs = 500;
 function connect() {
   const ws = new WebSocket(wsUrl());
   ws.binaryType = "blob";
-  ws.onopen = () => { retryMs = 500; setLink("live", "live"); };
+  ws.onopen = () => {
+    // The daemon may have restarted (another clock, another rate): learn both again.
+    retryMs = 500; page.connected = true; page.clockOffsetS = null; refresh();
+  };
   ws.onclose = () => {
-    setLink("down", "disconnected – retrying");
+    page.connected = false; refresh();
     setTimeout(connect, retryMs);
     retryMs = Math.min(5000, retryMs * 2);
   };
@@ -43,6 +52,7 @@ function onMessage(msg) {
   switch (msg.kind) {
     case "hello":
       page.tokenRequired = msg.token_required; page.historyS = msg.history_s;
+      page.liveHz = msg.live_hz || page.liveHz; page.pushHz = msg.push_hz || page.pushHz;
       if ($("vehicle")) $("vehicle").textContent = "· " + msg.vehicle;
       if ($("token-row")) $("token-row").hidden = !msg.token_required;
       break;
@@ -62,46 +72,192 @@ function onFrame(blob) {
   img.src = url;
   page.frames += 1;
   const now = performance.now();
+  page.frameAt = now;
   page.frameTimes.push(now);
-  while (page.frameTimes.length && page.frameTimes[0] < now - 5000) page.frameTimes.shift();
-  if ($("live-rate")) $("live-rate").textContent = `${(page.frameTimes.length / 5).toFixed(1)} frames/s`;
+  refresh();
 }
+
+// The daemon's monotonic clock now, s: each message's `time_mono` plus the time since it
+// arrived, the largest over the messages of this connection (the one that spent the least time
+// on the way). A message stored by the daemon and sent when the page connects (the last
+// estimate of a camera that has stopped) is old by this clock, not new.
+function noteClock(timeMono) {
+  if (timeMono === null || timeMono === undefined) return;
+  const offset = timeMono - performance.now() / 1000;
+  if (page.clockOffsetS === null || offset > page.clockOffsetS) page.clockOffsetS = offset;
+}
+const daemonNow = () => (page.clockOffsetS === null ? null : performance.now() / 1000 + page.clockOffsetS);
+const median = (xs) => { const s = [...xs].sort((a, b) => a - b); return s.length ? s[s.length >> 1] : null; };
+const clamp = (v, lo, hi) => Math.min(hi, Math.max(lo, v));
 
 // -- estimates: header and plots ------------------------------------------------------------
 const fmt = (v, digits = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(digits));
 const tiltOf = (n) => (n ? (Math.acos(Math.min(1, Math.abs(n[2]))) * 180) / Math.PI : null);
 
+const ALONG = {
+  optical_axis: { short: "along the camera axis", other: "perpendicular", otherKey: "distance_m" },
+  perpendicular: { short: "perpendicular to the net", other: "along the axis", otherKey: "range_m" },
+};
+
+// The same point as drivers/web/live.py's plot_point: the distances are the one the autopilot
+// gets (filtered.autopilot_along): the raw estimate of that kind, and what was handed over.
 function plotPoint(m) {
   const f = m.filtered; const valid = f && f.valid;
+  const along = f ? f.autopilot_along : null;
+  const raw = along === "optical_axis" ? m.range_m : m.distance_m;
   const t = m.frame_time_mono !== null ? m.frame_time_mono : m.time_mono;
   // [5]: a net seen but too uncertain for a distance: its refused range, drawn hollow.
   const seen = !m.detected && m.net_seen && m.approx_range_m !== null && m.approx_range_m !== undefined;
-  return [t, m.detected ? m.distance_m : null, m.detected ? m.tilt_deg : null,
-          valid ? f.distance_m : null, valid ? tiltOf(f.normal) : null,
-          seen ? m.approx_range_m : null];
+  return [t, m.detected ? raw : null, m.detected ? m.tilt_deg : null,
+          f ? f.autopilot_distance_m : null, valid ? tiltOf(f.normal) : null,
+          seen ? m.approx_range_m : null, along];
 }
 
 function onEstimate(m) {
+  const now = performance.now();
   page.estimates += 1;
   page.lastEstimate = m;
-  const f = m.filtered || { state: "lost", valid: false };
-  const state = $("state");
-  state.textContent = f.state; state.className = "badge " + f.state;
-  $("distance").textContent = f.valid ? fmt(f.distance_m) + " m" : "–";
-  $("tilt").textContent = m.detected ? `raw ${fmt(m.distance_m)} m, tilt ${fmt(m.tilt_deg, 0)}°, conf ${fmt(m.confidence)}`
-    : m.net_seen ? `net seen, ~${fmt(m.approx_range_m)} ± ${fmt(m.approx_sigma_range_m)} m: no distance (${(m.reason || "").split(":")[0]})`
-    : `no net: ${m.reason || "–"}`;
+  noteClock(m.time_mono);
+  page.estimateArrivals.push(now);
+  if (page.estimateArrivals.length > 21) page.estimateArrivals.shift();
+  const gaps = page.estimateArrivals.slice(1).map((t, i) => (t - page.estimateArrivals[i]) / 1000);
+  if (gaps.length >= 3) page.estimateGapS = median(gaps);
   page.points.push(plotPoint(m));
   const oldest = m.frame_time_mono - Math.max(page.historyS, page.spanS);
   while (page.points.length && page.points[0][0] < oldest) page.points.shift();
+  refresh();
   if (!page.drawPending) { page.drawPending = true; requestAnimationFrame(drawPlots); }
 }
 
+// -- is what the page shows current? ------------------------------------------------------------
+// Nothing arrives from a camera that stalls: the page judges by its own clock how old the newest
+// estimate and frame are, and reads the status for the source's state and whether a distance is
+// going to the autopilot.
+const STALE_MIN_S = 1.5, STALE_MAX_S = 6, STATUS_STALE_MIN_S = 5;
+
+function judge() {
+  const now = performance.now();
+  const m = page.lastEstimate, s = page.status;
+  const statusAge = page.statusAt === null ? null : (now - page.statusAt) / 1000;
+  const statusLimit = Math.max(STATUS_STALE_MIN_S, 3 * (page.statusGapS || 1));
+  const status = s && statusAge !== null && statusAge <= statusLimit ? s : null;
+  const clock = daemonNow();
+  // The age of what the estimate shows: since its frame was captured (a frame held up in a
+  // stalling stream arrives seconds old), when the capture stamp is on the daemon's clock.
+  const toPublishMs = m && m.latency_ms ? m.latency_ms.frame_to_publish : null;
+  const lagS = typeof toPublishMs === "number" && toPublishMs >= 0 && toPublishMs <= 60000
+    ? toPublishMs / 1000 : 0;
+  const estimateAge = m && clock !== null ? Math.max(0, clock - m.time_mono) + lagS : null;
+  const staleAfter = clamp(3 * (page.estimateGapS || 1 / page.pushHz), STALE_MIN_S, STALE_MAX_S);
+  const frameAge = page.frameAt === null ? null : (now - page.frameAt) / 1000;
+  const source = status ? status.frame_source.state : null;
+  const h = {
+    connected: page.connected, estimateAge, frameAge, statusAge, source,
+    sending: status ? status.autopilot.sending_distance : null,
+    estimateStale: estimateAge === null || estimateAge > staleAfter,
+    statusStale: !status,
+    sourceDown: source !== null && source !== "streaming",
+  };
+  h.frameStale = frameAge === null || frameAge > Math.max(staleAfter, 3 / page.liveHz);
+  h.live = h.connected && !h.estimateStale && !h.statusStale && !h.sourceDown;
+  const ago = (age) => (age === null ? "" : ` for ${fmt(age, 0)} s`);
+  if (!h.connected) h.reason = "disconnected from the daemon – retrying";
+  else if (h.sourceDown) {
+    const lastFrame = status.frame_source.last_frame_age_s;
+    h.reason = `camera ${source}` + (lastFrame !== null && lastFrame !== undefined
+      ? `: no frame for ${fmt(lastFrame + statusAge, 0)} s` : "");
+  } else if (h.estimateStale) h.reason = m ? `no estimate${ago(estimateAge)}` : "no estimate yet";
+  else if (h.statusStale) h.reason = statusAge === null ? "no status from the daemon yet" : `no status from the daemon${ago(statusAge)}`;
+  else h.reason = "";
+  return h;
+}
+
+function setText(id, text, cls) {
+  const el = $(id); if (!el) return;
+  el.textContent = text;
+  if (cls !== undefined) el.className = cls;
+}
+
+function refresh() {
+  const h = page.health = judge();
+  document.body.classList.toggle("stale", !h.live);
+  // The connection line says "live" only while estimates are current, not merely connected.
+  if (h.live) setLink("live", "live");
+  else setLink("down", h.connected ? h.reason : "disconnected – retrying");
+  renderHeader(h);
+  const img = $("live"), note = $("live-note");
+  if (img) img.classList.toggle("stale", h.frameStale || !h.live);
+  if (note) {
+    note.hidden = !(h.frameStale || !h.live) || !page.frames;
+    const frame = h.frameAge === null ? "" : `frame from ${fmt(h.frameAge, 0)} s ago`;
+    note.textContent = [h.live ? "" : h.reason, frame].filter(Boolean).join(" · ");
+  }
+  if ($("live-rate")) {
+    const now = performance.now();
+    while (page.frameTimes.length && page.frameTimes[0] < now - 5000) page.frameTimes.shift();
+    $("live-rate").textContent = page.frameTimes.length || h.frameAge === null
+      ? `${(page.frameTimes.length / 5).toFixed(1)} frames/s`
+      : `no frame for ${fmt(h.frameAge, 0)} s`;
+  }
+}
+
+function renderHeader(h) {
+  const m = page.lastEstimate;
+  const f = (m && m.filtered) || { state: "lost", valid: false, autopilot: "none" };
+  const along = ALONG[f.autopilot_along];
+  const setting = f.autopilot_along ? ` (service.autopilot_distance = ${f.autopilot_along})` : "";
+  if (!m || !h.live) {
+    setText("state", m ? (h.sourceDown ? "camera down" : "stale") : "waiting", "badge stale");
+    setText("distance", "–", "big stale");
+    setText("distance-kind", m ? "no current distance" : "");
+    $("distance").title = "No current distance: " + (h.reason || "waiting for the daemon");
+    // The reason is on the connection line and over the picture; here, what is no longer current.
+    const age = h.estimateAge === null ? "" : `, ${fmt(h.estimateAge, 0)} s ago`;
+    setText("tilt", m && f.autopilot === "good"
+      ? `last sent: ${fmt(f.autopilot_distance_m)} m${along ? " " + along.short : ""}${age}`
+      : m ? `last estimate${age}` : "");
+    return;
+  }
+  setText("state", f.state, "badge " + f.state);
+  const handed = f.autopilot === "good" ? fmt(f.autopilot_distance_m) + " m"
+    : f.autopilot === "too_close" ? "too close" : "–";
+  const sent = f.autopilot !== "none" && h.sending !== false;
+  setText("distance", handed, "big" + (sent ? "" : " unsent"));
+  let kind;
+  if (f.autopilot === "none") kind = "nothing sent to the autopilot";
+  else if (h.sending === false) kind = `${along ? along.short + " – " : ""}not being sent to the autopilot`;
+  else kind = f.autopilot === "too_close" ? "to the autopilot: below its minimum" : `to the autopilot, ${along ? along.short : ""}`;
+  setText("distance-kind", kind);
+  $("distance").title = f.autopilot === "too_close"
+    ? "The net is nearer than the mesh can be resolved: the autopilot gets a reading below its minimum"
+    : `What the autopilot gets (DISTANCE_SENSOR): the filtered distance ${along ? along.short : ""}${setting}`;
+  const other = along && f.valid ? ` · ${along.other} ${fmt(f[along.otherKey])} m` : "";
+  const raw = f.autopilot_along === "optical_axis" ? m.range_m : m.distance_m;
+  setText("tilt", m.detected ? `raw ${fmt(raw)} m, tilt ${fmt(m.tilt_deg, 0)}°, conf ${fmt(m.confidence)}${other}`
+    : m.net_seen ? `net seen, ~${fmt(m.approx_range_m)} ± ${fmt(m.approx_sigma_range_m)} m: no distance (${(m.reason || "").split(":")[0]})`
+    : `no net: ${m.reason || "–"}${other}`);
+}
+
 function drawPlots() {
-  page.drawPending = false;
+  page.drawPending = false; page.drawnAt = performance.now();
   if ($("points")) $("points").textContent = `(${page.points.length} points)`;
-  plot($("plot-distance"), 1, 3, "distance, m", 5);
+  const newest = page.points.length ? ALONG[page.points[page.points.length - 1][6]] : null;
+  if ($("plot-kind")) $("plot-kind").textContent = newest ? newest.short : "";
+  plot($("plot-distance"), 1, 3, `distance to the autopilot${newest ? ", " + newest.short : ""}, m`, 5);
   if ($("plot-tilt")) plot($("plot-tilt"), 2, 4, "tilt, deg");
+}
+
+// The right end of the plots: now, on the points' clock (capture times). The newest point plus
+// how long ago, by the daemon's clock, its estimate was made: while nothing comes the time axis
+// runs on and the gap shows.
+function plotEnd() {
+  const pts = page.points, m = page.lastEstimate;
+  if (!pts.length) return null;
+  const last = pts[pts.length - 1][0];
+  const clock = daemonNow();
+  if (!m || clock === null) return last;
+  const t = m.frame_time_mono !== null ? m.frame_time_mono : m.time_mono;
+  return Math.max(last, t + Math.max(0, clock - m.time_mono));
 }
 
 function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
@@ -111,7 +267,7 @@ function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
   ctx.clearRect(0, 0, W, H);
   const pts = page.points;
   if (!pts.length) return;
-  const tEnd = pts[pts.length - 1][0], tStart = tEnd - page.spanS;
+  const tEnd = plotEnd(), tStart = tEnd - page.spanS;
   let lo = Infinity, hi = -Infinity;
   for (const p of pts) {
     if (p[0] < tStart) continue;
@@ -142,13 +298,15 @@ function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
     for (const p of pts) if (p[0] >= tStart && p[seenIndex] != null) ctx.strokeRect(x(p[0]) - 2, y(p[seenIndex]) - 2, 4, 4);
   }
   ctx.strokeStyle = "#2a9df4"; ctx.lineWidth = 2; ctx.beginPath();
-  let open = false, lastT = null;
+  let open = false, lastT = null, lastAlong;
   for (const p of pts) {
     if (p[0] < tStart) continue;
     const v = p[filtIndex];
-    if (v === null || (lastT !== null && p[0] - lastT > 1.0)) open = false;
+    // A gap where nothing was sent, where no estimate came for a second, and where the
+    // distance sent changed kind (service.autopilot_distance reloaded).
+    if (v === null || (lastT !== null && p[0] - lastT > 1.0) || p[6] !== lastAlong) open = false;
     if (v !== null) { if (open) ctx.lineTo(x(p[0]), y(v)); else ctx.moveTo(x(p[0]), y(v)); open = true; }
-    lastT = p[0];
+    lastT = p[0]; lastAlong = p[6];
   }
   ctx.stroke();
 }
@@ -162,7 +320,11 @@ const LEVEL = {
 };
 
 function onStatus(s) {
-  page.lastStatusAt = Date.now(); page.status = s;
+  const now = performance.now();
+  if (page.statusAt !== null) page.statusGapS = (now - page.statusAt) / 1000;
+  page.lastStatusAt = Date.now(); page.statusAt = now; page.status = s;
+  noteClock(s.time_mono);
+  refresh();
   const body = $("health") && $("health").tBodies[0];
   if (!body) return;
   const fs = s.frame_source, ap = s.autopilot, tm = s.telemetry, es = s.estimator, lat = s.latency_ms;
@@ -191,6 +353,12 @@ setInterval(() => {
   if (page.lastStatusAt && Date.now() - page.lastStatusAt > 5000 && $("digest"))
     $("digest").textContent = "no status from the daemon for 5 s";
 }, 1000);
+
+// Nothing arriving is news too: judge freshness, the frame rate and the plots' "now" on a timer.
+setInterval(() => {
+  refresh();
+  if (!page.drawPending && (!page.drawnAt || performance.now() - page.drawnAt > 1000)) drawPlots();
+}, 250);
 
 // -- requests that change something --------------------------------------------------------
 async function send(url, body) {
