@@ -55,7 +55,9 @@ def estimate_message(seq: int, distance: float = 1.5, detected: bool = True) -> 
         range_m=distance * 1.02, tilt_deg=11.0, reason="" if detected else "x",
         filtered=FilteredView(valid=detected, autopilot="good" if detected else "none",
                               state="tracking" if detected else "lost", measurement="accepted",
-                              distance_m=distance, sigma_distance_m=0.01),
+                              distance_m=distance, sigma_distance_m=0.01,
+                              autopilot_distance_m=distance * 1.02 if detected else None,
+                              autopilot_along="optical_axis"),
         latency_ms=EstimateLatency(stages={"spectrum": 20.0}, estimator_total=20.0),
     )
 
@@ -107,6 +109,8 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert f"{VEHICLE} live" in summary and "d 1.59+/-0.02 m" in summary and "10.0Hz" in summary
     screen = "\n".join(state.render(t))
     assert "estimate" in screen and "cam streaming" in screen and "filtered" in screen
+    # `d` is perpendicular; what the autopilot gets (here along the axis) is said apart.
+    assert "autopilot 1.62 m along the camera axis" in screen
     assert "searching" not in screen
     # Open water: the daemon says it searches at a paced rate, and the monitor shows it.
     searching = dataclasses.replace(

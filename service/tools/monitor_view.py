@@ -257,6 +257,7 @@ class MonitorState:
                     f" +/- {_fmt(filtered.get('sigma_distance_m'))} m"
                     f"  rate {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
                 )
+                lines.append("  autopilot " + _autopilot_text(filtered))
             latency = estimate.get("latency_ms") or {}
             if latency:
                 lines.append(
@@ -312,6 +313,20 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
         f" range {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
         f" conf {_fmt(estimate.get('confidence'))}"
     )
+
+
+def _autopilot_text(filtered: Mapping[str, Any]) -> str:
+    """What the autopilot was handed with this frame: `d` above is the perpendicular distance,
+    and the autopilot may get the one along the camera's axis (service.autopilot_distance)."""
+    told = filtered.get("autopilot")
+    if told == "good":
+        along = str(filtered.get("autopilot_along"))
+        kind = {"optical_axis": "along the camera axis",
+                "perpendicular": "perpendicular to the net"}.get(along, along)
+        return f"{_fmt(filtered.get('autopilot_distance_m'))} m {kind}"
+    if told == "too_close":
+        return "too close (below the rangefinder minimum)"
+    return "nothing sent"
 
 
 def _status_text(status: Mapping[str, Any] | None) -> str:
