@@ -22,8 +22,8 @@ from drivers.mavlink_link import (
 )
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key
 
-# ArduPilot has up to ten rangefinder instances, RNGFND1_ .. RNGFND9_ and RNGFNDA_ (one on
-# boards without the flash for more), and hands every DISTANCE_SENSOR to each instance that is
+# ArduPilot has ten rangefinder instances, RNGFND1_ .. RNGFND9_ and RNGFNDA_ (every build with
+# rangefinders: AP_RangeFinder.h), and hands every DISTANCE_SENSOR to each instance that is
 # not off; an instance of type MAVLink keeps the readings of its own orientation. So netpose can
 # use any free instance: a BlueROV2's Ping altimeter (usually RNGFND1, facing down for SURFTRAK)
 # stays as it is.
@@ -141,35 +141,15 @@ def _probe(
         if msg is not None and _is_autopilot_heartbeat(msg):
             heartbeat = msg
     sysid, compid = heartbeat.get_srcSystem(), heartbeat.get_srcComponent()
-    conn.mav.command_long_send(sysid, compid, _MAV_CMD_REQUEST_MESSAGE, 0,
-                               _MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
-    params: dict[str, float] = {}
-    version: int | None = None
-    # Answers come within milliseconds; missing ones are asked again once, then given up.
-    answer_deadline = time.monotonic() + max(1.0, min(3.0, timeout_s))
-    retry_at = time.monotonic() + 0.5 * (answer_deadline - time.monotonic())
-    asked_twice = False
-    for name in param_names:
-        conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
-    while time.monotonic() < answer_deadline:
-        if not asked_twice and time.monotonic() >= retry_at:
-            asked_twice = True
-            for name in param_names:
-                if name not in params:
-                    conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
-            if version is None:
-                conn.mav.command_long_send(sysid, compid, _MAV_CMD_REQUEST_MESSAGE, 0,
-                                           _MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
-        msg = conn.recv_match(type=["PARAM_VALUE", "AUTOPILOT_VERSION"], blocking=True,
-                              timeout=0.1)
-        if msg is None or (msg.get_srcSystem(), msg.get_srcComponent()) != (sysid, compid):
-            continue
-        if msg.get_type() == "AUTOPILOT_VERSION":
-            version = int(msg.flight_sw_version)
-        elif msg.param_id in param_names:
-            params[msg.param_id] = float(msg.param_value)
-        if version is not None and len(params) == len(param_names):
-            break
+    # An instance's settings are asked for once it says it exists (its TYPE answered): every
+    # unanswered name costs PARAM_TRIES waits, and a board may have fewer than ten.
+    first = tuple(n for n in param_names if _instance_setting(n) is None)
+    params = _read_params(conn, sysid, compid, first, timeout_s)
+    rest = tuple(n for n in param_names
+                 if (instance := _instance_setting(n)) is not None
+                 and f"RNGFND{instance}_TYPE" in params)
+    params |= _read_params(conn, sysid, compid, rest, timeout_s)
+    version = _read_version(conn, sysid, compid)
     return AutopilotReport(
         sysid=sysid,
         compid=compid,
@@ -179,6 +159,68 @@ def _probe(
         flight_sw_version=version,
         params=params,
     )
+
+
+# ArduPilot queues at most 20 parameter requests (all links together, GCS_Param.cpp) and drops
+# the rest: 64 asked at once came back 22-26. A few at a time leave room for a ground station's.
+PARAM_WINDOW = 8
+PARAM_ANSWER_S = 0.5  # asked again after this long without an answer
+PARAM_TRIES = 2  # then the firmware has no such parameter (it never answers for those)
+
+
+def _instance_setting(name: str) -> str | None:
+    """The rangefinder instance ("1" .. "A") whose setting (other than TYPE) `name` is."""
+    for instance in RANGEFINDER_INSTANCES:
+        prefix = f"RNGFND{instance}_"
+        if name.startswith(prefix) and name != f"{prefix}TYPE":
+            return instance
+    return None
+
+
+def _read_params(conn: Any, sysid: int, compid: int, names: tuple[str, ...],
+                 timeout_s: float) -> dict[str, float]:
+    """The named parameters the autopilot has, asked for PARAM_WINDOW at a time."""
+    waiting = list(names)
+    asked: dict[str, tuple[float, int]] = {}  # name -> (when last asked, times asked)
+    params: dict[str, float] = {}
+    deadline = time.monotonic() + max(5.0, timeout_s) + len(names) * 0.1
+    while (waiting or asked) and time.monotonic() < deadline:
+        now = time.monotonic()
+        for name, (when, tries) in list(asked.items()):
+            if now - when < PARAM_ANSWER_S:
+                continue
+            if tries >= PARAM_TRIES:
+                del asked[name]  # not on this firmware
+            else:
+                conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
+                asked[name] = (now, tries + 1)
+        while waiting and len(asked) < PARAM_WINDOW:
+            name = waiting.pop(0)
+            conn.mav.param_request_read_send(sysid, compid, name.encode("ascii"), -1)
+            asked[name] = (now, 1)
+        msg = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.05)
+        if msg is None or (msg.get_srcSystem(), msg.get_srcComponent()) != (sysid, compid):
+            continue
+        if msg.param_id in names:
+            params[msg.param_id] = float(msg.param_value)
+            asked.pop(msg.param_id, None)
+            if msg.param_id in waiting:
+                waiting.remove(msg.param_id)
+    return params
+
+
+def _read_version(conn: Any, sysid: int, compid: int) -> int | None:
+    """AUTOPILOT_VERSION.flight_sw_version (asked twice), or None."""
+    for _ in range(2):
+        conn.mav.command_long_send(sysid, compid, _MAV_CMD_REQUEST_MESSAGE, 0,
+                                   _MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0)
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            msg = conn.recv_match(type="AUTOPILOT_VERSION", blocking=True, timeout=0.1)
+            if msg is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == (sysid,
+                                                                                        compid):
+                return int(msg.flight_sw_version)
+    return None
 
 
 def _fmt(value: float) -> str:
@@ -227,6 +269,10 @@ def _orientation_name(value: float) -> str:
     return ORIENTATION_NAMES.get(int(value), f"rotation {_fmt(value)}")
 
 
+def _orientation_of(value: float | None) -> str:
+    return "an orientation it did not report" if value is None else _orientation_name(value)
+
+
 def _rangefinder_changes(
     p: dict[str, float], want: int, changes: list[str], notes: list[str]
 ) -> str | None:
@@ -257,7 +303,7 @@ def _rangefinder_changes(
                            "rangefinder instance) and reboot the autopilot")
             for n in elsewhere:
                 notes.append(f"RNGFND{n} is a MAVLink rangefinder facing "
-                             f"{_orientation_name(facing(n) or 0)}: left as it is (another "
+                             f"{_orientation_of(facing(n))}: left as it is (another "
                              f"sensor may send to it); netpose's readings face {want_name}")
         elif elsewhere:
             chosen = elsewhere[0]

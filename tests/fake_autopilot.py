@@ -211,6 +211,7 @@ class FakeAutopilot(Closeable):
 
     MAV_TYPE_SUBMARINE = 12
     MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+    PARAM_ANSWER_S = 0.005  # a queued parameter request answered every this often
 
     def __init__(
         self,
@@ -224,7 +225,11 @@ class FakeAutopilot(Closeable):
         flight_sw_version: int = (4 << 24) | (5 << 16) | (3 << 8) | 255,  # 4.5.3 official
         signing_key: bytes | None = None,
         echo: bool = False,
+        param_queue: int | None = None,
     ) -> None:
+        """`param_queue`: as ArduPilot (GCS_Param.cpp), PARAM_REQUEST_READ goes to a queue of
+        that many, answered one per PARAM_ANSWER_S from this object's thread; a request that
+        finds the queue full is dropped. None: every request is answered at once."""
         self.transport = transport
         self.sysid = sysid
         self.compid = compid
@@ -251,6 +256,8 @@ class FakeAutopilot(Closeable):
         self._lock = threading.Lock()
         self._received: list[Received] = []
         self.param_requests: list[str] = []
+        self._param_queue_size = param_queue
+        self._param_queue: list[str] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -328,14 +335,19 @@ class FakeAutopilot(Closeable):
 
     def _run(self) -> None:
         next_heartbeat = time.monotonic()
+        next_param = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_heartbeat:
                 if self.heartbeats_enabled:
                     self._send_heartbeat()
                 next_heartbeat = now + self.heartbeat_period_s
+            if self._param_queue and now >= next_param:
+                self._send_param(self._param_queue.pop(0))
+                next_param = now + self.PARAM_ANSWER_S
             try:
-                ready, _, _ = select.select(self.transport.fds(), [], [], 0.02)
+                ready, _, _ = select.select(self.transport.fds(), [], [],
+                                            0.002 if self._param_queue else 0.02)
             except (OSError, ValueError):
                 continue  # a client socket closed under us; the next turn lists the new fds
             for fd in ready:
@@ -345,6 +357,15 @@ class FakeAutopilot(Closeable):
                     continue
                 if data:
                     self._consume(data)
+
+    def _send_param(self, name: str) -> None:
+        """PARAM_VALUE for a parameter this autopilot has; nothing for one it has not."""
+        if name in self.params:
+            index = sorted(self.params).index(name)
+            self._mav.param_value_send(
+                name.encode("ascii"), float(self.params[name]),
+                self.mavlink.MAV_PARAM_TYPE_REAL32, len(self.params), index,
+            )
 
     def _send_heartbeat(self) -> None:
         self._mav.heartbeat_send(
@@ -376,12 +397,10 @@ class FakeAutopilot(Closeable):
             name = msg.param_id
             with self._lock:
                 self.param_requests.append(name)
-            if name in self.params:
-                index = sorted(self.params).index(name)
-                self._mav.param_value_send(
-                    name.encode("ascii"), float(self.params[name]), m.MAV_PARAM_TYPE_REAL32,
-                    len(self.params), index,
-                )
+            if self._param_queue_size is None:
+                self._send_param(name)
+            elif len(self._param_queue) < self._param_queue_size:
+                self._param_queue.append(name)
         elif kind == "COMMAND_LONG" and msg.target_system == self.sysid:
             wants_version = (
                 msg.command == m.MAV_CMD_REQUEST_MESSAGE

@@ -9,7 +9,12 @@ from pathlib import Path
 import pytest
 
 from drivers.mavlink_link import MavlinkLink
-from drivers.mavlink_probe import RANGEFINDER_PARAMS, AutopilotReport, advise
+from drivers.mavlink_probe import (
+    RANGEFINDER_INSTANCES,
+    AutopilotReport,
+    advise,
+    instance_params,
+)
 from drivers.mavlink_settings import MavlinkSettings
 from service.cli import main
 from tests.fake_autopilot import (
@@ -45,8 +50,11 @@ def test_reports_identity_and_what_to_change(capsys: pytest.CaptureFixture[str])
     assert "set RNGFND1_MIN_CM = 30 (now 50 cm)" in out  # default minimum 0.3 m
     assert "set RNGFND1_MAX_CM = 800 (now 700 cm)" in out  # default maximum 8 m
     assert "SCR_ENABLE" not in out  # net hold not asked for
-    # Every parameter was asked for by name, from netpose's own identity.
-    assert {r.msg.param_id for r in requests} >= set(RANGEFINDER_PARAMS)
+    # Every instance's type was asked for by name, from netpose's own identity, and the
+    # settings of those that exist (here RNGFND1 only).
+    asked = {r.msg.param_id for r in requests}
+    assert asked >= {f"RNGFND{n}_TYPE" for n in RANGEFINDER_INSTANCES} | {"RNGFND_SQ_MIN"}
+    assert asked >= set(instance_params("1")) and "RNGFND2_ORIENT" not in asked
     assert {r.src for r in requests} == {(1, 197)}
 
 
@@ -234,3 +242,21 @@ def test_the_check_reads_the_services_configuration(
     config.write_text('[mavlink]\norientation = "ahead"\n')
     assert main(["mavlink-check", "--config", str(config)]) == 78
     assert "mavlink.orientation" in capsys.readouterr().err
+
+
+def test_every_parameter_is_read_from_an_autopilot_that_queues_twenty_requests(
+    capsys: pytest.CaptureFixture[str]
+) -> None:
+    """ArduPilot queues at most 20 parameter requests and drops the rest (GCS_Param.cpp). Asked
+    for all 64 at once (ten rangefinder instances), ArduSub SITL answered 22-26: a second
+    forward sensor on RNGFND8 went unseen ("Ready") and SCR_ENABLE = 1 was advised when it
+    was 1. Requests go out a few at a time."""
+    params = {**ardusub_47(i1=(PING, 25), i2=(10, 0), i8=(100, 0)), "SCR_ENABLE": 1,
+              "NETH_ENABLE": 1, "NETH_DIST": 1.0}
+    with FakeAutopilot(UdpServerTransport(), params=params, param_queue=20) as autopilot:
+        code = main(["mavlink-check", "--url", autopilot.url, "--timeout", "2", "--net-hold"])
+    out = capsys.readouterr().out
+    assert code == 3, out
+    changes = out.split("To change:")[1]
+    assert "RNGFND8 (type 100) also faces forward" in changes
+    assert "SCR_ENABLE" not in changes and "RNGFND_SQ_MIN    0" in out

@@ -701,6 +701,29 @@ def test_ardusub_sitl_takes_our_distance_beside_a_downward_altimeter(tmp_path: P
     assert "RNGFND1_TYPE     100" in check.stdout and "RNGFND2_TYPE     10" in check.stdout
 
 
+@pytest.mark.skipif(not SITL, reason="set NETPOSE_ARDUSUB_SITL to an ArduSub SITL binary")
+@pytest.mark.timeout(180)
+def test_ardusub_sitl_answers_the_check_about_every_instance(tmp_path: Path) -> None:
+    """ArduSub queues 20 parameter requests and drops the rest: asked for all at once, the
+    check never heard of RNGFND7 and later, so a second forward sensor on RNGFND8 went unseen
+    ("Ready") and SCR_ENABLE = 1 was advised when it was 1."""
+    with ardusub_sitl(tmp_path, sitl_settings, instance_of_ours="2", probe_port=True,
+                      other_params="RNGFND1_TYPE 100\nRNGFND1_ORIENT 25\nRNGFND8_TYPE 100\n"
+                                   "RNGFND8_ORIENT 0\nSCR_ENABLE 1\n") as sitl:
+        port = 5760 + 10 * int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "7")) + 4
+        check = subprocess.run(
+            [sys.executable, "-m", "service.cli", "mavlink-check", "--url",
+             f"tcp:127.0.0.1:{port}", "--min-distance", str(SITL_MIN_CM / 100),
+             "--max-distance", str(SITL_MAX_CM / 100), "--timeout", "20", "--net-hold"],
+            capture_output=True, text=True, timeout=90, cwd=Path(__file__).parents[1],
+        )
+        context = sitl.context()
+    assert check.returncode == 3, check.stdout + check.stderr + context
+    changes = check.stdout.split("To change:")[1]
+    assert "RNGFND8 (type 100) also faces forward" in changes, check.stdout
+    assert "set SCR_ENABLE" not in changes, check.stdout
+
+
 # ArduPilot's RangeFinder::Status, as Lua's rangefinder:status_orient() returns it.
 RANGEFINDER_STATUS = {0: "NotConnected", 1: "NoData", 2: "OutOfRangeLow", 3: "OutOfRangeHigh",
                       4: "Good"}
