@@ -178,23 +178,46 @@ def import_mavutil() -> Any:
     return mavutil
 
 
-def _claim_serial_port(conn: Any, device: str) -> None:
-    """Hold the serial port alone, or fail saying who may have it.
+def _claim_serial_port(device: str) -> int:
+    """Hold the serial port alone (a descriptor holding the lock), or fail saying who may
+    have it.
 
     A tty opened twice splits its incoming bytes between the two readers: the daemon and a
     `mavlink-check` run beside it each lost half the autopilot's messages (the check then
     advised a firmware "with rangefinder support", the daemon lost its link). The lock is the
     one pyserial's `exclusive=True` takes (flock), which pymavlink does not ask for: it keeps
-    out a second netpose; other programs may not take it, hence the router advice.
+    out a second netpose; other programs may not take it, hence the router advice. Taken
+    before pymavlink opens the port: its open sets the baud rate, which belongs to the device,
+    and a refused second netpose had already changed the service's line speed.
     """
     try:
-        fcntl.flock(conn.port.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fd = os.open(device, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
     except OSError as exc:
-        conn.close()
+        raise MavlinkLinkError(f"cannot open {device}: {exc.strerror}") from exc
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
         raise MavlinkLinkError(
             f"{device} is in use by another netpose process (the service?): a serial port "
             "has one reader; stop it, or share the autopilot through a MAVLink router "
             f"(docs/mavlink.md) ({exc.strerror})") from exc
+    return fd
+
+
+def _release_on_close(conn: Any, lock_fd: int) -> None:
+    """Closing the connection also lets go of the port's lock (once)."""
+    close = conn.close
+    held = [lock_fd]
+
+    def close_and_release(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return close(*args, **kwargs)
+        finally:
+            while held:  # a descriptor closed twice could be someone else's by then
+                os.close(held.pop())
+
+    conn.close = close_and_release
 
 
 def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any:
@@ -211,9 +234,14 @@ def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any
     }
     if settings.is_serial:
         device = serial_device(settings.url)
-        conn = mavutil.mavlink_connection(device, baud=settings.baud, **common)
+        lock_fd = _claim_serial_port(device)
+        try:
+            conn = mavutil.mavlink_connection(device, baud=settings.baud, **common)
+        except BaseException:
+            os.close(lock_fd)
+            raise
+        _release_on_close(conn, lock_fd)
         conn.port.write_timeout = _SERIAL_WRITE_TIMEOUT_S
-        _claim_serial_port(conn, device)
     elif settings.url.startswith("tcp:"):
         conn = mavutil.mavlink_connection(settings.url, retries=0, **common)
 

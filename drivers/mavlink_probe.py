@@ -107,6 +107,8 @@ def probe_autopilot(
     key = load_signing_key(settings.signing_key_file) if settings.signing_key_file else None
     try:
         conn = open_connection(settings, key)
+    except MavlinkLinkError:
+        raise  # already says what and why
     except Exception as exc:
         raise MavlinkLinkError(f"cannot open {settings.url}: {exc}") from exc
     try:

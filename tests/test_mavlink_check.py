@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -221,6 +222,32 @@ def test_a_serial_port_the_service_holds_is_not_shared(
             service_link.close()
         # Once the service lets go, the check has the port.
         assert main(["mavlink-check", "--url", autopilot.url, "--timeout", "2"]) == 0
+
+
+def test_a_refused_second_netpose_leaves_the_services_line_speed_alone(
+    capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The speed of a serial line belongs to the device, not to one open of it: pymavlink's
+    open set the check's baud rate before the lock refused it, and the service's link at
+    57600 was left at 115200."""
+    import termios
+
+    with FakeAutopilot(PtyTransport(), params=READY_47) as autopilot:
+        service_link = MavlinkLink(MavlinkSettings(url=autopilot.url, baud=57600))
+        service_link.start()
+        try:
+            wait_status(service_link, "state", "connected", timeout=10.0)
+            fd = os.open(autopilot.url, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+            try:
+                before = termios.tcgetattr(fd)[4:6]
+                assert main(["mavlink-check", "--url", autopilot.url, "--baud", "115200",
+                             "--timeout", "1"]) == 1
+                assert termios.tcgetattr(fd)[4:6] == before == [termios.B57600] * 2
+            finally:
+                os.close(fd)
+            assert "in use by another netpose" in capsys.readouterr().err
+        finally:
+            service_link.close()
 
 
 def test_the_check_reads_the_services_configuration(
