@@ -428,7 +428,7 @@ def test_unplugged_serial_device_is_retried_and_logged_once(
             time.sleep(0.02)
         status = link.status()
     assert status.state == "lost" and status.errors >= 3
-    assert "could not open port" in status.last_error
+    assert f"cannot open {autopilot.url}: No such file" in status.last_error
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and "lost" in warnings[0].getMessage()
 
