@@ -420,7 +420,9 @@ def test_requests_from_another_origin_are_refused(daemon: WebDaemon) -> None:
 @pytest.mark.parametrize(("host", "ok"), [
     ("192.168.2.2:8780", True), ("[fe80::1]:8780", True), ("localhost:8780", True),
     ("blueos.local", True), ("raspberrypi:8780", True),  # mDNS, the LAN's own names
+    ("blueos.local.", True), ("raspberrypi.lan:8780", True), ("rov.home.arpa", True),
     ("evil.example:8780", False), ("other.farm.example", False),
+    ("rov.fritz.box", False),  # .box is a public top-level domain
     ("ROV.FARM.EXAMPLE:8780", True),  # listed in web.allowed_origins below
 ])
 def test_host_rule(host: str, ok: bool) -> None:

@@ -275,7 +275,8 @@ class WebPage(Generic[R]):
         if (changes or upgrade) and not origin_allowed(
                 origin, request.host, self.settings.allowed_origins):
             return _error(403, f"request from another origin ({origin}) refused")
-        if ((changes or upgrade) and origin is not None
+        # Changes only: the live WebSocket reads, and reading is open (GET / answers anyway).
+        if (changes and origin is not None
                 and not host_trusted(request.host, self.settings.allowed_origins)):
             return _error(403, f"the page was reached as {request.host}, a name any website "
                           "could point at this vehicle: to change things from it, list "

@@ -6,10 +6,12 @@
   send `Origin` with those requests, so a page of another site cannot drive this one; tools
   such as curl send none and are let through (they are not a browser being abused).
 - A browser's change must also reach the page by a name no website can point at the
-  vehicle: an IP address, `localhost`, a name without a dot (the LAN's) or a `.local` (mDNS)
-  one, or the host of an origin listed in `web.allowed_origins`. Otherwise a site the topside
-  browser visits could resolve its own name to the vehicle (DNS rebinding) and be "the page's
-  own origin"; with no token set (BlueOS's default) it could then rewrite the settings.
+  vehicle: an IP address, `localhost`, a name without a dot (the LAN's), one under a suffix
+  kept out of public DNS (`.local` for mDNS, `.home.arpa`, `.internal`, `.lan`, `.home`,
+  `.localdomain`), or the host of an origin listed in `web.allowed_origins`. Otherwise a site
+  the topside browser visits could resolve its own name to the vehicle (DNS rebinding) and be
+  "the page's own origin"; with no token set (BlueOS's default) it could then rewrite the
+  settings. Reading, the live WebSocket included, stays open by any name.
 - With `web.token` set, every change also needs the token in the `X-Netpose-Token` header.
 - Request bodies are bounded (`web.max_upload_kb`).
 
@@ -26,6 +28,9 @@ from collections.abc import Iterable
 from urllib.parse import urlsplit
 
 TOKEN_HEADER = "X-Netpose-Token"
+# Name suffixes no public DNS answers for (mDNS, RFC 8375, ICANN's .internal, and the ones home
+# routers hand out): a website cannot be served under them, so nor rebound to one.
+PRIVATE_SUFFIXES = (".local", ".home.arpa", ".internal", ".lan", ".home", ".localdomain")
 DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
@@ -73,7 +78,8 @@ def host_trusted(host: str, allowed: Iterable[str] = ()) -> bool:
         return True
     except ValueError:
         pass
-    if name == "localhost" or "." not in name or name.endswith(".local"):
+    name = name.rstrip(".")  # "blueos.local." is the same name, fully qualified
+    if name == "localhost" or "." not in name or name.endswith(PRIVATE_SUFFIXES):
         return True
     listed = {(urlsplit(origin.strip()).hostname or "").lower() for origin in allowed}
     return name in listed
