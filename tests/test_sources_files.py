@@ -407,18 +407,16 @@ def test_a_recording_paced_in_real_time_skips_what_a_slow_reader_missed(tmp_path
     assert max(ages) < 2 * period + 0.01, max(ages)  # the newest frame, not a growing backlog
 
 
-def test_a_video_whose_timestamps_jump_plays_on(tmp_path: Path) -> None:
-    """Two MPEG-TS files joined end to end (an encoder restarted mid-dive, a recording cut and
-    rejoined): the second one's timestamps start afresh. Read as a frame number, the jump was
-    about 26 hours, and a file paced in real time waited that long for its next frame, up and
-    without an error. A jump in the timestamps is played on without the gap, and said."""
+def _joined_ts(tmp_path: Path, parts: list[tuple[str, int, int]]) -> Path:
+    """MPEG-TS files of 50 numbered frames at 25 fps each, (name, first number, timestamp
+    offset in s), joined end to end."""
     import subprocess
 
     from tests.stream_peers import ffmpeg_exe
 
     exe = ffmpeg_exe()
-    parts = []
-    for name, first, offset in (("late", 0, 36_000), ("early", 100, 0)):
+    data = []
+    for name, first, offset in parts:
         path = tmp_path / f"{name}.ts"
         frames = np.stack([numbered_pattern(first + i, 160, 120) for i in range(50)])
         subprocess.run([exe, "-hide_banner", "-loglevel", "error", "-f", "rawvideo",
@@ -426,9 +424,32 @@ def test_a_video_whose_timestamps_jump_plays_on(tmp_path: Path) -> None:
                         "-c:v", "libx264", "-preset", "ultrafast", "-pix_fmt", "yuv420p",
                         "-output_ts_offset", str(offset), "-f", "mpegts", str(path)],
                        input=frames.tobytes(), check=True, timeout=60)
-        parts.append(path.read_bytes())
+        data.append(path.read_bytes())
     joined = tmp_path / "joined.ts"
-    joined.write_bytes(b"".join(parts))
+    joined.write_bytes(b"".join(data))
+    return joined
+
+
+def test_a_real_gap_in_a_video_is_kept(tmp_path: Path) -> None:
+    """A camera that missed 3 s: the frames after it come 3 s later, numbered on by what was
+    missed (a replay shows the outage; only a jump longer than any outage is a join)."""
+    joined = _joined_ts(tmp_path, [("before", 0, 0), ("after", 100, 5)])
+    with open_source(f"file:{joined}?realtime=0") as source:
+        frames = [f for f in iter(lambda: source.read(0.5), None)]
+    numbers = [read_pattern_number(f.image) for f in frames]
+    assert 100 in numbers, numbers[-5:]
+    after = numbers.index(100)
+    gap_s = frames[after].t_monotonic - frames[after - 1].t_monotonic
+    assert gap_s == pytest.approx(3.04, abs=0.05)
+    assert frames[after].index - frames[after - 1].index == pytest.approx(76, abs=1)
+
+
+def test_a_video_whose_timestamps_jump_plays_on(tmp_path: Path) -> None:
+    """Two MPEG-TS files joined end to end (an encoder restarted mid-dive, a recording cut and
+    rejoined): the second one's timestamps start afresh. Read as a frame number, the jump was
+    about 26 hours, and a file paced in real time waited that long for its next frame, up and
+    without an error. A jump in the timestamps is played on without the gap, and said."""
+    joined = _joined_ts(tmp_path, [("late", 0, 36_000), ("early", 100, 0)])
     numbers: list[int] = []
     with open_source(f"file:{joined}?realtime=1") as source:
         deadline = time.monotonic() + 6.0

@@ -35,8 +35,10 @@ DEFAULT_IMAGE_FPS = 10.0
 # backend returns False both for a frame the decoder rejects (and goes on with the next one) and
 # at the end, so failures only count as corrupt frames once a good frame follows them.
 END_AFTER_FAILED_READS = 8
-# A gap in a video's timestamps longer than this is a discontinuity, not missing frames.
-MAX_TIMESTAMP_GAP_S = 2.0
+# A gap in a video's timestamps longer than this is a discontinuity (files joined, an encoder
+# restarted: hours, or a wrap), not a stretch the camera missed: those are kept as they were,
+# and longer than the tracker's coasting, so a replay shows the outage it was.
+MAX_TIMESTAMP_GAP_S = 60.0
 
 
 def _parse(url: str, scheme: str) -> SourceUrl:
