@@ -110,6 +110,23 @@ def test_frames_stamped_ahead_of_the_clock_still_coast_out_in_real_time(
     assert after[-1].status is RangeStatus.NONE
 
 
+def test_frames_stamped_behind_the_last_ones_do_not_keep_a_blank_view_tracking(
+    frames: list[Frame]
+) -> None:
+    """A source read ahead of the clock goes down and re-opens: its new stamps are behind the
+    old ones, and a view with no net in it read as TRACKING (a distance each frame) for as
+    long as the old stamps led, 21 readings of 21. Time that goes back starts the track
+    afresh."""
+    cfg = demo_config("filter.coast_timeout_s=0.6", "filter.report_coasting_s=0.2")
+    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 1.0, 100.0)]
+    blank = [Step(frame=f) for f in frames_at(frames[:20], 10.0, 101.2,
+                                                 image=lambda im: np.zeros_like(im))]
+    h = make_harness(cfg, [*ahead, Step(wait_s=0.5), *blank])
+    h.run_script()
+    assert any(r.status is RangeStatus.GOOD for r in h.link.ranges[:25])
+    assert not any(r.status is RangeStatus.GOOD for r in h.link.ranges[26:])
+
+
 def test_a_coasting_prediction_goes_out_at_half_the_quality_of_a_measurement(
     frames: list[Frame]
 ) -> None:

@@ -374,6 +374,13 @@ class NetTracker:
 
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
+        if self._t_last is not None and t < self._t_last:
+            # Time went back: the frames' clock changed under the track (a source that
+            # re-opened with stamps behind those it gave before). The filter cannot predict
+            # backwards, and "since the last accepted measurement" would stay negative, so the
+            # track would read as TRACKING on a blank view for as long as the old stamps led.
+            self.reset()
+            self._t_last = None
         if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
             if self._has_track:
                 self._frames.add(t)
