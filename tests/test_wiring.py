@@ -351,6 +351,11 @@ def test_a_recording_brings_its_own_camera(tmp_path: Path) -> None:
     resolved = resolve_camera(config, build_source(config))
     assert (resolved.width, resolved.height) == (640, 360)
     assert (resolved.fx, resolved.cx) == pytest.approx((camera.fx, camera.cx))
+    # A damaged one is named as such (not "required for recording: sources").
+    (folder / "camera.yaml").write_text("image_width: 640\nimage_height: [\n")
+    with pytest.raises(ConfigError) as err:
+        resolve_camera(config, build_source(config))
+    assert err.value.key == "camera.calibration" and "invalid YAML" in str(err.value)
     # Without its camera.yaml it still needs a calibration file, and says which key.
     (folder / "camera.yaml").unlink()
     with pytest.raises(ConfigError) as err:

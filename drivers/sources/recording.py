@@ -64,13 +64,10 @@ class RecordingSource(PacedSource):
     @property
     def camera(self) -> CameraModel | None:
         """The recording's own calibration (camera.yaml), readable before open(): the
-        service resolves its camera before it opens the source. None without a readable one
-        (open() says what is wrong with it)."""
+        service resolves its camera before it opens the source. None without one; a damaged
+        one raises CalibrationError saying what is wrong with it."""
         if self._camera is None and (self.path / CAMERA_FILE).is_file():
-            try:
-                self._camera = load_camera(self.path / CAMERA_FILE)
-            except CalibrationError:
-                return None
+            self._camera = load_camera(self.path / CAMERA_FILE)
         return self._camera
 
     @property

@@ -123,14 +123,18 @@ def resolve_camera(config: Config, source: DriverFrameSource) -> CameraModel:
                 raise ConfigError("camera.calibration",
                                   f"{exc} (camera.url asks for {size[0]}x{size[1]})") from None
         return camera
-    if source.camera is None:
+    try:
+        described = source.camera
+    except CalibrationError as exc:  # a recording's own camera.yaml, damaged
+        raise ConfigError("camera.calibration", f"the source's own camera: {exc}") from None
+    if described is None:
         raise ConfigError(
             "camera.calibration",
             f"required for {source.url.split(':', 1)[0]}: sources (only rendered sources "
             "and recordings with their camera.yaml describe their own camera): give the "
             "camera's calibration file",
         )
-    return source.camera
+    return described
 
 
 @dataclass(frozen=True)
