@@ -14,6 +14,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from types import MappingProxyType
 from typing import NoReturn
 
 from service import __version__
@@ -87,20 +88,20 @@ def _chosen_command(argv: Sequence[str] | None) -> str | None:
 # frame loop is one thread on purpose, and the OpenBLAS of numpy 1.24's wheels (bookworm's numpy
 # version) spins its idle pool threads after each call: they burned as much CPU as the loop
 # itself (the soak's daemon at 171 % of a core instead of 80-87 %); a Pi would have three.
-SINGLE_THREADED_NUMERICS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
-                            "MKL_NUM_THREADS": "1"}
+SINGLE_THREADED_NUMERICS = MappingProxyType({"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                                             "MKL_NUM_THREADS": "1"})
 
 
 # OpenCV's own warnings repeat on every retry of a camera that is away ("can't be used to
 # capture by name", 17 lines in 4 s): the source logs why once, and again when it changes. Read
 # by OpenCV when cv2 is first imported; a value set by the user wins (FFmpeg's messages, which
 # name a stream's own errors, are left as they are: OPENCV_FFMPEG_LOGLEVEL, docs/sources.md).
-QUIET_OPENCV = {"OPENCV_LOG_LEVEL": "ERROR"}
+QUIET_OPENCV = MappingProxyType({"OPENCV_LOG_LEVEL": "ERROR"})
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     # Before the command's module imports numpy and OpenCV; a value set by the user wins.
-    for name, value in (SINGLE_THREADED_NUMERICS | QUIET_OPENCV).items():
+    for name, value in (*SINGLE_THREADED_NUMERICS.items(), *QUIET_OPENCV.items()):
         os.environ.setdefault(name, value)
     # The service is signalled by systemd from its first moment: keep what comes while it
     # imports and starts, for its handlers to act on.

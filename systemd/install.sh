@@ -182,8 +182,9 @@ else
     if systemctl is-active --quiet netpose.service; then
         echo "netpose: installed and enabled, but the new version rejects $CONF_DIR/netpose.toml" >&2
         echo "         (the line above). The running service keeps the previous version until" >&2
-        echo "         the configuration is fixed; as it is, the service will not start again" >&2
-        echo "         (at the next boot either). Fix the file, check again with:" >&2
+        echo "         the configuration is fixed, mixed with new files it reads while it runs" >&2
+        echo "         (the web page's): restart it soon. As it is, the service will not start" >&2
+        echo "         again (at the next boot either). Fix the file, check again with:" >&2
         then_do="systemctl restart netpose"
     else
         echo "netpose: installed and enabled, but not running: it rejects $CONF_DIR/netpose.toml" >&2

@@ -347,3 +347,16 @@ def test_two_daemons_under_one_vehicle_name_are_flagged() -> None:
         state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(i)), 0.1 * i)
         state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(i + 1000)), 0.1 * i)
     assert any("two daemons publish as" in p for p in state.vehicles[VEHICLE].problems)
+
+
+def test_a_daemon_from_before_the_autopilot_keys_is_shown_without_none() -> None:
+    """Topside and vehicle run different versions: an estimate without `autopilot_along`
+    printed "1.20 m None"."""
+    from service.tools.monitor_view import _autopilot_text
+
+    assert _autopilot_text({"autopilot": "good", "autopilot_distance_m": 1.2}) == (
+        "a distance is sent")
+    assert _autopilot_text({"autopilot": "good", "autopilot_distance_m": 1.2,
+                            "autopilot_along": "perpendicular"}) == (
+        "1.20 m perpendicular to the net")
+    assert _autopilot_text({"autopilot": "none"}) == "nothing sent"

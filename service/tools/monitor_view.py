@@ -320,9 +320,11 @@ def _autopilot_text(filtered: Mapping[str, Any]) -> str:
     and the autopilot may get the one along the camera's axis (service.autopilot_distance)."""
     told = filtered.get("autopilot")
     if told == "good":
-        along = str(filtered.get("autopilot_along"))
+        along = filtered.get("autopilot_along")
+        if along is None:  # a daemon from before the key: it says only that one is sent
+            return "a distance is sent"
         kind = {"optical_axis": "along the camera axis",
-                "perpendicular": "perpendicular to the net"}.get(along, along)
+                "perpendicular": "perpendicular to the net"}.get(str(along), str(along))
         return f"{_fmt(filtered.get('autopilot_distance_m'))} m {kind}"
     if told == "too_close":
         return "too close (below the rangefinder minimum)"
