@@ -147,9 +147,12 @@ def _probe(
     # unanswered name costs PARAM_TRIES waits, and a board may have fewer than ten.
     first = tuple(n for n in param_names if _instance_setting(n) is None)
     params = _read_params(conn, sysid, compid, first, timeout_s)
-    rest = tuple(n for n in param_names
-                 if (instance := _instance_setting(n)) is not None
-                 and f"RNGFND{instance}_TYPE" in params)
+    # Of the instances that are off, only the first matters: the one netpose would take.
+    off = [i for i in RANGEFINDER_INSTANCES
+           if params.get(f"RNGFND{i}_TYPE") == RNGFND_TYPE_NONE]
+    wanted = {i for i in RANGEFINDER_INSTANCES
+              if f"RNGFND{i}_TYPE" in params and (i not in off or i == off[0])}
+    rest = tuple(n for n in param_names if _instance_setting(n) in wanted)
     params |= _read_params(conn, sysid, compid, rest, timeout_s)
     version = _read_version(conn, sysid, compid)
     return AutopilotReport(
@@ -181,15 +184,20 @@ def _instance_setting(name: str) -> str | None:
 
 def _read_params(conn: Any, sysid: int, compid: int, names: tuple[str, ...],
                  timeout_s: float) -> dict[str, float]:
-    """The named parameters the autopilot has, asked for PARAM_WINDOW at a time."""
+    """The named parameters the autopilot has, asked for PARAM_WINDOW at a time.
+
+    A name is asked again, then given up as not on this firmware, only after PARAM_ANSWER_S
+    in which nothing was answered at all: an autopilot that answers slowly (a busy radio
+    link) still has the request queued, and a repeat would only queue behind it."""
     waiting = list(names)
     asked: dict[str, tuple[float, int]] = {}  # name -> (when last asked, times asked)
     params: dict[str, float] = {}
-    deadline = time.monotonic() + max(5.0, timeout_s) + len(names) * 0.1
+    last_answer = time.monotonic()
+    deadline = time.monotonic() + max(5.0, timeout_s) + len(names) * 0.5
     while (waiting or asked) and time.monotonic() < deadline:
         now = time.monotonic()
         for name, (when, tries) in list(asked.items()):
-            if now - when < PARAM_ANSWER_S:
+            if now - max(when, last_answer) < PARAM_ANSWER_S:
                 continue
             if tries >= PARAM_TRIES:
                 del asked[name]  # not on this firmware
@@ -205,6 +213,8 @@ def _read_params(conn: Any, sysid: int, compid: int, names: tuple[str, ...],
             continue
         if msg.param_id in names:
             params[msg.param_id] = float(msg.param_value)
+            if msg.param_id in asked:
+                last_answer = time.monotonic()
             asked.pop(msg.param_id, None)
             if msg.param_id in waiting:
                 waiting.remove(msg.param_id)

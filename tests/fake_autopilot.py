@@ -211,7 +211,6 @@ class FakeAutopilot(Closeable):
 
     MAV_TYPE_SUBMARINE = 12
     MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-    PARAM_ANSWER_S = 0.005  # a queued parameter request answered every this often
 
     def __init__(
         self,
@@ -226,9 +225,10 @@ class FakeAutopilot(Closeable):
         signing_key: bytes | None = None,
         echo: bool = False,
         param_queue: int | None = None,
+        param_answer_s: float = 0.005,
     ) -> None:
         """`param_queue`: as ArduPilot (GCS_Param.cpp), PARAM_REQUEST_READ goes to a queue of
-        that many, answered one per PARAM_ANSWER_S from this object's thread; a request that
+        that many, answered one per `param_answer_s` from this object's thread; a request that
         finds the queue full is dropped. None: every request is answered at once."""
         self.transport = transport
         self.sysid = sysid
@@ -257,6 +257,7 @@ class FakeAutopilot(Closeable):
         self._received: list[Received] = []
         self.param_requests: list[str] = []
         self._param_queue_size = param_queue
+        self._param_answer_s = param_answer_s
         self._param_queue: list[str] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -344,7 +345,7 @@ class FakeAutopilot(Closeable):
                 next_heartbeat = now + self.heartbeat_period_s
             if self._param_queue and now >= next_param:
                 self._send_param(self._param_queue.pop(0))
-                next_param = now + self.PARAM_ANSWER_S
+                next_param = now + self._param_answer_s
             try:
                 ready, _, _ = select.select(self.transport.fds(), [], [],
                                             0.002 if self._param_queue else 0.02)
