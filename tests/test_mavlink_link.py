@@ -632,6 +632,34 @@ def ardusub_sitl(tmp_path: Path, settings_for: Any, *, lua: str | None = None,
             sitl.wait()
 
 
+def sitl_forward_report(sitl: Sitl) -> Any:
+    """ArduSub's own forward DISTANCE_SENSOR (component 1, not ours routed through it), asked
+    for at 10 Hz; None if none comes within 30 s."""
+    from pymavlink import mavutil
+
+    sitl.observer.mav.command_long_send(
+        1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+        mavutil.mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, 100_000, 0, 0, 0, 0, 0)
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline:
+        msg = sitl.observer.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=1.0)
+        if msg is not None and msg.get_srcComponent() == 1 and msg.orientation == 0:
+            return msg
+    return None
+
+
+def sitl_mavlink_check(*extra: str) -> subprocess.CompletedProcess[str]:
+    """`netpose mavlink-check` on the SITL's SERIAL2 (`ardusub_sitl(probe_port=True)`), with
+    the SITL's range limits."""
+    port = 5760 + 10 * int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "7")) + 4
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", "mavlink-check", "--url", f"tcp:127.0.0.1:{port}",
+         "--min-distance", str(SITL_MIN_CM / 100), "--max-distance", str(SITL_MAX_CM / 100),
+         "--timeout", "20", *extra],
+        capture_output=True, text=True, timeout=90, cwd=Path(__file__).parents[1],
+    )
+
+
 def sitl_settings(url: str) -> MavlinkSettings:
     return MavlinkSettings(url=url, min_distance_m=SITL_MIN_CM / 100,
                            max_distance_m=SITL_MAX_CM / 100)
@@ -641,20 +669,10 @@ def sitl_settings(url: str) -> MavlinkSettings:
 @pytest.mark.timeout(180)
 def test_ardusub_sitl_reports_our_distance(tmp_path: Path) -> None:
     """ArduSub's own DISTANCE_SENSOR (component 1) reports our distance within 1 cm."""
-    from pymavlink import mavutil
 
     sent_cm = distance_sensor_fields(READING, sitl_settings("tcp:127.0.0.1:1")).current_distance
-    echoed = None
     with ardusub_sitl(tmp_path, sitl_settings) as sitl:
-        sitl.observer.mav.command_long_send(
-            1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-            mavutil.mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, 100_000, 0, 0, 0, 0, 0)
-        deadline = time.monotonic() + 30.0
-        while echoed is None and time.monotonic() < deadline:
-            msg = sitl.observer.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=1.0)
-            # The autopilot's own report (component 1), not our message routed through it.
-            if msg is not None and msg.get_srcComponent() == 1 and msg.orientation == 0:
-                echoed = msg
+        echoed = sitl_forward_report(sitl)
         context = sitl.context()
     assert echoed is not None, f"ArduSub never reported a forward DISTANCE_SENSOR\n{context}"
     # It reports min(its parameter, our message) for the limits: 1000 cm proves the defaults
@@ -673,27 +691,12 @@ def test_ardusub_sitl_takes_our_distance_beside_a_downward_altimeter(tmp_path: P
     """A BlueROV2 keeps its Ping altimeter on RNGFND1 (here SITL's simulated rangefinder,
     type 100, facing down); netpose's readings go to RNGFND2. ArduSub reports our forward
     distance, and `netpose mavlink-check` finds the vehicle ready without touching RNGFND1."""
-    from pymavlink import mavutil
 
     sent_cm = distance_sensor_fields(READING, sitl_settings("tcp:127.0.0.1:1")).current_distance
-    forward = None
     with ardusub_sitl(tmp_path, sitl_settings, instance_of_ours="2", probe_port=True,
                       other_params="RNGFND1_TYPE 100\nRNGFND1_ORIENT 25\n") as sitl:
-        sitl.observer.mav.command_long_send(
-            1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-            mavutil.mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, 100_000, 0, 0, 0, 0, 0)
-        deadline = time.monotonic() + 30.0
-        while forward is None and time.monotonic() < deadline:
-            msg = sitl.observer.recv_match(type="DISTANCE_SENSOR", blocking=True, timeout=1.0)
-            if msg is not None and msg.get_srcComponent() == 1 and msg.orientation == 0:
-                forward = msg
-        port = 5760 + 10 * int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "7")) + 4
-        check = subprocess.run(
-            [sys.executable, "-m", "service.cli", "mavlink-check", "--url",
-             f"tcp:127.0.0.1:{port}", "--min-distance", str(SITL_MIN_CM / 100),
-             "--max-distance", str(SITL_MAX_CM / 100), "--timeout", "20"],
-            capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[1],
-        )
+        forward = sitl_forward_report(sitl)
+        check = sitl_mavlink_check()
         context = sitl.context()
     assert forward is not None, f"ArduSub never reported a forward DISTANCE_SENSOR\n{context}"
     assert forward.current_distance in (sent_cm, sent_cm - 1), (forward.current_distance, sent_cm)
@@ -710,13 +713,7 @@ def test_ardusub_sitl_answers_the_check_about_every_instance(tmp_path: Path) -> 
     with ardusub_sitl(tmp_path, sitl_settings, instance_of_ours="2", probe_port=True,
                       other_params="RNGFND1_TYPE 100\nRNGFND1_ORIENT 25\nRNGFND8_TYPE 100\n"
                                    "RNGFND8_ORIENT 0\nSCR_ENABLE 1\n") as sitl:
-        port = 5760 + 10 * int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "7")) + 4
-        check = subprocess.run(
-            [sys.executable, "-m", "service.cli", "mavlink-check", "--url",
-             f"tcp:127.0.0.1:{port}", "--min-distance", str(SITL_MIN_CM / 100),
-             "--max-distance", str(SITL_MAX_CM / 100), "--timeout", "20", "--net-hold"],
-            capture_output=True, text=True, timeout=90, cwd=Path(__file__).parents[1],
-        )
+        check = sitl_mavlink_check("--net-hold")
         context = sitl.context()
     assert check.returncode == 3, check.stdout + check.stderr + context
     changes = check.stdout.split("To change:")[1]

@@ -135,10 +135,9 @@ def test_the_settings_page_never_shows_a_camera_password(tmp_path: Path) -> None
     assert url in config.read_text()
 
 
-def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> None:
-    """A topside client that stops reading a recording's tar (a slow link, a closed laptop)
-    must not keep a stop or a restart waiting: the page cuts the download off and closes at
-    once (it waited for the download's one-minute timeouts, about two minutes, before)."""
+def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
+    """A started page (no daemon behind it) over one finished recording of 32 MB: more than
+    the loopback socket's buffers and the page's queue hold. (page, port, recording name)."""
     import numpy as np
 
     from drivers.net import free_port
@@ -149,9 +148,9 @@ def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> N
     folder = tmp_path / name
     (folder / "frames").mkdir(parents=True)
     (folder / MANIFEST).write_text(json.dumps({"finished": True}))
-    # More than the loopback socket's buffers and the page's queue hold.
     (folder / "frames" / "00000001.png").write_bytes(bytes(32 * 1024 * 1024))
     port = free_port()
+
     def no_recording() -> RecordingSetup:
         raise AssertionError("this test records nothing")
 
@@ -160,6 +159,14 @@ def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> N
                          lambda f, r: np.zeros((8, 8, 3), np.uint8), no_settings,
                          Recorder(tmp_path, "rov", no_recording, 10**9))
     page.start()
+    return page, port, name
+
+
+def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> None:
+    """A topside client that stops reading a recording's tar (a slow link, a closed laptop)
+    must not keep a stop or a restart waiting: the page cuts the download off and closes at
+    once (it waited for the download's one-minute timeouts, about two minutes, before)."""
+    page, port, name = _page_with_a_large_recording(tmp_path)
     client = socket.create_connection(("127.0.0.1", port))
     client.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     try:
@@ -182,27 +189,9 @@ def test_downloads_under_way_do_not_hold_up_recording_and_settings(tmp_path: Pat
     """Two recordings downloading over a slow tether held both threads of the pool that also
     starts and stops recordings and saves settings: "stop recording" waited 140 s while the
     card filled. Downloads have threads of their own (and a limit)."""
-    import numpy as np
+    from drivers.web.page import MAX_DOWNLOADS
 
-    from drivers.net import free_port
-    from drivers.recorder import MANIFEST, Recorder, RecordingSetup
-    from drivers.web.page import MAX_DOWNLOADS, WebPage
-
-    name = "netpose-rov-20260101T120000Z"
-    folder = tmp_path / name
-    (folder / "frames").mkdir(parents=True)
-    (folder / MANIFEST).write_text(json.dumps({"finished": True}))
-    (folder / "frames" / "00000001.png").write_bytes(bytes(32 * 1024 * 1024))
-    port = free_port()
-
-    def no_recording() -> RecordingSetup:
-        raise AssertionError("this test records nothing")
-
-    no_settings: Any = object()
-    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
-                         lambda f, r: np.zeros((8, 8, 3), np.uint8), no_settings,
-                         Recorder(tmp_path, "rov", no_recording, 10**9))
-    page.start()
+    page, port, name = _page_with_a_large_recording(tmp_path)
     clients = []
     try:
         for _ in range(MAX_DOWNLOADS + 1):
