@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from drivers.net import free_port
+from service import __version__
 from tests.web_harness import REPO, PageClient, demo_config
 
 IMAGE = "localhost/netpose-test:ci"
@@ -89,6 +90,7 @@ def test_labels_are_what_blueos_reads(image: tuple[str, str]) -> None:
     engine, _ = image
     for plain in ("version", "type", "readme", "requirements"):
         assert _label(engine, plain)
+    assert _label(engine, "version") == __version__
     assert _label(engine, "type") in ("device-integration", "example", "tool", "other")
     permissions = json.loads(_label(engine, "permissions"))  # Kraken: json.loads
     host = permissions["HostConfig"]
