@@ -187,6 +187,28 @@ def test_realtime_pacing_drops_what_a_slow_consumer_misses(videos: dict[str, Pat
         assert at - frame.t_monotonic < 1.0 / FPS + 0.05
 
 
+def test_realtime_consumer_late_past_a_loops_end_gets_a_frame_due_now(tmp_path: Path) -> None:
+    # A consumer busy past the end of a looping file: the frame it gets is the one due now in
+    # the next pass, not the pass's first frame stamped as long ago as the consumer was late.
+    clip = write_opencv_video(tmp_path / "clip.avi", "MJPG", frames=10, fps=20.0)  # 0.5 s
+    with open_source(f"file:{clip}?realtime=1&loop=1") as source:
+        assert source.read(1.0) is not None
+        time.sleep(0.5 + 0.3)  # past the end of the pass, 0.3 s (6 frames) into the next
+        frame = source.read(1.0)
+        got_at = time.monotonic()
+        assert frame is not None
+        assert got_at - frame.t_monotonic < 1.0 / 20.0 + 0.05
+        assert frame.index >= 10 + 5  # the next pass's, counted on
+        assert read_pattern_number(frame.image) == frame.index - 10
+        # ... and the pass goes on on one clock: times follow the numbers.
+        later = [source.read(1.0) for _ in range(3)]
+        assert all(f is not None for f in later)
+        for f in later:
+            assert f is not None
+            assert f.t_monotonic - frame.t_monotonic == pytest.approx(
+                (f.index - frame.index) / 20.0, abs=1e-3)
+
+
 def test_realtime_read_returns_none_when_nothing_is_due(tmp_path: Path) -> None:
     slow = write_opencv_video(tmp_path / "slow.avi", "MJPG", frames=3, fps=2.0)
     with open_source(f"file:{slow}?realtime=1") as source:

@@ -177,13 +177,14 @@ class PacedSource(FrameSource):
             return None if item is None else self._deliver(item[1])
         deadline = time.monotonic() + max(0.0, timeout_s)
         if self._pending is None:
-            # Jump straight to the frame due now: frames the consumer missed are never decoded
-            # or rendered (a renderer slower than the frame rate would otherwise never catch up).
-            due = math.floor(
-                (time.monotonic() - self._t0_mono - self._loop_time_s) / self.frame_period_s
-            )
-            self._drops += self._skip_to(due)
-            item = self._next_frame()
+            item = self._frame_due_now()
+            if item is not None and item[1].t_monotonic + self.frame_period_s <= time.monotonic():
+                # Itself overdue: the skip ran past a looping medium's end into the next pass,
+                # whose first frame came due as long ago as the consumer was late past the end
+                # (or passing over the frames took longer than a frame). Once more: at most
+                # one frame more is decoded for nothing, and the frame handed out is due now.
+                self._drops += 1
+                item = self._frame_due_now()
             if item is None:
                 return None
             self._pending = item
@@ -222,6 +223,20 @@ class PacedSource(FrameSource):
         self._pending = None
 
     # -- internals --------------------------------------------------------------------------
+    def _frame_due_now(self) -> tuple[MediaFrame, Frame] | None:
+        """Jump straight to the frame due now: frames the consumer missed are never decoded or
+        rendered (a renderer slower than the frame rate would otherwise never catch up)."""
+        due = math.floor(
+            (time.monotonic() - self._t0_mono - self._loop_time_s) / self.frame_period_s
+        )
+        skipped = self._skip_to(due)
+        self._drops += skipped
+        # Frames passed over are part of this pass: its length (the next pass's numbers and
+        # clock) counts them, and a pass that was only passed over still had frames.
+        self._highest_number += skipped
+        self._good_since_rewind += skipped
+        return self._next_frame()
+
     def _deliver(self, frame: Frame) -> Frame:
         self._frames += 1
         self._rate.tick(time.monotonic())
