@@ -97,6 +97,28 @@ def test_allowed_origins_and_settings_validation() -> None:
         WebSettings(allowed_origins=("http://x/path",))
 
 
+def test_the_settings_form_offers_what_the_autopilot_is_given(tmp_path: Path) -> None:
+    """Which distance the autopilot's rangefinder gets (along the camera axis or to the net
+    plane) is what a pilot changes when a net hold or a range hold reads it: the form offers
+    it beside the link, as a choice of the two, with the value in force."""
+    from service.daemon.settings_editor import SettingsEditor
+    from service.daemon.wiring import load_daemon_config
+
+    save_camera(builtin_camera(1280, 720), tmp_path / "camera.yaml")
+    config = tmp_path / "netpose.toml"
+    config.write_text('[camera]\nurl = "synthetic:"\ncalibration = "camera.yaml"\n'
+                      '[mesh]\nbar_length_m = 0.025\n[service]\n'
+                      'autopilot_distance = "perpendicular"\n')
+    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), lambda: None,
+                            lambda: None)
+    snapshot = editor.snapshot()
+    autopilot = next(g for g in snapshot["groups"] if g["title"].startswith("Autopilot"))
+    field = next(f for f in autopilot["fields"] if f["key"] == "service.autopilot_distance")
+    assert field["type"] == "choice"
+    assert set(field["choices"]) == {"perpendicular", "optical_axis"}
+    assert snapshot["values"]["service.autopilot_distance"] == "perpendicular"
+
+
 def test_the_settings_page_never_shows_a_camera_password(tmp_path: Path) -> None:
     """GET /api/settings needs no token (the token guards changes): a camera URL's password
     is redacted there as in the log, and sending the redacted text back is refused rather

@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Net", ("mesh.bar_length_m", "mesh.opening_angle_deg")),
     ("Camera", ("camera.url", "camera.calibration")),
-    ("Autopilot (MAVLink)", ("mavlink.url", "mavlink.orientation", "mavlink.sensor_id")),
+    ("Autopilot (MAVLink)", ("mavlink.url", "mavlink.orientation", "mavlink.sensor_id",
+                             "service.autopilot_distance")),
     ("Telemetry (Zenoh)", ("telemetry.mode", "telemetry.connect", "telemetry.listen",
                            "telemetry.vehicle")),
 )
