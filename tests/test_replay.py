@@ -514,7 +514,13 @@ def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:
     for text, message in [
         ("", "no rows"),
         ("time,range_m\n0,1\n", "'frame' column"),
-        ("frame,colour\n0,red\n", "no truth columns"),
+        # A misspelt column lost its truth without a word; one with none but time_s made
+        # every frame "net present".
+        ("frame,colour\n0,red\n", "unknown column 'colour'"),
+        ("frame,net_present,distance,range\n0,1,0.6,0.61\n",
+         r"unknown columns 'distance' \(did you mean 'distance_m'\?\), 'range' \(did you "
+         r"mean 'range_m'\?\)"),
+        ("frame,time_s\n0,0.0\n", "no truth columns"),
         ("frame,range_m\n-1,1.0\n", ":2: 'frame'"),
         ("frame,nx,ny,nz\n0,0,0,0\n", "normal"),
         # Accepted silently before: the last of two rows won, nonsense became truth.

@@ -17,6 +17,7 @@ nothing here imports drivers.
 from __future__ import annotations
 
 import csv
+import difflib
 import json
 import logging
 import math
@@ -132,8 +133,18 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
         raise NetposeError(f"{p}: truth CSV has no rows")
     if "frame" not in header:
         raise NetposeError(f"{p}: truth CSV needs a 'frame' column (has: {', '.join(header)})")
-    known = set(TRUTH_COLUMNS) | {"time_s"}
-    if not set(header) & (known - {"frame"}):
+    # A column it does not know is refused, not passed over: a misspelt one ("distance")
+    # would lose its truth without a word. `time_s` (estimates.csv's) may stand beside them.
+    unknown = [c for c in header if c not in TRUTH_COLUMNS and c != "time_s"]
+    if unknown:
+        def named(column: str) -> str:
+            near = difflib.get_close_matches(column, TRUTH_COLUMNS, n=1, cutoff=0.6)
+            return f"'{column}'" + (f" (did you mean '{near[0]}'?)" if near else "")
+        raise NetposeError(
+            f"{p}: unknown column{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(named(c) for c in unknown)}: a truth CSV has "
+            f"{', '.join(TRUTH_COLUMNS)} (and time_s, not used)")
+    if not set(header) & set(TRUTH_COLUMNS[1:]):
         raise NetposeError(
             f"{p}: truth CSV has no truth columns (expected some of {', '.join(TRUTH_COLUMNS[1:])})"
         )
