@@ -181,6 +181,12 @@ def test_filter_columns_track_the_truth_and_stop_in_the_gap(replayed: Path,
     # nothing: a distance it does not believe never comes out.
     assert rows[15]["filter_valid"] == "0" and states[15] in ("coasting", "lost")
     assert all(r["filtered_distance_error_m"] == "" for r in rows[15:16])
+    # Where the filter gives nothing, its columns hold nothing: a lost track's last values
+    # were left in them, frozen, which a plot of the column drew as a distance.
+    filtered = [c for c in CSV_COLUMNS if c.startswith("filtered_")]
+    for row in rows:
+        if row["filter_valid"] == "0":
+            assert all(row[c] == "" for c in filtered), (row["frame"], row["filter_state"])
 
 
 def test_summary_reports_detection_errors_gaps_and_speed(replayed: Path) -> None:
@@ -189,6 +195,11 @@ def test_summary_reports_detection_errors_gaps_and_speed(replayed: Path) -> None
     assert summary["frames"] == FRAMES and summary["interrupted"] is False
     assert summary["detected_frames"] == present
     assert summary["detection_rate"] == pytest.approx(present / FRAMES)
+    # Over detections, as distance and range are (frames without a net counted 0 before).
+    rows = read_csv(replayed / "estimates.csv")
+    confidences = [num(r, "confidence") for r in rows if r["detected"] == "1"]
+    assert summary["confidence"]["count"] == present
+    assert summary["confidence"]["mean"] == pytest.approx(float(np.mean(confidences)), abs=1e-3)
     truth = summary["truth"]
     assert truth["net_present_frames"] == present and truth["net_absent_frames"] == len(NO_NET)
     assert truth["detected_when_present"] == present and truth["false_detections"] == 0

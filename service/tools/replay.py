@@ -364,10 +364,13 @@ def csv_row(result: FrameResult) -> list[str]:
     """The CSV_COLUMNS cells of one frame."""
     e, k, t = result.estimate, result.track, result.truth
     normal = e.normal if e is not None and e.normal is not None else (None, None, None)
-    fnormal = k.normal if k is not None and k.normal is not None else (None, None, None)
+    # The filter's values only where it gives them (filter_valid): a tentative track's are
+    # not out yet, a lost track's are its last ones, frozen.
+    kv = k if k is not None and k.valid else None
+    fnormal = kv.normal if kv is not None and kv.normal is not None else (None, None, None)
     ftilt = None
-    if k is not None and k.normal is not None:
-        ftilt = math.degrees(math.acos(min(1.0, abs(k.normal[2]))))
+    if kv is not None and kv.normal is not None:
+        ftilt = math.degrees(math.acos(min(1.0, abs(kv.normal[2]))))
     values: list[object] = [
         result.frame.index, round(result.frame.time_s, 6),
         e is not None and e.detected,
@@ -390,11 +393,11 @@ def csv_row(result: FrameResult) -> list[str]:
         None if k is None else k.state.value,
         None if k is None else k.valid,
         None if k is None else k.measurement.value,
-        None if k is None else k.range_m,
-        None if k is None else k.distance_m,
+        None if kv is None else kv.range_m,
+        None if kv is None else kv.distance_m,
         *fnormal,
         ftilt,
-        None if k is None else k.sigma_distance_m,
+        None if kv is None else kv.sigma_distance_m,
         None if t is None else t.net_present,
         None if t is None else t.range_m,
         None if t is None else t.distance_m,
@@ -621,7 +624,8 @@ class ReplayStats:
             # With a distance or not: also the frames whose plane was too uncertain for one.
             "net_seen_frames": sum(s.seen),
             "refused_frames": self.refused,
-            "confidence": _stats(s.confidence),
+            "confidence": _stats([c for c, d in zip(s.confidence, s.detected, strict=True)
+                                  if d]),
             "distance_m": _stats(s.distance),
             "range_m": _stats(s.range),
             "lost": {
