@@ -136,6 +136,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except OSError as exc:
+        # A file that cannot be read or written (a missing folder, a full disk, stdout on
+        # /dev/full): one line naming it, as for any other bad input.
+        logging.getLogger("netpose").debug("command failed", exc_info=True)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"netpose: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        try:
+            sys.stdout.flush()
+        except OSError:  # stdout itself failed: the interpreter's last flush would say so again
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":

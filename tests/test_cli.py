@@ -184,6 +184,15 @@ def test_a_signal_while_the_service_starts_is_acted_on_not_fatal(sig: str) -> No
     (["rn", "--config", "/etc/netpose/netpose.toml"], "invalid choice: 'rn'"),
     (["mavlink-check", "--timeout", "soon"], "invalid float value: 'soon'"),
     (["bench", "damage", "--frames", "0"], "--frames: must be at least 1"),
+    # replay's, estimate's and undistort's own checks of their options said 1, "other bad input"
+    (["replay", "/nonexistent.mp4", "--every", "0", "--out", "/nonexistent/out"],
+     "--every: must be at least 1"),
+    (["replay", "/nonexistent.mp4", "--mesh-size", "0.0275", "--out", "/nonexistent/out"],
+     "--calibration: required"),
+    (["estimate", "/nonexistent.png", "-c", "/nonexistent.yaml", "--mesh-size", "27.5"],
+     "--mesh-size: must be"),  # it named the key inside, mesh.bar_length_m
+    (["undistort", "/nonexistent.png", "-c", "/nonexistent.yaml", "-o", "/nonexistent/o.png",
+      "--alpha", "2"], "--alpha: must be"),
     ([], "usage: netpose"),  # no command: the help, listing them
 ])
 def test_command_line_mistakes_exit_78_as_the_docs_and_the_unit_say(
@@ -221,3 +230,76 @@ def test_a_camera_that_is_away_is_said_once_not_by_opencv_on_every_retry(tmp_pat
     assert done.returncode == 0, done.stderr[-2000:]
     assert "frame source v4l2:/dev/video77 down: cannot open /dev/video77" in done.stderr
     assert "WARN:" not in done.stderr, done.stderr[-2000:]
+
+
+def _saved_camera(folder: Path) -> Path:
+    from drivers.sources.synthetic import builtin_camera
+    from service.core.camera import save_camera
+
+    path = folder / "camera.yaml"
+    save_camera(builtin_camera(640, 360), path)
+    return path
+
+
+def test_estimate_counts_failures_against_the_images_not_the_arguments(tmp_path: Path) -> None:
+    """One folder of three images, two of them broken: "2 of 1 images" it said."""
+    import cv2
+    import numpy as np
+
+    camera = _saved_camera(tmp_path)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "a.png"), np.full((360, 640), 128, np.uint8))
+    (frames / "b.png").write_bytes(b"x")
+    (frames / "c.png").write_bytes((frames / "a.png").read_bytes()[:200])
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(camera), "--mesh-size",
+         "0.025", str(frames)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert "netpose: 2 of 3 images could not be processed" in done.stderr
+
+
+def test_a_file_that_cannot_be_written_is_one_line_not_a_traceback(tmp_path: Path) -> None:
+    """A full disk (/dev/full) under `estimate`'s output, a missing folder for `schema
+    --update`: an OSError came out as a traceback."""
+    schema = subprocess.run(
+        [sys.executable, "-m", "service.cli", "schema", "--update",
+         str(tmp_path / "nowhere" / "telemetry.md")], capture_output=True, text=True, timeout=60)
+    assert schema.returncode == 1 and "Traceback" not in schema.stderr, schema.stderr
+    assert "nowhere" in schema.stderr and len(schema.stderr.strip().splitlines()) == 1
+    camera = _saved_camera(tmp_path)
+    with open("/dev/full", "w") as full:
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli", "estimate", "-c", str(camera), "--mesh-size",
+             "0.025", str(tmp_path / "missing.png")], stdout=full, stderr=subprocess.PIPE,
+            text=True, timeout=120)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "No space left on device" in done.stderr
+
+
+def test_undistort_never_overwrites_its_input_and_asks_before_another_file(
+        tmp_path: Path) -> None:
+    import cv2
+    import numpy as np
+
+    camera = _saved_camera(tmp_path)
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.full((360, 640, 3), 90, np.uint8))
+    original = image.read_bytes()
+
+    def undistort(output: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "service.cli", "undistort", str(image), "-c", str(camera),
+             "-o", str(output), *extra], capture_output=True, text=True, timeout=120)
+
+    for extra in ((), ("--force",)):
+        same = undistort(tmp_path / "." / "frame.png", *extra)
+        assert same.returncode == 78 and "would overwrite the input" in same.stderr
+        assert image.read_bytes() == original
+    other = tmp_path / "undistorted.png"
+    other.write_bytes(b"keep me")
+    refused = undistort(other)
+    assert refused.returncode == 78 and "--force" in refused.stderr
+    assert other.read_bytes() == b"keep me"
+    assert undistort(other, "--force").returncode == 0
+    assert cv2.imread(str(other)) is not None

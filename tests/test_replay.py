@@ -374,7 +374,7 @@ def test_unreadable_inputs_give_clear_errors(
         ([video, "--calibration", str(tmp_path / "none.yaml")], 78, "calibration file not found"),
         ([video, "--calibration", str(wrong_camera)], 78, "aspect ratio"),
         ([video, "--calibration", cal, "--truth", str(bad_truth)], 1, "truth.csv:3"),
-        ([video, "--calibration", cal, "--every", "0"], 1, "--every"),
+        ([video, "--calibration", cal, "--every", "0"], 78, "--every"),
     ]
     for args, status, message in cases:
         out = tmp_path / "out"

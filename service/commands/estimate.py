@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from service.core.errors import ConfigError
 from service.core.grey import IMAGE_SUFFIXES, is_image_name
 from service.core.results import NetEstimate
 
@@ -66,11 +67,16 @@ def run(args: argparse.Namespace) -> int:
     from service.core.grey import decode_gray
     from service.core.mesh import MeshGeometry
 
+    try:  # the options first (named as typed), then the calibration file
+        mesh = MeshGeometry(args.mesh_size, args.opening_angle)
+    except ConfigError as exc:
+        option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
+        raise ConfigError(option, exc.problem) from None
     camera = load_camera(args.calibration)
-    mesh = MeshGeometry(args.mesh_size, args.opening_angle)
     estimator = NetEstimator(camera, mesh)
     failures = 0
-    for path in _images(args.images):
+    images = _images(args.images)
+    for path in images:
         name = str(path)
         try:
             if path.is_dir():
@@ -94,6 +100,6 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(describe(name, est), flush=True)
     if failures:
-        print(f"netpose: {failures} of {len(args.images)} images could not be processed",
+        print(f"netpose: {failures} of {len(images)} images could not be processed",
               file=sys.stderr)
     return 1 if failures else 0

@@ -330,13 +330,13 @@ class ReplayRun:
 
 def run(args: argparse.Namespace) -> int:
     if args.every < 1:
-        raise NetposeError(f"--every must be at least 1, got {args.every}")
+        raise ConfigError("--every", f"must be at least 1, got {args.every}")
     if args.max_frames is not None and args.max_frames < 1:
-        raise NetposeError(f"--max-frames must be at least 1, got {args.max_frames}")
+        raise ConfigError("--max-frames", f"must be at least 1, got {args.max_frames}")
     if args.fps is not None and not (math.isfinite(args.fps) and 0.01 <= args.fps <= 1000):
-        raise NetposeError(f"--fps must be 0.01..1000, got {args.fps}")
+        raise ConfigError("--fps", f"must be 0.01..1000, got {args.fps}")
     if args.video_width < 16:
-        raise NetposeError(f"--video-width must be at least 16 px, got {args.video_width}")
+        raise ConfigError("--video-width", f"must be at least 16 px, got {args.video_width}")
     _recording_defaults(args)
     camera = load_camera(args.calibration)
     try:
@@ -396,7 +396,7 @@ def _recording_defaults(args: argparse.Namespace) -> None:
                   file=sys.stderr)
     for option, value in (("--calibration", args.calibration), ("--mesh-size", args.mesh_size)):
         if value is None:
-            raise NetposeError(f"{option} is required (unless INPUT is a netpose recording)")
+            raise ConfigError(option, "required (unless INPUT is a netpose recording)")
     if args.opening_angle is None:
         args.opening_angle = 90.0
 

@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.camera import CameraModel, load_camera
-from service.core.errors import NetposeError
+from service.core.errors import ConfigError, NetposeError
 from service.tools.calibration_io import VIDEO_SUFFIXES, CalibrationInputError, read_image
 
 Image = npt.NDArray[np.uint8]
@@ -33,7 +33,9 @@ def add_parser(subparsers: Any) -> None:
         "--camera", "-c", type=Path, required=True,
         help="calibration file (ROS camera_info YAML or OpenCV FileStorage)",
     )
-    p.add_argument("--output", "-o", type=Path, required=True, help="image file to write")
+    p.add_argument("--output", "-o", type=Path, required=True,
+                   help="image file to write (never the input)")
+    p.add_argument("--force", action="store_true", help="overwrite OUTPUT if it exists")
     p.add_argument(
         "--alpha", type=float, default=0.0,
         help="0 = crop to valid pixels only, 1 = keep every source pixel (default 0)",
@@ -95,9 +97,16 @@ def _read_input(path: Path, frame_index: int) -> Image:
 
 def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.alpha <= 1.0:
-        raise NetposeError(f"--alpha must be between 0 and 1, got {args.alpha}")
+        raise ConfigError("--alpha", f"must be between 0 and 1, got {args.alpha}")
     if args.frame < 0:
-        raise NetposeError(f"--frame must be >= 0, got {args.frame}")
+        raise ConfigError("--frame", f"must be >= 0, got {args.frame}")
+    if args.output.exists():
+        # Checked before any work, and --force never makes the input its own output: the
+        # original is what the calibration is being checked against.
+        if args.input.exists() and args.output.resolve() == args.input.resolve():
+            raise ConfigError("--output", f"{args.output} would overwrite the input")
+        if not args.force:
+            raise ConfigError("--output", f"{args.output} exists (--force to overwrite it)")
     camera = load_camera(args.camera)
     image = _read_input(args.input, args.frame)
     out = side_by_side(camera, image, args.alpha) if args.side_by_side else (
