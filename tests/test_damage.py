@@ -325,6 +325,48 @@ def test_a_candidate_is_dropped_when_the_looks_at_its_place_stop_finding_it() ->
     assert open_place == pytest.approx(place)
 
 
+def _scan_of_view(place: tuple[float, float], found: bool, judged_left: float,
+                  view_shift_m: float = 0.0) -> DamageScan:
+    """`_still_scan` with the camera moved `view_shift_m` to the right along the net: the place
+    moves left in the frame (plane coordinates are the camera's), out of view beyond ~0.5 m."""
+    return _still_scan((place[0] - view_shift_m, place[1]), found, judged_left)
+
+
+def test_a_confirmed_hole_that_stays_in_view_is_not_reported_again() -> None:
+    """Confirmed, then in view for 3 s while the inspection windows look elsewhere (a large
+    view is inspected a window at a time) and the detector misses it: the next sightings are
+    the same hole. Its track ran out 2 s after the last sighting, and the hole was confirmed
+    and reported again, with a new number, every few seconds while the ROV held station."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)
+    left_px = float(CAMERA.project_normalized(np.array([[place[0], 0.0]]))[0, 0])
+    covering, elsewhere = left_px + 100.0, left_px - 100.0
+    tracker = HoleTracker(CAMERA, settings)
+    reports = []
+    for k in range(60):  # 6 s at 10 Hz
+        looked = k < 2 or k >= 32  # sighted at first, then not for 3 s, then again
+        reports += tracker.update(_still_scan(place, looked, covering if looked else elsewhere),
+                                  0.1 * k, k)
+    assert [h.hole_id for h in reports] == [1]
+    (view,) = tracker.tracks
+    assert view.confirmed and view.track_id == 1
+
+
+def test_a_hole_that_left_the_view_is_a_new_hole_when_it_comes_back() -> None:
+    """What is documented: once out of view for more than track_timeout_s, netpose cannot tell
+    it from another hole (the net is periodic), so a sighting after that is reported anew."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)
+    frame_wide = 959.0
+    tracker = HoleTracker(CAMERA, settings)
+    reports = []
+    for k in range(50):
+        away = 2 <= k < 30  # the camera 1.5 m along the net: the place is out of the frame
+        scan = _scan_of_view(place, not away, frame_wide, view_shift_m=1.5 if away else 0.0)
+        reports += tracker.update(scan, 0.1 * k, k)
+    assert [h.hole_id for h in reports] == [1, 2]
+
+
 @pytest.mark.parametrize(("hits", "looks", "key"), [(0, 3, "damage.confirm_hits"),
                                                     (3, 2, "damage.confirm_looks")])
 def test_confirmation_settings_are_checked(hits: int, looks: int, key: str) -> None:

@@ -13,8 +13,11 @@ estimated pose), so a hole is reported once, when confirmed, not once per frame:
   `confirm_hits` of its last `confirm_looks` looks (a caustic, a fish or a streak of light does
   not come back at the same place of the net), and dropped, unconfirmed, as soon as the looks
   since its last sighting leave it no way to get there;
-- a track not seen for `track_timeout_s` ends (a confirmed one is then forgotten: the net is
-  periodic, so netpose cannot tell where on the net it is once the hole has left the view).
+- a track not seen for `track_timeout_s` ends; a confirmed one lives on while its predicted
+  place is in the frame and the looks at it have not stopped finding it (a view is inspected
+  a window at a time, and the detector misses some looks: the ROV holding a hole in view must
+  not hear of it again every few seconds). Once it has ended it is forgotten: the net is
+  periodic, so netpose cannot tell where on the net it is once the hole has left the view.
 
 `NetInspector` puts detector and tracker together for the pipeline, and decides which frames
 are inspected: only frames whose track is valid, at most `max_cost_fraction` of the
@@ -112,8 +115,10 @@ class _Track:
             return self.position
         return np.asarray(self.position + self.velocity * (t - self.t_last), dtype=np.float64)
 
-    def gate(self, t: float, base: float) -> float:
-        dt = max(t - self.t_last, 0.0)
+    def gate(self, t: float, base: float, longest_s: float) -> float:
+        # A confirmed track can outlive its last sighting (while in view): how far it may
+        # have moved since grows only up to what an unconfirmed one is given, `longest_s`.
+        dt = min(max(t - self.t_last, 0.0), longest_s)
         speed = MAX_SPEED_MPS if self.velocity is None else SPEED_UNCERTAINTY_MPS
         size = max((max(c.width_m, c.height_m) for c in self.hits[-1:]), default=0.0)
         return base + 0.5 * size + speed * dt
@@ -156,14 +161,16 @@ class HoleTracker:
     def update(self, scan: DamageScan, t: float, frame_index: int) -> list[ConfirmedHole]:
         """One inspected frame's candidates; returns the holes confirmed by this frame."""
         st = self.settings
-        self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s]
+        hopeless = st.confirm_looks - st.confirm_hits + 1
+        self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s
+                        or (tr.confirmed and self._still_in_view(scan, tr, t, hopeless))]
         candidates = list(scan.candidates)
         pairs = []
         for ci, cand in enumerate(candidates):
             p = np.array(cand.plane_xy_m)
             for ti, tr in enumerate(self._tracks):
                 dist = float(np.linalg.norm(p - tr.predicted(t)))
-                if dist <= tr.gate(t, st.gate_m):
+                if dist <= tr.gate(t, st.gate_m, st.track_timeout_s):
                     pairs.append((dist, ci, ti))
         used_c: set[int] = set()
         used_t: set[int] = set()
@@ -185,7 +192,6 @@ class HoleTracker:
                 self._next_id += 1
         # Unconfirmed tracks that can no longer be confirmed: their last looks without a hit
         # leave fewer than `confirm_hits` sightings possible in any window of `confirm_looks`.
-        hopeless = st.confirm_looks - st.confirm_hits + 1
         self._tracks = [tr for tr in self._tracks
                         if tr.confirmed or not (len(tr.record) >= hopeless
                                                 and not any(tr.record[-hopeless:]))]
@@ -219,21 +225,46 @@ class HoleTracker:
         tr.hits.append(cand)
         tr.record.append(True)
 
+    def _still_in_view(self, scan: DamageScan, tr: _Track, t: float, refuted_after: int
+                       ) -> bool:
+        """A confirmed hole not sighted for track_timeout_s is still the same hole while its
+        predicted place is in the frame and the looks at that place have not stopped finding
+        it (`refuted_after` looks in a row without it: it is not where the track says). A view
+        is inspected a window at a time and the detector misses some looks: with its track
+        ended 2 s after the last sighting, a hole the ROV held in view was confirmed and
+        reported again, under a new number, every few seconds."""
+        if len(tr.record) >= refuted_after and not any(tr.record[-refuted_after:]):
+            return False
+        px = self._predicted_pixel(scan, tr, t)
+        if px is None:
+            return False
+        return bool(0.0 <= px[0] <= self.camera.width - 1.0
+                    and 0.0 <= px[1] <= self.camera.height - 1.0)
+
+    def _predicted_pixel(self, scan: DamageScan, tr: _Track, t: float
+                         ) -> npt.NDArray[np.float64] | None:
+        """Where the track's predicted place on the net is in this scan's frame (None: no
+        plane, or behind the camera)."""
+        net = scan.geometry
+        if net is None:
+            return None
+        plane_xy = tr.predicted(t)
+        foot = -net.normal * net.distance_m
+        point = foot + plane_xy[0] * net.horizontal + plane_xy[1] * net.vertical
+        if point[2] <= 1e-6:
+            return None
+        return np.asarray(self.camera.project_normalized(point[:2] / point[2]),
+                          dtype=np.float64)
+
     def judged(self, scan: DamageScan, tr: _Track, t: float) -> bool:
         """Did this inspection judge the track's predicted place: is it inside the region
         where a hole and its ring were wholly inspected, by at least half the hole's size?"""
         import cv2
 
-        net = scan.geometry
         outline = scan.judged_px or scan.outline_px
-        if net is None or len(outline) < 3:
+        px = self._predicted_pixel(scan, tr, t)
+        if px is None or len(outline) < 3:
             return False
-        plane_xy = tr.predicted(t)
-        foot = -net.normal * net.distance_m
-        point = foot + plane_xy[0] * net.horizontal + plane_xy[1] * net.vertical
-        if point[2] <= 1e-6:
-            return False
-        px = self.camera.project_normalized(point[:2] / point[2])
         x0, y0, x1, y1 = tr.hits[-1].box_px
         half = 0.5 * max(x1 - x0, y1 - y0)
         contour = np.array(outline, dtype=np.float32).reshape(-1, 1, 2)
