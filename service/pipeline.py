@@ -118,6 +118,7 @@ class Pipeline:
         self._last_quality = math.nan
         self._too_close_frames = 0
         self._too_close_t = math.nan  # capture time of the last frame that was too close
+        self._next_hole_id = 1  # across inspectors (reloads): a hole's number in this run
 
     @property
     def estimator(self) -> NetEstimator:
@@ -131,8 +132,16 @@ class Pipeline:
     def inspector(self) -> NetInspector | None:
         return self._inspector
 
-    def replace_inspector(self, inspector: NetInspector | None) -> None:
-        """Net inspection on, off or retuned (its tracks do not carry over)."""
+    def replace_inspector(self, inspector: NetInspector | None, *, keep_holes: bool) -> None:
+        """Net inspection on, off or retuned. Hole numbers go on from the last one of this
+        run; with `keep_holes` (the mesh unchanged) the holes being followed carry over too,
+        so one confirmed before is not reported again."""
+        old = self._inspector
+        if old is not None:
+            self._next_hole_id = max(self._next_hole_id, old.tracker.next_id)
+        if inspector is not None:
+            inspector.tracker.continue_from(
+                self._next_hole_id, old.tracker if keep_holes and old is not None else None)
         self._inspector = inspector
 
     def replace_estimator(self, estimator: NetEstimator) -> None:

@@ -367,6 +367,39 @@ def test_a_hole_that_left_the_view_is_a_new_hole_when_it_comes_back() -> None:
     assert [h.hole_id for h in reports] == [1, 2]
 
 
+def test_a_retuned_inspection_keeps_its_holes_and_their_numbers() -> None:
+    """A reload of [damage] (the page's Save, a SIGHUP) built a new inspector: every hole in
+    view was confirmed and reported again, numbered from 1 again, although `hole_id` is the
+    hole's number in this service run. Retuned, the holes carry over; with the mesh changed
+    they do not (their sizes were measured with the old one), but the numbers go on; switched
+    off and on, too."""
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.pipeline import Pipeline
+
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place, other = (-0.2, 0.0), (0.2, 0.1)
+    pipeline = Pipeline(NetEstimator(CAMERA, MESH), NetTracker(FilterSettings()),
+                        inspector=NetInspector(CAMERA, MESH, settings))
+
+    def looks(where: tuple[float, float], t0: float) -> list[int]:
+        inspector = pipeline.inspector
+        assert inspector is not None
+        return [h.hole_id for k in range(3)
+                for h in inspector.tracker.update(_still_scan(where, True, 959.0), t0 + 0.1 * k,
+                                                  k)]
+
+    assert looks(place, 0.0) == [1]
+    pipeline.replace_inspector(NetInspector(CAMERA, MESH, DamageSettings(
+        confirm_hits=2, confirm_looks=3, notify_interval_s=4.0)), keep_holes=True)
+    assert looks(place, 0.3) == []  # the same hole, still in view: not again
+    assert looks(other, 0.6) == [2]
+    pipeline.replace_inspector(NetInspector(CAMERA, MESH, settings), keep_holes=False)
+    assert looks(place, 0.9) == [3]  # measured anew with another mesh, a new number
+    pipeline.replace_inspector(None, keep_holes=False)
+    pipeline.replace_inspector(NetInspector(CAMERA, MESH, settings), keep_holes=False)
+    assert looks(other, 1.2) == [4]
+
+
 @pytest.mark.parametrize(("hits", "looks", "key"), [(0, 3, "damage.confirm_hits"),
                                                     (3, 2, "damage.confirm_looks")])
 def test_confirmation_settings_are_checked(hits: int, looks: int, key: str) -> None:

@@ -150,6 +150,18 @@ class HoleTracker:
         self._tracks = []
 
     @property
+    def next_id(self) -> int:
+        """The number the next new track gets (hole ids are unique in a service run)."""
+        return self._next_id
+
+    def continue_from(self, next_id: int, previous: HoleTracker | None = None) -> None:
+        """Go on where another tracker of this run left off: numbers after its, and, given
+        `previous`, its tracks (confirmed holes are not reported again)."""
+        self._next_id = max(self._next_id, next_id)
+        if previous is not None:
+            self._tracks = list(previous._tracks)
+
+    @property
     def tracks(self) -> list[TrackView]:
         out = []
         for tr in self._tracks:

@@ -324,7 +324,8 @@ class Daemon:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera))
                 self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
             if "mesh" in changed or "damage" in changed:
-                self.pipeline.replace_inspector(make_inspector(new, self.parts.camera))
+                self.pipeline.replace_inspector(make_inspector(new, self.parts.camera),
+                                                keep_holes="mesh" not in changed)
                 if self.outputs.damage is not None:
                     self.outputs.damage.notices.interval_s = new.damage.notify_interval_s
             if "filter" in changed:
