@@ -374,8 +374,10 @@ def test_replay_reproduces_the_daemons_filtered_distances(
         assert filtered is not None
         assert row["filter_state"] == filtered.state
         assert (row["filter_valid"] == "1") == filtered.valid
-        if filtered.range_m is None:
-            assert row["filtered_range_m"] == ""
+        if filtered.range_m is None or not filtered.valid:
+            # What the daemon does not send is not a value in the CSV either (a tentative or
+            # a lost track's numbers are in the telemetry, marked not valid).
+            assert row["filtered_range_m"] == "" and row["filtered_distance_m"] == ""
             continue
         assert float(row["filtered_range_m"]) == pytest.approx(filtered.range_m, abs=1e-9)
         assert float(row["filtered_distance_m"]) == pytest.approx(filtered.distance_m, abs=1e-9)
@@ -702,10 +704,12 @@ def _filtered_agree(rows: dict[int, dict[str, str]], live: dict[int, Any]) -> in
     for index, row in rows.items():
         message = live[index]
         assert row["filter_state"] == message.filtered.state
-        if message.filtered.distance_m is not None:
+        if message.filtered.distance_m is not None and message.filtered.valid:
             assert float(row["filtered_distance_m"]) == pytest.approx(
                 message.filtered.distance_m, abs=1e-6 + 1e-12)
             compared += 1
+        else:  # what the daemon does not send is no value in the CSV
+            assert row["filtered_distance_m"] == ""
     return compared
 
 
@@ -1013,10 +1017,12 @@ def test_a_recording_of_a_paced_search_replays_the_same_frames_measured(
         message = live[index]
         assert row["filter_state"] == message.filtered.state
         assert (row["reason"].startswith("not measured")) == (not message.measured), row
-        if message.filtered.distance_m is not None:
+        if message.filtered.distance_m is not None and message.filtered.valid:
             assert float(row["filtered_distance_m"]) == pytest.approx(
                 message.filtered.distance_m, abs=1e-6 + 1e-12)
             compared += 1
+        else:  # what the daemon does not send is no value in the CSV
+            assert row["filtered_distance_m"] == ""
     assert compared >= len(frames) // 2
 
 
