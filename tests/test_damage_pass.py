@@ -33,8 +33,10 @@ from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
 from drivers.telemetry import TelemetrySettings, ZenohPublisher
 from drivers.telemetry_subscriber import TelemetrySubscriber
 from service.benchmarks.scenes import bench_camera
+from service.core.damage_track import ConfirmedHole
 from service.core.mesh import MeshGeometry
 from service.core.messages import schema_problems
+from service.daemon.damage_outputs import PilotNotices
 from service.daemon.loop import Daemon, DaemonParts
 from tests.daemon_harness import WALL_OFFSET, FakeClock, ScriptedSource, Step, demo_config
 from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
@@ -82,7 +84,7 @@ def ran() -> Iterator[PassRun]:
     tel = TelemetrySubscriber(vehicle="pass")
     autopilot = FakeAutopilot(UdpServerTransport()).start()
     config = demo_config("mesh.bar_length_m=0.02", "damage.every_n_frames=1",
-                         "damage.notify_interval_s=0.5", "telemetry.vehicle=pass")
+                         "damage.notify_interval_s=4", "telemetry.vehicle=pass")
     publisher = ZenohPublisher(TelemetrySettings(
         vehicle="pass", mode="peer", connect=(tel.endpoint,), listen=(), scouting=False))
     link = MavlinkLink(MavlinkSettings(url=autopilot.url, allow_simulated=True))
@@ -96,6 +98,10 @@ def ran() -> Iterator[PassRun]:
             assert time.monotonic() < deadline, "the Zenoh session did not open"
             time.sleep(0.05)
         for _ in range(FRAMES):
+            daemon.iterate()
+        # The frames stop before the second hole's text is due (one text per 4 s): it goes
+        # out all the same (it waited for the next frame, which never came).
+        while clock.now < 100.0 + 8.0:
             daemon.iterate()
         outputs = daemon.outputs.damage
         assert outputs is not None
@@ -150,7 +156,8 @@ def test_their_sizes_are_within_20_percent(ran: PassRun) -> None:
 
 def test_the_pilot_is_told_about_each_hole(ran: PassRun) -> None:
     """One STATUSTEXT per hole ("net: hole ~6x4 cm ahead-left at 1.1 m"), or one naming the
-    newest and counting the other when both came within damage.notify_interval_s."""
+    newest and counting the other when both came within damage.notify_interval_s; a text held
+    back by that limit goes out when due, with or without frames."""
     assert ran.texts
     told = sum(1 + (1 if text.endswith("(+1)") else 0) for text in ran.texts)
     assert told == 2
@@ -160,3 +167,45 @@ def test_the_pilot_is_told_about_each_hole(ran: PassRun) -> None:
         assert text.startswith("net: hole ~") and len(text) <= 50
         assert any(size in text for size in sizes), text
         assert math.isfinite(float(text.split(" at ")[1].split(" m")[0]))
+
+
+class _TextLink:
+    def __init__(self) -> None:
+        self.texts: list[str] = []
+
+    def notify_pilot(self, text: str, severity: int = 4) -> None:
+        self.texts.append(text)
+
+
+def _hole(hole_id: int) -> ConfirmedHole:
+    return ConfirmedHole(
+        hole_id=hole_id, t_first=0.0, t_confirmed=0.0, frame_index=0, detections=3, looks=3,
+        width_m=0.05, height_m=0.04, cells=4, missing_bars=4, centre_px=(0.0, 0.0),
+        box_px=(0.0, 0.0, 1.0, 1.0), plane_xy_m=(0.0, 0.0), point_m=(0.3, 0.0, 1.0),
+        range_m=1.04, confidence=0.9)
+
+
+@pytest.mark.parametrize("interval_s", [5.0, 30.0, 120.0])
+def test_a_text_held_back_by_the_rate_limit_is_sent_when_its_turn_comes(
+        interval_s: float) -> None:
+    """Two holes 10 s apart: with one text per 30 s (a setting --check accepts) the second
+    waited 20 s, was taken for stale news (over 15 s) and dropped, with no later text to
+    count it in."""
+    link = _TextLink()
+    notices = PilotNotices(link, interval_s)  # type: ignore[arg-type]
+    for k in range(int(10 * (interval_s + 20.0))):
+        now = k / 10.0
+        if k in (0, 100):
+            notices.hole(_hole(1 if k == 0 else 2), now)
+        else:
+            notices.tick(now)
+    assert len(link.texts) == 2 and "(+" not in link.texts[1]
+
+
+def test_a_text_still_waiting_goes_out_when_the_service_stops() -> None:
+    link = _TextLink()
+    notices = PilotNotices(link, 5.0)  # type: ignore[arg-type]
+    notices.hole(_hole(1), 0.0)
+    notices.hole(_hole(2), 1.0)
+    notices.flush(1.5)
+    assert link.texts == [_hole(1).pilot_text(), _hole(2).pilot_text()]

@@ -23,7 +23,8 @@ RECENT_TEXTS = 32  # the last pilot texts, kept to be read back (tests, a debugg
 log = logging.getLogger("netpose.daemon")
 
 MAV_SEVERITY_WARNING = 4
-# A text that waited this long for its turn is no longer news (the ROV moved on).
+# A text that waited this long beyond its turn (the rate limit) is no longer news: the loop
+# stood still that long (the ROV moved on meanwhile). Its hole is counted in the next text.
 STALE_TEXT_S = 15.0
 
 
@@ -74,11 +75,23 @@ class PilotNotices:
     def tick(self, now: float) -> None:
         if self._pending is None or now - self._last_sent < self.interval_s:
             return
-        hole, at = self._pending
-        self._pending = None
-        if now - at > STALE_TEXT_S:
+        _, at = self._pending
+        due = max(at, self._last_sent + self.interval_s)
+        if now - due > STALE_TEXT_S:
+            self._pending = None
             self._held_back += 1
             return
+        self._send(now)
+
+    def flush(self, now: float) -> None:
+        """The text still waiting, if any, now (the service is stopping: it would be lost)."""
+        if self._pending is not None:
+            self._send(now)
+
+    def _send(self, now: float) -> None:
+        assert self._pending is not None
+        hole, _ = self._pending
+        self._pending = None
         text = hole.pilot_text()
         if self._held_back:
             text = f"{text} (+{self._held_back})"[:50]

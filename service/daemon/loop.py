@@ -190,6 +190,9 @@ class Daemon:
             self.outputs.publish(frame, result, sent, self.clock())
             if not result.unmeasured:
                 self._account(result, self.clock() - now)
+        elif self.outputs.damage is not None:
+            # A pilot text held back by its rate limit is due whether frames come or not.
+            self.outputs.damage.notices.tick(now)
         self.track_log.update(result.track, now)
         self.view_notices.update(result, now)
         self.last = result.track
@@ -271,6 +274,8 @@ class Daemon:
             return
         self._closed = True
         parts.link.set_range(RangeReading.none(self.clock()))
+        if self.outputs.damage is not None:
+            self.outputs.damage.notices.flush(self.clock())  # a hole's text still waiting
         closers = [(type(o).__name__, o.close) for o in parts.observers]
         closers += [("telemetry", parts.telemetry.close), ("MAVLink link", parts.link.close),
                     ("frame source", parts.source.close)]
