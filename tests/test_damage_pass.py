@@ -9,6 +9,7 @@ filter, inspection, publisher and MAVLink link are the production ones.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import math
 import time
 from collections.abc import Iterator
@@ -209,3 +210,36 @@ def test_a_text_still_waiting_goes_out_when_the_service_stops() -> None:
     notices.hole(_hole(2), 1.0)
     notices.flush(1.5)
     assert link.texts == [_hole(1).pilot_text(), _hole(2).pilot_text()]
+
+
+def test_the_pilots_text_says_where_the_hole_is_for_the_cameras_mounting() -> None:
+    """A camera looking down (mavlink.orientation 25, as --check accepts) had its holes said
+    "ahead" and "high": below the vehicle, and "high" was forward. Where the camera does not
+    look ahead, the place is said in the view's terms, as the pilot sees it on the video."""
+    left_high = dataclasses.replace(_hole(1), point_m=(-0.3, -0.4, 1.0))
+    centre = dataclasses.replace(_hole(2), point_m=(0.0, 0.0, 1.0))
+    for orientation, expected_left_high, expected_centre in (
+            (0, "ahead-left high", "ahead"), (25, "below, view top-left", "below"),
+            (2, "right, view top-left", "right"), (7, "in view, view top-left", "in view")):
+        link = _TextLink()
+        notices = PilotNotices(link, 0.0, orientation)  # type: ignore[arg-type]
+        notices.hole(left_high, 0.0)
+        notices.hole(centre, 1.0)
+        assert link.texts == [f"net: hole ~5x4 cm {expected_left_high} at 1.0 m",
+                              f"net: hole ~5x4 cm {expected_centre} at 1.0 m"], orientation
+        assert all(len(t) <= 50 for t in link.texts)
+
+
+def test_the_daemon_tells_the_pilot_in_the_configured_cameras_terms() -> None:
+    clock = FakeClock(100.0)
+    config = demo_config("mavlink.orientation=25")
+    parts = DaemonParts(source=ScriptedSource([], clock), link=MavlinkLink(MavlinkSettings(
+        url="udpout:127.0.0.1:9", allow_simulated=True)), telemetry=ZenohPublisher(
+        TelemetrySettings(enabled=False)), notifier=RecordingNotifier(), camera=CAMERA,
+        vehicle="pass")
+    daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall)
+    try:
+        assert daemon.outputs.damage is not None
+        assert daemon.outputs.damage.notices.facing == "below"
+    finally:
+        daemon.close()

@@ -75,23 +75,32 @@ class ConfirmedHole:
 
     @property
     def bearing(self) -> str:
-        """Where it is seen from the camera, in a pilot's words: ahead, ahead-left, ...,
-        with "high"/"low" when well above or below the optical axis."""
+        """Where it is seen from the camera, in a pilot's words for a camera looking ahead:
+        ahead, ahead-left, ..., with "high"/"low" when well above or below the optical axis."""
+        return self.bearing_as("ahead")
+
+    def bearing_as(self, facing: str) -> str:
+        """`bearing` for a camera whose axis points `facing` as the vehicle sees it ("ahead",
+        "below", ...). Left and high are the vehicle's only for a camera looking ahead; for
+        any other the place is said in the view's terms, as the pilot sees it on the video:
+        "below, view top-left"."""
         x, y, z = self.point_m
         side = math.degrees(math.atan2(x, z))
         up = math.degrees(math.atan2(-y, z))
-        words = "ahead" if abs(side) < 10.0 else ("ahead-right" if side > 0 else "ahead-left")
-        if up > 15.0:
-            words += " high"
-        elif up < -15.0:
-            words += " low"
-        return words
+        horizontal = "" if abs(side) < 10.0 else ("right" if side > 0 else "left")
+        vertical = "top" if up > 15.0 else "bottom" if up < -15.0 else ""
+        if facing == "ahead":
+            words = "ahead" + (f"-{horizontal}" if horizontal else "")
+            return words + {"top": " high", "bottom": " low", "": ""}[vertical]
+        part = "-".join(w for w in (vertical, horizontal) if w)
+        return f"{facing}, view {part}" if part else facing
 
-    def pilot_text(self) -> str:
-        """The STATUSTEXT (at most 50 characters): "net: hole ~6x4 cm ahead-left at 1.1 m"."""
+    def pilot_text(self, facing: str = "ahead") -> str:
+        """The STATUSTEXT (at most 50 characters): "net: hole ~6x4 cm ahead-left at 1.1 m"
+        (`facing`: where the camera looks, as for `bearing_as`)."""
         w = max(1, round(self.width_m * 100))
         h = max(1, round(self.height_m * 100))
-        return f"net: hole ~{w}x{h} cm {self.bearing} at {self.range_m:.1f} m"[:50]
+        return f"net: hole ~{w}x{h} cm {self.bearing_as(facing)} at {self.range_m:.1f} m"[:50]
 
 
 @dataclass

@@ -352,8 +352,9 @@ class DamageMessage(Message):
     plane_y_m: float = doc("centre on the net plane, below the camera's foot point")
     position_m: Vec3 = doc("centre in the camera frame [x right, y down, z forward]")
     range_m: float = doc("distance from the camera to the hole's centre")
-    bearing: str = doc("where it is seen: `ahead`, `ahead-left`, `ahead-right`, with ` high` / "
-                       "` low` when well off the optical axis")
+    bearing: str = doc("where it is seen from the camera (`ahead` = along its optical axis, "
+                       "whatever `mavlink.orientation` says): `ahead`, `ahead-left`, "
+                       "`ahead-right`, with ` high` / ` low` when well off the optical axis")
     confidence: float = doc("0..1, from how clearly its bars are missing and how often it was "
                             "seen where it was expected")
     detections: int = doc("inspections it was found in, up to its confirmation")

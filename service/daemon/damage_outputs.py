@@ -23,6 +23,11 @@ RECENT_TEXTS = 32  # the last pilot texts, kept to be read back (tests, a debugg
 log = logging.getLogger("netpose.daemon")
 
 MAV_SEVERITY_WARNING = 4
+# Where the camera looks, as the pilot's text says it, by its MAV_SENSOR_ORIENTATION
+# (mavlink.orientation): 0 forward, yaw 90/180/270, pitch 90 (up) and 270 (down). Others
+# (diagonal mounts) are said as "in view".
+FACING_BY_ORIENTATION = {0: "ahead", 2: "right", 4: "behind", 6: "left", 24: "above",
+                         25: "below"}
 # A text that waited this long beyond its turn (the rate limit) is no longer news: the loop
 # stood still that long (the ROV moved on meanwhile). Its hole is counted in the next text.
 STALE_TEXT_S = 15.0
@@ -55,9 +60,10 @@ class PilotNotices:
     """At most one STATUSTEXT per `interval_s`. Holes confirmed in between are not lost: the
     next text names the newest of them and says how many more there were ("(+2)")."""
 
-    def __init__(self, link: AutopilotLink, interval_s: float) -> None:
+    def __init__(self, link: AutopilotLink, interval_s: float, orientation: int = 0) -> None:
         self._link = link
         self.interval_s = interval_s
+        self.facing = FACING_BY_ORIENTATION.get(orientation, "in view")
         self._last_sent = -float("inf")
         self._pending: tuple[ConfirmedHole, float] | None = None
         self._held_back = 0  # holes confirmed since the last text, besides the pending one
@@ -92,7 +98,7 @@ class PilotNotices:
         assert self._pending is not None
         hole, _ = self._pending
         self._pending = None
-        text = hole.pilot_text()
+        text = hole.pilot_text(self.facing)
         if self._held_back:
             text = f"{text} (+{self._held_back})"[:50]
         self._held_back = 0
@@ -107,12 +113,12 @@ class DamageOutputs:
 
     def __init__(self, link: AutopilotLink, telemetry: TelemetrySink, vehicle: str,
                  wall_clock: Callable[[], float], notify_interval_s: float,
-                 observers: tuple[FrameObserver, ...] = ()) -> None:
+                 observers: tuple[FrameObserver, ...] = (), orientation: int = 0) -> None:
         self._telemetry = telemetry
         self._observers = observers
         self._vehicle = vehicle
         self._wall_clock = wall_clock
-        self.notices = PilotNotices(link, notify_interval_s)
+        self.notices = PilotNotices(link, notify_interval_s, orientation)
         self.reported = 0
 
     def confirmed(self, frame: Frame, holes: tuple[ConfirmedHole, ...], now: float) -> None:

@@ -92,6 +92,12 @@ def make_estimator(config: Config, camera: CameraModel) -> NetEstimator:
     return estimator
 
 
+def _orientation(config: Config) -> int:
+    """The camera's MAV_SENSOR_ORIENTATION (checked by the MAVLink driver when it was built)."""
+    value = config.effective.get("mavlink", {}).get("orientation", 0)
+    return value if isinstance(value, int) else 0
+
+
 def make_inspector(config: Config, camera: CameraModel) -> NetInspector | None:
     """Net inspection (hole detection), or None when `damage.enabled` is false."""
     if not config.damage.enabled:
@@ -139,7 +145,7 @@ class Daemon:
             parts.link, parts.telemetry, parts.vehicle, parts.preview, wall_clock, self.problems,
             parts.observers, DamageOutputs(parts.link, parts.telemetry, parts.vehicle,
                                            wall_clock, config.damage.notify_interval_s,
-                                           parts.observers))
+                                           parts.observers, _orientation(config)))
         self.reporter = StatusReporter(
             ReportContext(parts.source, parts.link, parts.telemetry, parts.notifier, self.stats,
                           self.pipeline.tracker, self.track_log, self.source_watch, self.outputs,
