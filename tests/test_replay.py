@@ -394,6 +394,21 @@ def test_unreadable_inputs_give_clear_errors(
     err = capsys.readouterr().err
     assert code == 1 and "exists and is not a folder" in err, err
     assert len(err.strip().splitlines()) == 1 and taken.read_text() == "mine"
+    # A name inside --out that the replay writes, taken by the wrong kind (a file where the
+    # crops' folder goes, a folder where the CSV goes): said before the first frame too (the
+    # crops' one stopped the replay at its first hole, with no summary).
+    for name, kind in (("damage", "file"), ("estimates.csv", "folder")):
+        out = tmp_path / f"taken-{kind}"
+        out.mkdir()
+        if kind == "file":
+            (out / name).write_text("mine")
+        else:
+            (out / name).mkdir()
+        code = main(["replay", video, "--calibration", cal, "--mesh-size", "0.025", "--out",
+                     str(out)])
+        err = capsys.readouterr().err
+        assert code == 1 and f"{out / name}: a " in err and "the replay writes" in err, err
+        assert sorted(p.name for p in out.iterdir()) == [name]
 
 
 # -- interruption ---------------------------------------------------------------------------------
@@ -593,12 +608,13 @@ def test_truth_that_matches_no_frame_is_said(
 def test_an_output_the_replay_cannot_write_is_one_line(
     recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """An output name taken by a folder (or a full disk) was a chained traceback."""
+    """An output name taken by a folder (or a full disk) was a chained traceback; now it is
+    said before the first frame."""
     out = tmp_path / "out"
     (out / "summary.json").mkdir(parents=True)
     code = main(replay_args(recording, out, "--no-video", "--no-damage",
                                 "--progress", "off"))
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err
-    assert err.strip().splitlines()[-1] == (
-        f"netpose: error: {out / 'summary.json'}: Is a directory")
+    assert err.strip().splitlines() == [
+        f"netpose: error: {out / 'summary.json'}: a folder where the replay writes a file"]

@@ -438,6 +438,7 @@ def _replay(
     if args.out.exists() and not args.out.is_dir():
         # Said before the first frame is estimated, not after.
         raise NetposeError(f"--out {args.out}: exists and is not a folder")
+    _check_output_names(args.out)
     # The daemon's pipeline, as the daemon builds it: the filter always runs (its output is
     # written with --filter), so the estimates are the ones the vehicle would have made.
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
@@ -580,6 +581,19 @@ def _video_fps(source: FrameSource, every: int) -> float:
     period = getattr(source, "frame_period_s", None)
     fps = 1.0 / period if isinstance(period, float) and period > 0 else 10.0
     return max(0.5, min(120.0, fps / every))
+
+
+def _check_output_names(out_dir: Path) -> None:
+    """Each name the replay writes in `out_dir`, if taken, is taken by its own kind (a file,
+    or the crops' folder): checked before the first frame, not found out at the first hole."""
+    files = ("estimates.csv", "summary.json", VIDEO_NAME, FALLBACK_VIDEO_NAME, *PLOT_FILES,
+             DAMAGE_CSV, CONTACT_SHEET)
+    for name in files:
+        if (out_dir / name).is_dir():
+            raise NetposeError(f"{out_dir / name}: a folder where the replay writes a file")
+    crops = out_dir / CROPS_DIR
+    if crops.exists() and not crops.is_dir():
+        raise NetposeError(f"{crops}: a file where the replay writes its folder of hole crops")
 
 
 def _remove_stale_outputs(out_dir: Path) -> None:
