@@ -140,6 +140,7 @@ def num(row: dict[str, str], key: str) -> float:
 def test_csv_matches_ground_truth(replayed: Path, recording: Recording) -> None:
     rows = read_csv(replayed / "estimates.csv")
     assert [int(r["frame"]) for r in rows] == list(range(FRAMES))
+    assert all(r["source_file"] == "" for r in rows)  # a video: no file per frame
     for row in rows:
         i = int(row["frame"])
         # Times are the video's own: frame number / 10 fps.
@@ -322,6 +323,9 @@ def test_image_folder_with_a_frame_the_calibration_does_not_fit(
     assert code == 0
     rows = read_csv(out / "estimates.csv")
     assert [num(r, "time_s") for r in rows] == pytest.approx([i / 5 for i in range(6)])
+    # Which image each row is (name order: '10.png' before '2.png'), for the researcher to
+    # check; a video's rows have none.
+    assert [r["source_file"] for r in rows] == [f"frame_{i:03d}.png" for i in range(6)]
     assert rows[3]["detected"] == "0" and "aspect ratio" in rows[3]["reason"]
     for i in (0, 1, 2, 4, 5):
         assert rows[i]["detected"] == "1"

@@ -186,6 +186,8 @@ def replay_frames(
     t0: float | None = None
     next_index = 0
     waiting_logged = False
+    # An image folder's files, in the order it reads them (frame n is file n).
+    files: list[Path] = list(getattr(source, "files", None) or [])
     while not stop.is_set():
         frame = source.read(READ_TIMEOUT_S)
         if frame is None:
@@ -211,6 +213,7 @@ def replay_frames(
             truth=truth_from_object(frame.truth),
             budget=frame.budget or 0,
             measured=frame.measured,
+            source_file=files[frame.index].name if frame.index < len(files) else "",
         )
 
 

@@ -211,6 +211,7 @@ class ReplayFrame:
     truth: Truth | None = None
     budget: int = 0  # the estimator's work level (a recording's, so a replay matches it)
     measured: bool = True  # False: the recording's vehicle did not measure it (paced search)
+    source_file: str = ""  # the image file it came from (image folders)
 
 
 # -- results ----------------------------------------------------------------------------------
@@ -343,6 +344,8 @@ CSV_COLUMNS = (
     # ground truth (synthetic source or --truth)
     "true_net_present", "true_range_m", "true_distance_m", "true_tilt_deg",
     "range_error_m", "distance_error_m", "normal_error_deg", "filtered_distance_error_m",
+    # the frame's image file (image folders), last so that earlier columns keep their places
+    "source_file",
 )
 
 
@@ -406,6 +409,7 @@ def csv_row(result: FrameResult) -> list[str]:
         result.distance_error_m(),
         result.normal_error_deg(),
         result.filtered_distance_error_m(),
+        result.frame.source_file,
     ]
     return [_cell(v) for v in values]
 
