@@ -50,10 +50,22 @@ local PILOT_TIMEOUT_S = 1.0
 -- a few per cent) is doubtful (a harmonic locked for a moment, a fish): no thrust until
 -- CONFIRM_FRAMES frames agree again. A BlueROV2 tops out near 1.5 m/s.
 local JUMP_SPEED = 1.5
+-- While net hold steers (or has stopped thrust) the vehicle moves no faster than NETH_SPD_MAX
+-- or the speed it had, plus this much drift (a current): a distance that changed more than
+-- that, at any time, is a reading gone wrong, however long the wait for it to agree again.
+local DRIFT_SPEED = 0.1
 local JUMP_SLACK_M = 0.05
 local JUMP_SLACK_SHARE = 0.03
 local CONFIRM_FRAMES = 3
 local PLAUSIBLE_M = {0.05, 100.0}
+-- Coasting with thrust stopped, as ArduSub SITL's vectored model does (dv/dt = -0.22 v -
+-- 2.18 v|v|: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s), with this margin for a real vehicle:
+-- toward the net it never goes faster than it can coast to a stop outside NETH_DIST_MIN.
+local COAST_LINEAR = 0.22
+local COAST_QUADRATIC = 2.18
+local COAST_MARGIN = 1.5
+-- millis() is a uint32: it wraps after 49.7 days.
+local CLOCK_WRAP_S = 4294967.296
 local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
 
 -- Parameters: name, default, and the range net hold engages with (outside it, or NaN, it
@@ -125,6 +137,14 @@ end
 
 local function now_s()
   return millis():tofloat() * 0.001
+end
+
+-- Seconds from `t` to `now` on this clock, across its wrap (a plain difference turns negative
+-- there, and a timeout on it never ran out).
+local function since(t, now)
+  local d = now - t
+  if d < -1.0 then d = d + CLOCK_WRAP_S end
+  return d
 end
 
 local function say(severity, text)
@@ -261,6 +281,14 @@ end
 
 local disengage
 
+-- How fast the distance can change: while net hold steers, or has stopped thrust, no faster
+-- than NETH_SPD_MAX or the speed the vehicle had, plus a drift; in the pilot's hands, as fast
+-- as the vehicle goes.
+local function speed_bound()
+  if not engaged then return JUMP_SPEED end
+  return math.max(get("SPD_MAX"), math.abs(closing_speed)) + DRIFT_SPEED
+end
+
 local function no_net_at(t)
   if no_net_t == nil or t > no_net_t then no_net_t = t end
 end
@@ -317,11 +345,14 @@ local function on_plane(msg, now)
   if dt >= 1.0 or prev_plane.clock_ended then
     closing_speed = 0  -- after a gap the speed before it says nothing
   end
-  if math.abs(plane.d - prev_plane.d) > JUMP_SPEED * math.max(elapsed, 0) + JUMP_SLACK_M
+  local speed = speed_bound()
+  if math.abs(plane.d - prev_plane.d) > speed * math.max(elapsed, 0) + JUMP_SLACK_M
       + JUMP_SLACK_SHARE * prev_plane.d then
     -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
     -- next frames agree with this one.
-    if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival} end
+    if jump == nil then
+      jump = {d = prev_plane.d, arrival = prev_plane.arrival, speed = speed}
+    end
     doubt, doubt_why, closing_speed = CONFIRM_FRAMES, "net distance jumped", 0
   else
     if doubt > 0 then
@@ -330,7 +361,9 @@ local function on_plane(msg, now)
         -- The frames agree again. Back where the net was: a glitch, hold on. Somewhere the
         -- vehicle cannot have gone since: one of the two readings is wrong, and which one
         -- cannot be told here, so the pilot takes over.
-        if math.abs(plane.d - jump.d) > JUMP_SPEED * (now - jump.arrival) + JUMP_SLACK_M
+        -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle moved
+        -- at the speed it could have when the jump came, not faster for waiting longer.
+        if math.abs(plane.d - jump.d) > jump.speed * since(jump.arrival, now) + JUMP_SLACK_M
             + JUMP_SLACK_SHARE * jump.d then
           level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
         end
@@ -425,7 +458,6 @@ local function read_messages(now)
 end
 
 -- Engage / disengage ----------------------------------------------------------------------------
-local CLOCK_WRAP_S = 4294967.296  -- millis() is a uint32: it wraps after 49.7 days
 
 local function plane_age(now)
   if plane == nil then return math.huge end
@@ -469,7 +501,7 @@ engage = function()
     say(SEV_WARNING, "not engaged: disarmed")
     return false
   end
-  if now - last_pilot > PILOT_TIMEOUT_S then
+  if since(last_pilot, now) > PILOT_TIMEOUT_S then
     say(SEV_WARNING, "not engaged: no pilot input (joystick) from the ground station")
     return false
   end
@@ -494,17 +526,27 @@ engage = function()
   return true
 end
 
+-- Every button's presses are taken each run, the applet's acted on: a press kept in
+-- ArduSub's count while the button was not the applet's (NETH_BTN 0 or another) engaged the
+-- hold as soon as it became so, with nobody pressing anything.
+local function clear_buttons()
+  for b = 1, 4 do sub:get_and_clear_button_count(b) end
+end
+
 local function check_button()
   local button = math.floor(get("BTN"))
-  if button < 1 or button > 4 then return end
-  if sub:get_and_clear_button_count(button) > 0 then
+  local pressed = false
+  for b = 1, 4 do
+    if sub:get_and_clear_button_count(b) > 0 and b == button then pressed = true end
+  end
+  if pressed then
     if engaged then disengage("button", true) else engage() end
   end
 end
 
 -- Control -----------------------------------------------------------------------------------------
 local function control(now)
-  local dt = clamp(now - (last_update or now), 0.0, 0.1)
+  local dt = clamp(since(last_update or now, now), 0.0, 0.1)
   last_update = now
   -- The distance now: the plane's, carried forward over its age at the measured closing speed
   -- (netpose's frames are 0.1-0.4 s old when they arrive; the vehicle keeps moving meanwhile).
@@ -523,6 +565,16 @@ local function control(now)
   if stop_dist <= 0 then
     want = math.min(want, 0)  -- hard minimum: nothing toward the net
   end
+  -- Toward the net no faster than the vehicle can coast to a stop from here, should the next
+  -- frame lose the net (thrust then stops at once, but the vehicle coasts on): with the speed
+  -- limits NETH_SPD_MAX and NETH_KP allow, a camera blocked on the approach coasted it into
+  -- the net. The speed whose coasting distance is the room left, over the margin.
+  local room = stop_dist / COAST_MARGIN
+  local coast_speed = 0
+  if room > 0 then
+    coast_speed = (math.exp(COAST_QUADRATIC * room) - 1) * COAST_LINEAR / COAST_QUADRATIC
+  end
+  want = math.min(want, coast_speed)
   if want > v_cmd then
     v_cmd = math.min(want, v_cmd + get("ACC_MAX") * dt)
   else
@@ -573,7 +625,7 @@ local function control(now)
   end
   yaw_channel:set_override(yaw_pwm)
 
-  if now - last_report > 0.5 then
+  if since(last_report, now) > 0.5 then
     last_report = now
     gcs:send_named_float("NH_ERR", err)
     gcs:send_named_float("NH_YAWERR", heading_err)
@@ -601,10 +653,11 @@ local function update()
     disengage(bad, true)
   elseif changed ~= nil then
     disengage(changed, true)
-  elseif now - last_pilot > PILOT_TIMEOUT_S then
+  elseif since(last_pilot, now) > PILOT_TIMEOUT_S then
     -- The pilot could not take over by stick (link lost, joystick gone, a failsafe that only
     -- warns): hand back rather than drive on unattended.
-    disengage(string.format("no pilot input (%.1f s)", math.min(now - last_pilot, 99)), true)
+    disengage(string.format("no pilot input (%.1f s)", math.min(since(last_pilot, now), 99)),
+              true)
   elseif not arming:is_armed() then
     disengage("disarmed", true)
   elseif vehicle:get_mode() ~= engaged_mode then
@@ -615,7 +668,7 @@ local function update()
     if not paused then
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
       -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
-      said_pause = now - last_pause_text > 3.0
+      said_pause = since(last_pause_text, now) > 3.0
       if said_pause then
         last_pause_text = now
         if doubt_why ~= nil then
@@ -655,6 +708,7 @@ local function protected_update()
 end
 
 setup()
+clear_buttons()  -- presses from before the applet was there are not the pilot's to it
 say(SEV_INFO, string.format("loaded, set point %.2f m, button %d", set_point(), math.floor(get("BTN"))))
 -- The first run at once: a command in the first second after loading (the pilot engaging
 -- right after a reboot) got no COMMAND_ACK at all, the command being blocked for the applet.

@@ -564,3 +564,114 @@ def test_a_released_channel_in_an_rc_override_is_not_a_stick() -> None:
     applet.receive(rc_override({FWD: 65534, YAW: 0}))
     run_closed_loop(applet, vehicle, 0.3)
     assert applet.engaged
+
+
+# -- a safety review (2026-11-27, later) ----------------------------------------------------------
+
+
+def _readings_scaled(applet: Applet, vehicle: NetVehicle, factor: float) -> None:
+    """From now on the camera reads `factor` times the true distance (a harmonic lock)."""
+    original = vehicle.plane
+
+    def scaled() -> tuple[float, float, float]:
+        x, y, z = original()
+        return x * factor, y * factor, z * factor
+
+    vehicle.plane = scaled  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize(("gap_s", "factor", "frame_period_s"),
+                         [(0.2, 2.0, 0.1), (0.7, 2.0, 0.1), (2.5, 3.0, 0.1), (0.0, 2.0, 0.2)])
+def test_a_distance_that_comes_back_multiplied_after_a_gap_is_not_held(
+        gap_s: float, factor: float, frame_period_s: float) -> None:
+    """Holding 1 m, a short "no net" gap (what netpose sends while its filter re-acquires), then
+    readings at twice the distance: the three frames' wait and the gap counted as time the
+    vehicle could have moved at 1.5 m/s, the new level passed as possible, and the hold drove
+    to 0.49 m (3x after 2.5 s: 0.32 m). Thrust was stopped all that time: the vehicle could only
+    coast, so such a level is one of two readings being wrong, and the pilot takes over."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 20.0, frame_period_s=frame_period_s)
+    assert applet.engaged and abs(vehicle.distance_m - 1.0) < 0.1
+    if gap_s:
+        run_closed_loop(applet, vehicle, gap_s, sees_net=lambda t: False,
+                        frame_period_s=frame_period_s)
+    _readings_scaled(applet, vehicle, factor)
+    vehicle.min_distance_seen = 99.0
+    run_closed_loop(applet, vehicle, 12.0, frame_period_s=frame_period_s)
+    assert vehicle.min_distance_seen > 0.9 and not applet.engaged
+    assert any("OFF, net distance jumped" in s for _, s in applet.texts())
+
+
+def _blocked_pass(params: dict[str, float], block_below_m: float | None) -> float:
+    """Engaged at 3.5 m; the camera blocked (zero vectors) once the vehicle is nearer than
+    `block_below_m` (None: never). The true closest approach."""
+    vehicle = NetVehicle(distance_m=3.5, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle, **params)
+    blocked = {"at": None}
+
+    def sees(t: float) -> bool:
+        if block_below_m is not None and blocked["at"] is None and \
+                vehicle.distance_m < block_below_m:
+            blocked["at"] = t
+        return blocked["at"] is None
+
+    vehicle.min_distance_seen = 99.0
+    run_closed_loop(applet, vehicle, 15.0, sees_net=sees)
+    return vehicle.min_distance_seen
+
+
+@pytest.mark.parametrize("params", [
+    {}, {"SPD_MAX": 1.0, "KP": 2.0}, {"DIST": 0.5, "SPD_MAX": 1.0, "KP": 2.0},
+    {"DIST": 0.5, "SPD_MAX": 1.0, "KP": 5.0, "ACC_MAX": 2.0, "FWD_MAX": 400},
+], ids=["defaults", "fast", "fast-close", "fastest"])
+@pytest.mark.parametrize("block_below_m", [None, 1.3, 1.0, 0.8])
+def test_the_vehicle_can_always_coast_to_a_stop_outside_the_hard_minimum(
+        params: dict[str, float], block_below_m: float | None) -> None:
+    """A frame without the net stops thrust, but the vehicle coasts on (the model's drag is
+    SITL's: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s). With a speed limit and gain the applet
+    accepts, a camera blocked on the approach let it coast to 0.33 m, or into the net (-0.07 m),
+    and the fastest settings swung between 0.35 and 1.34 m with the net in view all along.
+    Toward the net it never goes faster than it can coast to a stop outside NETH_DIST_MIN."""
+    dist_min = 0.4
+    assert _blocked_pass(params, block_below_m) >= dist_min
+
+
+def test_a_button_pressed_while_it_was_not_net_holds_does_not_engage_later() -> None:
+    """A press of script button 1 while NETH_BTN was 0 (the button bound to something else) was
+    kept in ArduSub's count; setting NETH_BTN = 1 later engaged the hold at once, with no
+    press, and drove from 2 m to 1.06 m. A press before the applet loaded is not one either."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = Applet({"NETH_BTN": 0})
+    applet.press(1)  # before the first run: before the applet was there
+    run_closed_loop(applet, vehicle, 1.0, t0=0.0)
+    applet.press(1)
+    run_closed_loop(applet, vehicle, 5.0)
+    applet.set_param("NETH_BTN", 1)
+    run_closed_loop(applet, vehicle, 3.0)
+    assert not applet.engaged and vehicle.distance_m > 1.9
+    applet.set_param("NETH_BTN", 2)
+    applet.press(1)  # another button than the applet's: nothing
+    run_closed_loop(applet, vehicle, 1.0)
+    assert not applet.engaged
+    applet.press(2)  # its own, now: on
+    run_closed_loop(applet, vehicle, 0.5)
+    assert applet.engaged
+
+
+def test_no_pilot_input_across_the_clock_wrap_still_hands_back() -> None:
+    """millis() wraps after 49.7 days; the time since the pilot's last input was a plain
+    difference, negative after the wrap: a joystick lost 0.5 s before it left the hold on for
+    20 s, driving, with nobody able to take over by stick."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = Applet()
+    applet.stub.clock_offset_ms = 4294967296 - 12000  # wraps 12 s into the run
+    run_closed_loop(applet, vehicle, 1.0, t0=0.0)
+    applet.press(1)
+    run_closed_loop(applet, vehicle, 10.5)
+    assert applet.engaged
+    lost = applet.now
+    run_closed_loop(applet, vehicle, 3.0, pilot_period_s=1e9)
+    assert not applet.engaged
+    off = [t for t, s in applet.texts() if "OFF, no pilot input" in s]
+    assert off and off[0] - lost <= 1.0 + 0.1
