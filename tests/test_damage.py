@@ -352,6 +352,21 @@ def test_a_confirmed_hole_that_stays_in_view_is_not_reported_again() -> None:
     assert view.confirmed and view.track_id == 1
 
 
+def test_a_hole_held_in_view_for_long_keeps_its_memory_bounded() -> None:
+    """A confirmed hole now lives as long as it is in view: an ROV holding station on it for an
+    hour (36,000 sightings at 10 a second) must not keep every sighting, each with its evidence
+    crop."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    place = (-0.2, 0.0)
+    tracker = HoleTracker(CAMERA, settings)
+    for k in range(3000):
+        tracker.update(_still_scan(place, True, 959.0), 0.1 * k, k)
+    (track,) = tracker._tracks
+    assert track.confirmed
+    assert len(track.hits) <= settings.confirm_looks
+    assert len(track.record) <= settings.confirm_looks
+
+
 def test_a_hole_that_left_the_view_is_a_new_hole_when_it_comes_back() -> None:
     """What is documented: once out of view for more than track_timeout_s, netpose cannot tell
     it from another hole (the net is periodic), so a sighting after that is reported anew."""

@@ -206,6 +206,8 @@ class HoleTracker:
         for ti, tr in enumerate(self._tracks):
             if ti not in used_t and self.judged(scan, tr, t):
                 tr.record.append(False)
+                if tr.confirmed:
+                    del tr.record[:-st.confirm_looks]
         for ci, cand in enumerate(candidates):
             if ci not in used_c:
                 self._tracks.append(_Track(self._next_id, t, t, np.array(cand.plane_xy_m),
@@ -245,6 +247,12 @@ class HoleTracker:
         tr.t_last = t
         tr.hits.append(cand)
         tr.record.append(True)
+        if tr.confirmed:
+            # Reported: only the last sighting and looks are read again (its place, the gate,
+            # whether the looks still find it). A hole held in view for an hour must not keep
+            # every sighting and its evidence crop.
+            del tr.hits[:-1]
+            del tr.record[:-self.settings.confirm_looks]
 
     def _still_in_view(self, scan: DamageScan, tr: _Track, t: float, refuted_after: int
                        ) -> bool:
