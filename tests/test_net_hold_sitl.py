@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -79,6 +80,9 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
     assert SITL is not None
     instance = int(os.environ.get("NETPOSE_ARDUSUB_SITL_INSTANCE", "8"))
     blind = tmp_path / "camera-blocked"
+    # The daemon's configuration, as a file of its own: phase F changes its mesh and reloads.
+    config = tmp_path / "netpose.toml"
+    config.write_text((REPO / "config" / "sitl.toml").read_text())
     results: dict[str, float] = {}
     with Sitl(SITL, tmp_path / "sitl", instance, PARAMS,
               scripts=[REPO / "scripts" / "net_hold.lua"]) as sitl:
@@ -115,7 +119,7 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             with daemon_log.open("w") as log:
                 daemon = subprocess.Popen(
                     [sys.executable, "-m", "service.cli", "run", "--config",
-                     str(REPO / "config" / "sitl.toml"), "--set", f"camera.url={url}",
+                     str(config), "--set", f"camera.url={url}",
                      "--set", f"mavlink.url=tcp:127.0.0.1:{sitl.port(0)}",
                      "--set", "telemetry.enabled=false",
                      "--set", f"mavlink.max_age_s={SITL_TIMEOUT_S}"],
@@ -219,6 +223,26 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             # rewrites it meanwhile).
             unattended = forward_pwm_after(pilot, off_at + 0.2)
             results["no_pilot_last_fwd"] = float(unattended[-1][1]) if unattended else 1500.0
+
+            # -- F: the readings come back at twice the distance after a gap ------------------
+            # A mesh size set to twice the net's and reloaded (SIGHUP): netpose's filter rejects
+            # the jump, starts a new track and confirms it (a gap of "no net" planes), then
+            # sends twice the distance. The hold must not drive toward a net it places 2 m off:
+            # the vehicle cannot have moved 1 m while thrust was stopped, so it hands back.
+            pilot.wait_for("netpose tracking again", lambda: fresh_planes(pilot, 2.0), 20)
+            doubled_engage_at = time.monotonic()
+            pilot.press(0)
+            pilot.wait_text("NetHold: ON", doubled_engage_at, 5)
+            time.sleep(5.0)
+            config.write_text(config.read_text().replace("bar_length_m = 0.025",
+                                                         "bar_length_m = 0.05"))
+            doubled_at = time.monotonic()
+            daemon.send_signal(signal.SIGHUP)
+            off_at, _ = pilot.wait_text("OFF, net distance jumped", doubled_at, 15)
+            time.sleep(4.0)
+            results["doubled_handback_s"] = off_at - doubled_at
+            after_doubling = truth.series(pilot, doubled_at, time.monotonic())
+            results["doubled_min_distance_m"] = min(v.distance_m for _, v in after_doubling)
             everything = truth.series(pilot, engage_at, time.monotonic())
             results["min_distance_m"] = min(v.distance_m for _, v in everything)
             assert daemon.poll() is None, daemon_log.read_text()[-3000:]
@@ -258,6 +282,9 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
     # No joystick for a second: off within about a second (the applet's 1 s, the GCS link's
     # and the 10 ms run's latency), and nothing but neutral after.
     assert 0.9 <= results["no_pilot_handback_s"] <= 1.6, context
+    # Readings at twice the distance after a gap: handed back, never nearer than the hold was
+    # (it drove to half the set point before).
+    assert results["doubled_min_distance_m"] >= SET_POINT - 0.1, context
     assert results["no_pilot_last_fwd"] == 1500.0, context
 
 
