@@ -608,7 +608,7 @@ def _blocked_pass(params: dict[str, float], block_below_m: float | None) -> floa
     `block_below_m` (None: never). The true closest approach."""
     vehicle = NetVehicle(distance_m=3.5, heading_error_deg=0.0)
     applet = engaged_applet(vehicle, **params)
-    blocked = {"at": None}
+    blocked: dict[str, float | None] = {"at": None}
 
     def sees(t: float) -> bool:
         if block_below_m is not None and blocked["at"] is None and \
