@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.mavlink_link import RecordingAutopilotLink
 from drivers.sdnotify import RecordingNotifier
-from drivers.sources import Frame, create_source
+from drivers.sources import Frame, SourceState, SourceStats, create_source
 from drivers.sources.synthetic import builtin_camera
 from drivers.telemetry import RecordingPublisher
 from service.config import Config
@@ -70,11 +70,17 @@ class ScriptedSource:
     """A frame source that plays a script on the fake clock: each frame arrives at its capture
     time (the clock jumps there), a gap lets the read time out."""
 
-    def __init__(self, script: Iterable[Step], clock: FakeClock) -> None:
+    def __init__(self, script: Iterable[Step], clock: FakeClock, *, ends: bool = False) -> None:
         self._script: Iterator[Step] = iter(script)
         self._clock = clock
         self.opened = self.closed = False
         self.exhausted = False
+        # As a real source counts them: frames it never handed over (the gaps in the frame
+        # numbers it did), and whether it is a file that ends with its script.
+        self._ends = ends
+        self._last_index: int | None = None
+        self._delivered = 0
+        self.drops = 0
 
     def open(self) -> None:
         self.opened = True
@@ -89,10 +95,17 @@ class ScriptedSource:
             self._clock.now = max(self._clock.now, step.frame.t_monotonic + step.processing_s)
         else:
             self._clock.now += step.processing_s
+        if self._last_index is not None and step.frame.index > self._last_index + 1:
+            self.drops += step.frame.index - self._last_index - 1
+        self._last_index = step.frame.index
+        self._delivered += 1
         return step.frame
 
-    def stats(self) -> Any:
-        return type("Counters", (), {"drops": 0, "corrupt": 0, "reconnects": 0, "error": ""})()
+    def stats(self) -> SourceStats:
+        ended = self._ends and self.exhausted
+        return SourceStats(state=SourceState.ENDED if ended else SourceState.UP,
+                           frames=self._delivered, captured=self._delivered + self.drops,
+                           drops=self.drops, corrupt=0, reconnects=0, fps=0.0)
 
     def close(self) -> None:
         self.closed = True
@@ -165,9 +178,9 @@ class RecordingObserver:
 
 def make_harness(config: Config, script: Iterable[Step], *, start: float = 100.0,
                  load_config: Callable[[], Config] | None = None,
-                 observers: tuple[Any, ...] = ()) -> Harness:
+                 observers: tuple[Any, ...] = (), source_ends: bool = False) -> Harness:
     clock = FakeClock(start)
-    source = ScriptedSource(script, clock)
+    source = ScriptedSource(script, clock, ends=source_ends)
     link = RecordingAutopilotLink()
     telemetry = RecordingPublisher()
     notifier = RecordingNotifier(watchdog_interval_s=1.0)

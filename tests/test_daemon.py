@@ -209,6 +209,38 @@ def test_status_line_and_status_message(frames: list[Frame]) -> None:
     assert h.telemetry.state is not None and h.telemetry.state.status is status
 
 
+def test_status_counts_each_dropped_frame_once_and_says_the_source_ended(
+        frames: list[Frame]) -> None:
+    """A source that drops every other frame (a busy loop) and then ends, as a file does: the
+    status counted each drop twice (the gaps in the frame numbers and the source's own count
+    of the same frames) and said "reconnecting", with no error, for ever after the end."""
+    every_other = [dataclasses.replace(f, index=2 * i, t_monotonic=100.0 + 2 * i / FPS)
+                   for i, f in enumerate(frames[:15])]
+    cfg = demo_config("service.status_interval_s=0.5", "camera.stale_after_s=0.5")
+    h = make_harness(cfg, [Step(frame=f) for f in every_other], source_ends=True)
+    h.run_script()
+    for _ in range(15):  # 3 s after the end
+        h.daemon.iterate()
+    last = h.telemetry.statuses[-1]
+    assert last.frame_source.dropped == 14 == h.source.drops
+    assert last.frame_source.state == "ended"
+    streaming = [s for s in h.telemetry.statuses if s.frame_source.state == "streaming"]
+    assert streaming and all(s.frame_source.dropped <= 14 for s in streaming)
+
+
+def test_the_state_answers_from_the_start_with_no_status_yet(frames: list[Frame]) -> None:
+    """The `state` queryable answers with `status` null before the first status, as
+    documented: it did not answer at all for the first 1-2 s of a run, which a topside (and
+    `netpose monitor --query`) took for a vehicle that is not there."""
+    h = make_harness(demo_config(), steps(frames[:3]))
+    state = h.telemetry.state
+    assert state is not None and state.status is None and state.estimate is None
+    assert state.config["mesh"]["bar_length_m"] == h.daemon.config.mesh.bar_length_m
+    h.run_script()
+    after = h.telemetry.state
+    assert after is not None and after.status is not None
+
+
 def test_status_says_since_when_the_camera_streams(frames: list[Frame]) -> None:
     """`frame_source.up_since_mono` is the first frame's arrival after the source (last) came
     up: what a topside needs to tell a long-running camera from one that keeps reconnecting,

@@ -126,7 +126,9 @@ class EstimateMessage(Message):
     """One processed frame: the estimator's answer and the filter's."""
 
     KIND: ClassVar[str] = ESTIMATE_SUFFIX
-    seq: int = doc("frame counter of this service run (gaps = frames the estimator skipped)")
+    seq: int = doc("number of this estimate in the service run (1, 2, ... with no gaps: a "
+                   "gap a subscriber sees is a message lost on the way; frames the camera "
+                   "dropped are counted in status `frame_source.dropped`)")
     frame_time_unix: float | None = doc("wall-clock capture time of the frame", None)
     frame_time_mono: float | None = doc("monotonic capture time of the frame", None)
     detected: bool = doc("a net lattice was found in this frame", False)
@@ -166,9 +168,11 @@ class FrameSourceHealth:
     """The camera or video stream."""
 
     state: str = doc("`starting`, `streaming`, `reconnecting`, `ended`, `stopped`, `failed`")
-    fps: float | None = doc("frames received per second over the last period", None)
-    frames: int = doc("frames received in total", 0)
-    dropped: int = doc("frames not processed because the estimator was busy (total)", 0)
+    fps: float | None = doc("frames the loop took per second over the last period (the "
+                            "camera's rate less what was dropped)", None)
+    frames: int = doc("frames the loop took in total", 0)
+    dropped: int = doc("frames the camera gave that the loop never took because it was busy "
+                       "with an earlier one (total)", 0)
     corrupt: int = doc("frames that could not be decoded (total)", 0)
     last_frame_age_s: float | None = doc("time since the last frame", None)
     up_since_mono: float | None = doc(

@@ -263,6 +263,7 @@ class Daemon:
         cfg, parts = self.config, self.parts
         parts.source.open()
         parts.link.start()
+        self.reporter.announce(self.clock())
         parts.telemetry.start()
         for observer in parts.observers:
             observer.start()

@@ -39,7 +39,14 @@ class Frame(Protocol):
     def truth(self) -> object | None: ...  # ground truth of a rendered frame
 
 
+class SourceStateName(Protocol):
+    @property
+    def value(self) -> str: ...  # "opening", "up", "down", "ended" (a file's end), "closed"
+
+
 class SourceCounters(Protocol):
+    @property
+    def state(self) -> SourceStateName: ...
     @property
     def drops(self) -> int: ...
     @property

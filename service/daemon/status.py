@@ -115,6 +115,14 @@ class StatusReporter:
         self._config_redacted = redact_config(effective)  # once here, not per report
         self.telemetry_enabled = telemetry_enabled
 
+    def announce(self, now: float) -> None:
+        """What the `state` queryable answers before the first status: the configuration,
+        status and estimate null (it did not answer at all, and a topside took the vehicle
+        for absent)."""
+        self._ctx.telemetry.set_state(StateMessage(
+            vehicle=self._vehicle, time_unix=self._wall_clock(), time_mono=now, status=None,
+            config=self._config_redacted, estimate=None))
+
     def set_intervals(self, interval_s: float, summary_interval_s: float) -> None:
         """New periods (a reload): the next report comes the new period after the last one."""
         self._next_status += interval_s - self.interval_s
@@ -161,7 +169,12 @@ class StatusReporter:
         latency = ctx.stats.latency_since(self._mark_at)
         fps = period.frames / seconds if seconds > 0 else None
         taken = period.frames + period.paced
-        if watch.up:
+        said = counters.state.value
+        if said == "ended":  # a file at its end: nothing more will come
+            source_state = "ended"
+        elif said == "closed":
+            source_state = "stopped"
+        elif watch.up:
             source_state = "streaming"
         else:
             source_state = "starting" if watch.last_frame_at is None else "reconnecting"
@@ -181,7 +194,9 @@ class StatusReporter:
             frame_source=FrameSourceHealth(
                 state=source_state, fps=taken / seconds if seconds > 0 else None,
                 frames=ctx.stats.frames + ctx.stats.paced,
-                dropped=ctx.stats.skipped + counters.drops, corrupt=counters.corrupt,
+                # The source's own count: the gaps in the frame numbers the loop sees are
+                # these same frames (and, from a live camera, the corrupt ones too).
+                dropped=counters.drops, corrupt=counters.corrupt,
                 last_frame_age_s=None if watch.last_frame_at is None
                 else now - watch.last_frame_at,
                 up_since_mono=watch.up_since,
