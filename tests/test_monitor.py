@@ -106,7 +106,7 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert view.estimate is not None and view.estimate["seq"] == 59
     assert view.problems == set()
     summary = state.summary(t)
-    assert f"{VEHICLE} live" in summary and "d 1.59+/-0.02 m" in summary and "10.0Hz" in summary
+    assert f"{VEHICLE} live" in summary and "d 1.59+/-0.020 m" in summary and "10.0Hz" in summary
     screen = "\n".join(state.render(t))
     assert "estimate" in screen and "cam streaming" in screen and "filtered" in screen
     # `d` is perpendicular; what the autopilot gets (here along the axis) is said apart.
@@ -119,6 +119,43 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert "searching 5/s (no net)" in "\n".join(state.render(t))
     # After the window the stream has no rate any more.
     assert state.rate_hz(VEHICLE, "estimate", t + 6.0) == 0.0
+
+
+def test_estimates_that_stopped_are_not_shown_as_a_live_distance() -> None:
+    """The camera stopped; the 1 Hz status kept the link "live", and the monitor went on
+    showing the last estimate as "filtered valid True" and "autopilot 0.89 m", and its rate
+    at 10 Hz for seconds, while the daemon said the filter was lost and sent nothing."""
+    state = MonitorState(stale_after_s=2.0, window_s=5.0)
+    t = 100.0
+    for seq in range(30):  # 3 s of estimates at 10 Hz, then only status
+        t = 100.0 + seq * 0.1
+        state.ingest(f"netpose/{VEHICLE}/estimate", encode(estimate_json(seq)), t)
+    lost = dataclasses.replace(status_message(), filter=FilterHealth(state="lost"))
+    for k in range(1, 11):
+        state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(lost)), t + k)
+    now = t + 10.0
+    assert state.link_state(now) == "live"  # the vehicle still talks
+    screen = "\n".join(state.render(now))
+    assert "valid True" not in screen and "autopilot 1.62 m" not in screen, screen
+    assert "no estimate for 10.0 s" in screen
+    assert state.rate_hz(VEHICLE, "estimate", t + 1.0) < 10.0 * 0.7  # falls as soon as silent
+    summary = state.summary(now)
+    assert "no estimate for 10.0 s" in summary and "d 1.50" not in summary
+
+
+def test_uncertainty_and_closing_speed_read_as_what_they_are() -> None:
+    """A sigma of 1.7 mm read "+/-0.00 m", and the filter's closing speed (positive toward the
+    net) stood beside the distance as "rate", which reads as d's own rate: the wrong sign."""
+    state = MonitorState()
+    message = to_json(estimate_message(1, 1.5))
+    message["sigma_distance_m"] = 0.0017
+    message["filtered"]["sigma_distance_m"] = 0.0017
+    message["filtered"]["closing_speed_mps"] = 0.16
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(message), 100.0)
+    screen = "\n".join(state.render(100.0))
+    assert "+/-0.00 m" not in screen and "+/- 0.00 m" not in screen
+    assert "0.002 m" in screen
+    assert "closing 0.16 m/s" in screen and "rate 0.16" not in screen
 
 
 def test_a_net_seen_without_a_distance_is_shown_as_such() -> None:

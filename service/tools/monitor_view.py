@@ -49,11 +49,16 @@ class StreamStats:
             self.recent.popleft()
 
     def rate_hz(self, now_mono: float) -> float:
-        """Messages per second over the last window (0 when fewer than two arrived in it)."""
+        """Messages per second over the last window (0 when fewer than two arrived in it).
+        A stream silent for more than two of its intervals is counted up to now: it showed its
+        old rate for the whole window after it stopped."""
         self._trim(now_mono)
         if len(self.recent) < 2:
             return 0.0
         span = self.recent[-1] - self.recent[0]
+        interval = span / (len(self.recent) - 1)
+        if now_mono - self.recent[-1] > 2.0 * interval:
+            span = now_mono - self.recent[0]
         return (len(self.recent) - 1) / span if span > 0 else 0.0
 
 
@@ -218,11 +223,21 @@ class MonitorState:
             return "waiting for telemetry"
         return " | ".join(self._vehicle_summary(v, now_mono) for v in self.vehicles.values())
 
+    def estimate_silence_s(self, view: VehicleView, now_mono: float) -> float | None:
+        """How long no estimate has come, when that is longer than stale_after_s (the link may
+        be live on its status alone): its last values are then no distance of now."""
+        stats = view.streams.get(ESTIMATE_SUFFIX)
+        if stats is None or now_mono - stats.last_mono <= self.stale_after_s:
+            return None
+        return now_mono - stats.last_mono
+
     def _vehicle_summary(self, view: VehicleView, now_mono: float) -> str:
         link = self.link_state(now_mono, view.name)
         parts = [f"{view.name} {link}"]
         parts.append(f"est {self.rate_hz(view.name, ESTIMATE_SUFFIX, now_mono):.1f}Hz")
-        parts.append(_estimate_text(view.estimate))
+        silence = self.estimate_silence_s(view, now_mono)
+        parts.append(_estimate_text(view.estimate) if silence is None
+                     else f"no estimate for {silence:.1f} s")
         parts.append(f"status {self.rate_hz(view.name, STATUS_SUFFIX, now_mono):.1f}Hz")
         parts.append(_status_text(view.status))
         if view.holes:
@@ -247,15 +262,22 @@ class MonitorState:
                     f"  {stream:<9} {stats.rate_hz(now_mono):6.2f} Hz  {stats.count:7d} msgs"
                     f"  last {age:5.1f} s ago"
                 )
-            lines.append("  estimate  " + (_estimate_text(view.estimate) or "-"))
-            estimate = view.estimate or {}
+            silence = self.estimate_silence_s(view, now_mono)
+            if silence is not None:
+                # The last estimate is history: no distance, filter or autopilot of now.
+                lines.append(f"  estimate  no estimate for {silence:.1f} s (last: "
+                             f"{_estimate_text(view.estimate) or '-'})")
+            else:
+                lines.append("  estimate  " + (_estimate_text(view.estimate) or "-"))
+            estimate = (view.estimate or {}) if silence is None else {}
             filtered = estimate.get("filtered") or {}
             if filtered:
                 lines.append(
                     f"  filtered  valid {filtered.get('valid')}"
                     f"  d {_fmt(filtered.get('distance_m'))}"
-                    f" +/- {_fmt(filtered.get('sigma_distance_m'))} m"
-                    f"  rate {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
+                    f" +/- {_fmt(filtered.get('sigma_distance_m'), 3)} m"
+                    f"  closing {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
+                    " (+ toward the net)"
                 )
                 lines.append("  autopilot " + _autopilot_text(filtered))
             latency = estimate.get("latency_ms") or {}
@@ -309,7 +331,7 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
                     f"({reason.split(':')[0]})")
         return f"no net ({reason})"
     return (
-        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(estimate.get('sigma_distance_m'))} m"
+        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(estimate.get('sigma_distance_m'), 3)} m"
         f" range {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
         f" conf {_fmt(estimate.get('confidence'))}"
     )
