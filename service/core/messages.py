@@ -317,7 +317,9 @@ class StateMessage(Message):
     KIND: ClassVar[str] = STATE_SUFFIX
     status: StatusMessage | None = doc("the last status message (null before the first)", None)
     config: dict[str, Any] = doc("the effective configuration, secrets redacted", {})
-    estimate: EstimateMessage | None = doc("the last estimate message", None)
+    estimate: EstimateMessage | None = doc(
+        "the last estimate message; once frames stop it is history (its `time_mono` against "
+        "the status's says how old; the status's `filter.state` is what holds now)", None)
 
 
 @dataclass(frozen=True, kw_only=True)
