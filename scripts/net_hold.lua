@@ -50,10 +50,10 @@ local PILOT_TIMEOUT_S = 1.0
 -- a few per cent) is doubtful (a harmonic locked for a moment, a fish): no thrust until
 -- CONFIRM_FRAMES frames agree again. A BlueROV2 tops out near 1.5 m/s.
 local JUMP_SPEED = 1.5
--- While net hold steers (or has stopped thrust) the vehicle moves no faster than NETH_SPD_MAX
--- or the speed it had, plus this much drift (a current): a distance that changed more than
--- that, at any time, is a reading gone wrong, however long the wait for it to agree again.
-local DRIFT_SPEED = 0.1
+-- With thrust stopped (a frame without the net, a doubt) the vehicle only coasts on from the
+-- speed it had then, a bounded distance however long the pause, plus this much drift (a
+-- current): a distance that changed more than that meanwhile is a reading gone wrong.
+local DRIFT_SPEED = 0.05
 local JUMP_SLACK_M = 0.05
 local JUMP_SLACK_SHARE = 0.03
 local CONFIRM_FRAMES = 3
@@ -180,6 +180,8 @@ local target_yaw = nil   -- heading (rad) that faces the net squarely, from the 
 local said_pause = false
 local prev_plane = nil
 local closing_speed = 0  -- toward the net, m/s, from successive planes
+local last_speed = 0     -- the last measured closing speed, kept when a jump clears the above
+local stop_speed = 0     -- the speed when thrust last stopped: what the vehicle coasts on
 local v_cmd = 0          -- speed command toward the net, m/s
 local integral = 0
 local yaw_integral = 0
@@ -281,12 +283,21 @@ end
 
 local disengage
 
--- How fast the distance can change: while net hold steers, or has stopped thrust, no faster
--- than NETH_SPD_MAX or the speed the vehicle had, plus a drift; in the pilot's hands, as fast
--- as the vehicle goes.
-local function speed_bound()
-  if not engaged then return JUMP_SPEED end
-  return math.max(get("SPD_MAX"), math.abs(closing_speed)) + DRIFT_SPEED
+local function coast_distance(v)
+  return math.log(1 + COAST_QUADRATIC / COAST_LINEAR * math.abs(v)) / COAST_QUADRATIC
+end
+
+-- How far the distance can change in `elapsed` s: as fast as a vehicle goes (1.5 m/s: the
+-- pilot, a wave), except while net hold has stopped thrust: then only what the vehicle coasts
+-- from the speed it had, plus a drift. (1.5 m/s over a pause of seconds let a reading at
+-- twice the distance pass as movement, and the hold drove to half its set point.)
+local function move_bound(elapsed)
+  elapsed = math.max(elapsed, 0)
+  if engaged and paused then
+    local v = math.abs(stop_speed)
+    return math.min(v * elapsed, coast_distance(v)) + DRIFT_SPEED * elapsed
+  end
+  return JUMP_SPEED * elapsed
 end
 
 local function no_net_at(t)
@@ -345,14 +356,12 @@ local function on_plane(msg, now)
   if dt >= 1.0 or prev_plane.clock_ended then
     closing_speed = 0  -- after a gap the speed before it says nothing
   end
-  local speed = speed_bound()
-  if math.abs(plane.d - prev_plane.d) > speed * math.max(elapsed, 0) + JUMP_SLACK_M
+  if math.abs(plane.d - prev_plane.d) > move_bound(elapsed) + JUMP_SLACK_M
       + JUMP_SLACK_SHARE * prev_plane.d then
     -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
     -- next frames agree with this one.
-    if jump == nil then
-      jump = {d = prev_plane.d, arrival = prev_plane.arrival, speed = speed}
-    end
+    if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival} end
+    if engaged and not paused then stop_speed = closing_speed end  -- thrust stops now
     doubt, doubt_why, closing_speed = CONFIRM_FRAMES, "net distance jumped", 0
   else
     if doubt > 0 then
@@ -361,9 +370,9 @@ local function on_plane(msg, now)
         -- The frames agree again. Back where the net was: a glitch, hold on. Somewhere the
         -- vehicle cannot have gone since: one of the two readings is wrong, and which one
         -- cannot be told here, so the pilot takes over.
-        -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle moved
-        -- at the speed it could have when the jump came, not faster for waiting longer.
-        if math.abs(plane.d - jump.d) > jump.speed * since(jump.arrival, now) + JUMP_SLACK_M
+        -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle only
+        -- coasted, however long the wait for the frames to agree.
+        if math.abs(plane.d - jump.d) > move_bound(since(jump.arrival, now)) + JUMP_SLACK_M
             + JUMP_SLACK_SHARE * jump.d then
           level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
         end
@@ -374,6 +383,7 @@ local function on_plane(msg, now)
     if dt > 0.01 and dt < 1.0 and not prev_plane.clock_ended then
       local rate = (prev_plane.d - plane.d) / dt
       closing_speed = closing_speed + 0.35 * (rate - closing_speed)
+      last_speed = closing_speed
     end
   end
 end
@@ -526,20 +536,27 @@ engage = function()
   return true
 end
 
--- Every button's presses are taken each run, the applet's acted on: a press kept in
--- ArduSub's count while the button was not the applet's (NETH_BTN 0 or another) engaged the
--- hold as soon as it became so, with nobody pressing anything.
+-- Only the applet's own button is read (ArduSub's counts are one set for every script); a
+-- press counted while the button was not the applet's (NETH_BTN 0 or another, before the
+-- applet loaded) engaged the hold as soon as it became so, with nobody pressing anything:
+-- when NETH_BTN changes, and at load, its count so far is discarded once.
+local counted_button = 0
+
 local function clear_buttons()
-  for b = 1, 4 do sub:get_and_clear_button_count(b) end
+  counted_button = math.floor(get("BTN"))
+  if counted_button >= 1 and counted_button <= 4 then
+    sub:get_and_clear_button_count(counted_button)
+  end
 end
 
 local function check_button()
   local button = math.floor(get("BTN"))
-  local pressed = false
-  for b = 1, 4 do
-    if sub:get_and_clear_button_count(b) > 0 and b == button then pressed = true end
+  if button ~= counted_button then
+    clear_buttons()
+    return
   end
-  if pressed then
+  if button < 1 or button > 4 then return end
+  if sub:get_and_clear_button_count(button) > 0 then
     if engaged then disengage("button", true) else engage() end
   end
 end
@@ -666,6 +683,9 @@ local function update()
     disengage(string.format("net lost (%.1f s)", math.min(age, 99)), true)
   elseif age > get("TIMEOUT") or no_net_t ~= nil or doubt > 0 then
     if not paused then
+      -- What the vehicle coasts on from here (the last measured speed: a jump has cleared
+      -- closing_speed already).
+      if doubt == 0 then stop_speed = last_speed end
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
       -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
       said_pause = since(last_pause_text, now) > 3.0
