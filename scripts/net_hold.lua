@@ -25,14 +25,10 @@
 local PARAM_TABLE_KEY = 86
 local PARAM_PREFIX = "NETH_"
 local PLANE_NAME = "NET_PLANE"
-local MSG_DEBUG_VECT = 250
-local MSG_MANUAL_CONTROL = 69
-local MSG_COMMAND_LONG = 76
-local MSG_COMMAND_ACK = 77
-local MSG_RC_CHANNELS_OVERRIDE = 70
-local MAV_CMD_USER_1 = 31010
-local MAV_RESULT_ACCEPTED = 0
-local MAV_RESULT_DENIED = 2
+-- MAVLink message ids, and the command and results used (tables: see JUMP below).
+local MSG = {DEBUG_VECT = 250, MANUAL_CONTROL = 69, COMMAND_LONG = 76, COMMAND_ACK = 77,
+             RC_CHANNELS_OVERRIDE = 70}
+local MAV = {CMD_USER_1 = 31010, RESULT_ACCEPTED = 0, RESULT_DENIED = 2}
 local SEV_WARNING = 4
 local SEV_INFO = 6
 local NEUTRAL = 1500
@@ -46,24 +42,21 @@ local CLOCK_REBASE_S = 1.0
 -- Without any pilot input (MANUAL_CONTROL, RC_CHANNELS_OVERRIDE) for this long the pilot could
 -- not take over by stick: net hold does not engage, or hands back.
 local PILOT_TIMEOUT_S = 1.0
--- A distance that changes faster than this between two frames (plus the slack: netpose's noise,
--- a few per cent) is doubtful (a harmonic locked for a moment, a fish): no thrust until
--- CONFIRM_FRAMES frames agree again. A BlueROV2 tops out near 1.5 m/s.
-local JUMP_SPEED = 1.5
--- With thrust stopped (a frame without the net, a doubt) the vehicle only coasts on from the
--- speed it had then, a bounded distance however long the pause, plus this much drift (a
--- current): a distance that changed more than that meanwhile is a reading gone wrong.
-local DRIFT_SPEED = 0.05
-local JUMP_SLACK_M = 0.05
-local JUMP_SLACK_SHARE = 0.03
-local CONFIRM_FRAMES = 3
+-- Constants in tables where they belong together: ArduPilot's Lua allows at most 100 locals
+-- in the main chunk (MAXVARS in its lparser.c, 200 in stock Lua; over it the script does not
+-- load at all), and tests/test_net_hold_applet.py counts them.
+-- A distance that changes faster than `speed` between two frames (plus the slack: netpose's
+-- noise, a few per cent) is doubtful (a harmonic locked for a moment, a fish): no thrust until
+-- `confirm` frames agree again. A BlueROV2 tops out near 1.5 m/s. With thrust stopped (a frame
+-- without the net, a doubt) the vehicle only coasts on from the speed it had then, a bounded
+-- distance however long the pause, plus `drift` (a current): a distance that changed more
+-- than that meanwhile is a reading gone wrong.
+local JUMP = {speed = 1.5, drift = 0.05, slack_m = 0.05, slack_share = 0.03, confirm = 3}
 local PLAUSIBLE_M = {0.05, 100.0}
 -- Coasting with thrust stopped, as ArduSub SITL's vectored model does (dv/dt = -0.22 v -
--- 2.18 v|v|: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s), with this margin for a real vehicle:
+-- 2.18 v|v|: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s), with `margin` for a real vehicle:
 -- toward the net it never goes faster than it can coast to a stop outside NETH_DIST_MIN.
-local COAST_LINEAR = 0.22
-local COAST_QUADRATIC = 2.18
-local COAST_MARGIN = 1.5
+local COAST = {linear = 0.22, quadratic = 2.18, margin = 1.5}
 -- millis() is a uint32: it wraps after 49.7 days.
 local CLOCK_WRAP_S = 4294967.296
 local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
@@ -223,11 +216,11 @@ local function setup()
   -- Four message ids; a queue of 20 holds a quarter second of the pilot's and netpose's
   -- messages should the scripting thread stall (a full queue drops what comes).
   mavlink:init(4, 20)
-  mavlink:register_rx_msgid(MSG_DEBUG_VECT)
-  mavlink:register_rx_msgid(MSG_MANUAL_CONTROL)
-  mavlink:register_rx_msgid(MSG_RC_CHANNELS_OVERRIDE)
-  mavlink:register_rx_msgid(MSG_COMMAND_LONG)
-  mavlink:block_command(MAV_CMD_USER_1)
+  mavlink:register_rx_msgid(MSG.DEBUG_VECT)
+  mavlink:register_rx_msgid(MSG.MANUAL_CONTROL)
+  mavlink:register_rx_msgid(MSG.RC_CHANNELS_OVERRIDE)
+  mavlink:register_rx_msgid(MSG.COMMAND_LONG)
+  mavlink:block_command(MAV.CMD_USER_1)
 end
 
 
@@ -278,13 +271,13 @@ end
 
 -- Messages ------------------------------------------------------------------------------------
 local function send_ack(chan, command, result)
-  mavlink:send_chan(chan, MSG_COMMAND_ACK, string.pack("<HB", command, result))
+  mavlink:send_chan(chan, MSG.COMMAND_ACK, string.pack("<HB", command, result))
 end
 
 local disengage
 
 local function coast_distance(v)
-  return math.log(1 + COAST_QUADRATIC / COAST_LINEAR * math.abs(v)) / COAST_QUADRATIC
+  return math.log(1 + COAST.quadratic / COAST.linear * math.abs(v)) / COAST.quadratic
 end
 
 -- How far the distance can change in `elapsed` s: as fast as a vehicle goes (1.5 m/s: the
@@ -295,9 +288,9 @@ local function move_bound(elapsed)
   elapsed = math.max(elapsed, 0)
   if engaged and paused then
     local v = math.abs(stop_speed)
-    return math.min(v * elapsed, coast_distance(v)) + DRIFT_SPEED * elapsed
+    return math.min(v * elapsed, coast_distance(v)) + JUMP.drift * elapsed
   end
-  return JUMP_SPEED * elapsed
+  return JUMP.speed * elapsed
 end
 
 local function no_net_at(t)
@@ -356,13 +349,13 @@ local function on_plane(msg, now)
   if dt >= 1.0 or prev_plane.clock_ended then
     closing_speed = 0  -- after a gap the speed before it says nothing
   end
-  if math.abs(plane.d - prev_plane.d) > move_bound(elapsed) + JUMP_SLACK_M
-      + JUMP_SLACK_SHARE * prev_plane.d then
+  if math.abs(plane.d - prev_plane.d) > move_bound(elapsed) + JUMP.slack_m
+      + JUMP.slack_share * prev_plane.d then
     -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
     -- next frames agree with this one.
     if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival} end
     if engaged and not paused then stop_speed = closing_speed end  -- thrust stops now
-    doubt, doubt_why, closing_speed = CONFIRM_FRAMES, "net distance jumped", 0
+    doubt, doubt_why, closing_speed = JUMP.confirm, "net distance jumped", 0
   else
     if doubt > 0 then
       doubt = doubt - 1
@@ -372,8 +365,8 @@ local function on_plane(msg, now)
         -- cannot be told here, so the pilot takes over.
         -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle only
         -- coasted, however long the wait for the frames to agree.
-        if math.abs(plane.d - jump.d) > move_bound(since(jump.arrival, now)) + JUMP_SLACK_M
-            + JUMP_SLACK_SHARE * jump.d then
+        if math.abs(plane.d - jump.d) > move_bound(since(jump.arrival, now)) + JUMP.slack_m
+            + JUMP.slack_share * jump.d then
           level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
         end
         jump = nil
@@ -429,16 +422,16 @@ end
 
 local function on_command(msg, chan, from_gcs)
   local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
-  if command ~= MAV_CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
+  if command ~= MAV.CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
   if p1 >= 0.5 and not from_gcs then  -- only the pilot's ground station engages
-    send_ack(chan, command, MAV_RESULT_DENIED)
+    send_ack(chan, command, MAV.RESULT_DENIED)
     return
   end
   if p1 >= 0.5 then
-    send_ack(chan, command, engage() and MAV_RESULT_ACCEPTED or MAV_RESULT_DENIED)
+    send_ack(chan, command, engage() and MAV.RESULT_ACCEPTED or MAV.RESULT_DENIED)
   else
     if engaged then disengage("command", true) end
-    send_ack(chan, command, MAV_RESULT_ACCEPTED)
+    send_ack(chan, command, MAV.RESULT_ACCEPTED)
   end
 end
 
@@ -449,19 +442,19 @@ local function read_messages(now)
     if msg == nil then return end
     local msgid = string.unpack("<I3", msg, 10)
     local sysid, compid = string.byte(msg, 8), string.byte(msg, 9)
-    if msgid == MSG_DEBUG_VECT then
+    if msgid == MSG.DEBUG_VECT then
       -- Only netpose's (this vehicle's system id, its component): a replay tool, a second
       -- netpose or a stranger on the network must not steer.
       if sysid == my_sysid and (plane_comp == 0 or compid == plane_comp) then
         on_plane(msg, now)
       end
-    elseif msgid == MSG_COMMAND_LONG then
+    elseif msgid == MSG.COMMAND_LONG then
       on_command(msg, chan, sysid == gcs_sysid)
     elseif sysid ~= gcs_sysid then
       -- The pilot's input comes from the ground station only (as ArduSub takes it).
-    elseif msgid == MSG_MANUAL_CONTROL then
+    elseif msgid == MSG.MANUAL_CONTROL then
       on_manual_control(msg, now)
-    elseif msgid == MSG_RC_CHANNELS_OVERRIDE then
+    elseif msgid == MSG.RC_CHANNELS_OVERRIDE then
       on_rc_override(msg, now)
     end
   end
@@ -586,10 +579,10 @@ local function control(now)
   -- frame lose the net (thrust then stops at once, but the vehicle coasts on): with the speed
   -- limits NETH_SPD_MAX and NETH_KP allow, a camera blocked on the approach coasted it into
   -- the net. The speed whose coasting distance is the room left, over the margin.
-  local room = stop_dist / COAST_MARGIN
+  local room = stop_dist / COAST.margin
   local coast_speed = 0
   if room > 0 then
-    coast_speed = (math.exp(COAST_QUADRATIC * room) - 1) * COAST_LINEAR / COAST_QUADRATIC
+    coast_speed = (math.exp(COAST.quadratic * room) - 1) * COAST.linear / COAST.quadratic
   end
   want = math.min(want, coast_speed)
   if want > v_cmd then

@@ -686,3 +686,20 @@ def test_no_pilot_input_across_the_clock_wrap_still_hands_back() -> None:
     assert not applet.engaged
     off = [t for t, s in applet.texts() if "OFF, no pilot input" in s]
     assert off and off[0] - lost <= 1.0 + 0.1
+
+
+def test_the_main_chunk_stays_within_ardupilots_limit_of_100_locals() -> None:
+    """ArduPilot's Lua allows 100 locals in a function (MAXVARS in its lparser.c; stock Lua,
+    which this harness runs, allows 200): one more and the script does not load at all ("too
+    many local variables (limit is 100) in main function"), which only SITL showed. The
+    applet's top-level locals (declared at column 0) are counted here."""
+    count = 0
+    for line in SCRIPT.read_text().splitlines():
+        if not line.startswith("local "):
+            continue
+        declared = line[len("local "):]
+        if declared.startswith("function "):
+            count += 1
+        else:
+            count += len([n for n in declared.split("=")[0].split(",") if n.strip()])
+    assert count <= 95, f"{count} top-level locals: keep a margin under ArduPilot's 100"
