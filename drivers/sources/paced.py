@@ -177,12 +177,14 @@ class PacedSource(FrameSource):
             return None if item is None else self._deliver(item[1])
         deadline = time.monotonic() + max(0.0, timeout_s)
         if self._pending is None:
+            pass_before = self._loop_index
             item = self._frame_due_now()
-            if item is not None and item[1].t_monotonic + self.frame_period_s <= time.monotonic():
-                # Itself overdue: the skip ran past a looping medium's end into the next pass,
-                # whose first frame came due as long ago as the consumer was late past the end
-                # (or passing over the frames took longer than a frame). Once more: at most
-                # one frame more is decoded for nothing, and the frame handed out is due now.
+            if (item is not None and self._loop_index != pass_before
+                    and item[1].t_monotonic + self.frame_period_s <= time.monotonic()):
+                # The skip ran past a looping medium's end into the next pass, whose first
+                # frame came due as long ago as the consumer was late past the end: once more,
+                # to the frame due now. (Not for a frame that is only late by the time it took
+                # to make: that one would be thrown away and another made, every frame.)
                 self._drops += 1
                 item = self._frame_due_now()
             if item is None:
