@@ -137,6 +137,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 141
     except OSError as exc:
+        if _chosen_command(argv) == "run":
+            raise  # the service: its traceback (where in the daemon) goes to the journal
         # A file that cannot be read or written (a missing folder, a full disk, stdout on
         # /dev/full): one line naming it, as for any other bad input.
         logging.getLogger("netpose").debug("command failed", exc_info=True)

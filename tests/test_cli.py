@@ -7,6 +7,7 @@ whole command group with a TypeError; nothing but formatting every parser finds 
 from __future__ import annotations
 
 import argparse
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -303,3 +304,25 @@ def test_undistort_never_overwrites_its_input_and_asks_before_another_file(
     assert other.read_bytes() == b"keep me"
     assert undistort(other, "--force").returncode == 0
     assert cv2.imread(str(other)) is not None
+
+
+def test_the_service_keeps_its_traceback_for_an_os_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The one-line OSError message is for the offline commands; the daemon's (a port in use,
+    a serial port's EIO mid-run) goes to the journal with where it happened."""
+    import errno
+
+    import service.commands.run as run_command
+    from service.cli import main
+
+    def in_use(*_args: object, **_kwargs: object) -> int:
+        raise OSError(errno.EADDRINUSE, "Address already in use")
+
+    monkeypatch.setattr(run_command, "main", in_use)
+    watched = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+    before = {sig: signal.getsignal(sig) for sig in watched}
+    try:  # `run` takes the service's signals from its first moment: given back after
+        with pytest.raises(OSError, match="Address already in use"):
+            main(["run", "--config", "config/demo.toml"])
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)

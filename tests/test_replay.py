@@ -563,6 +563,12 @@ def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:
         path.write_text(text)
         with pytest.raises(NetposeError, match=message):
             load_truth_csv(path)
+    # A spreadsheet's export: a header ending in a comma (an empty column), a row with one
+    # cell more than the header. Both loaded before the unknown-column check; one was refused
+    # as "unknown column ''", the other a TypeError traceback.
+    path.write_text("frame,range_m,\n0,1.5,\n1,1.6,,\n")
+    loaded = load_truth_csv(path)
+    assert loaded[0].range_m == pytest.approx(1.5) and loaded[1].range_m == pytest.approx(1.6)
     # Excel's "CSV UTF-8" starts with a byte-order mark: the 'frame' column is still found.
     path.write_text("\ufeffframe,range_m\n0,1.5\n", encoding="utf-8")
     assert load_truth_csv(path)[0].range_m == pytest.approx(1.5)

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
+from drivers.sources.files import ImageFolderSource
 from drivers.sources.recording import is_recording
 from service import __version__
 from service.core.camera import CameraModel, load_camera
@@ -186,8 +187,9 @@ def replay_frames(
     t0: float | None = None
     next_index = 0
     waiting_logged = False
-    # An image folder's files, in the order it reads them (frame n is file n).
-    files: list[Path] = list(getattr(source, "files", None) or [])
+    # An image folder's files, in the order it reads them (frame n is file n). Only a folder:
+    # a recording's frame numbers are the vehicle's, with gaps, not positions in its list.
+    files: list[Path] = source.files if isinstance(source, ImageFolderSource) else []
     while not stop.is_set():
         frame = source.read(READ_TIMEOUT_S)
         if frame is None:

@@ -90,9 +90,15 @@ class PilotNotices:
         self._send(now)
 
     def flush(self, now: float) -> None:
-        """The text still waiting, if any, now (the service is stopping: it would be lost)."""
-        if self._pending is not None:
-            self._send(now)
+        """The text still waiting, if any, now (the service is stopping: it would be lost),
+        unless it is stale news already."""
+        if self._pending is None:
+            return
+        _, at = self._pending
+        if now - max(at, self._last_sent + self.interval_s) > STALE_TEXT_S:
+            self._pending = None
+            return
+        self._send(now)
 
     def _send(self, now: float) -> None:
         assert self._pending is not None

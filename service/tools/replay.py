@@ -123,8 +123,11 @@ def load_truth_csv(path: str | Path) -> dict[int, Truth]:
         # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark, which would otherwise
         # become part of the first column's name.
         with p.open(newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-            header = rows[0].keys() if rows else []
+            reader = csv.DictReader(fh)
+            rows = list(reader)
+            # The header's names; an empty one (a trailing comma) is no column, and cells
+            # beyond the header (DictReader's None key) are no column either.
+            header = [c for c in (reader.fieldnames or []) if c and c.strip()]
     except FileNotFoundError:
         raise NetposeError(f"{p}: truth file not found") from None
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
