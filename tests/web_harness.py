@@ -76,8 +76,17 @@ class PageClient:
 
     def collect(self, seconds: float, origin: str | None = None
                 ) -> tuple[list[dict[str, Any]], list[tuple[float, bytes]]]:
-        """What the live WebSocket sends for `seconds`: JSON messages, and (arrival, JPEG)."""
-        return asyncio.run(_collect(self.base.replace("http", "ws") + "/ws", seconds, origin))
+        """What the live WebSocket sends for `seconds`: JSON messages, and (arrival, JPEG).
+        A page that went away meanwhile (a restart) is a ConnectionError, as urllib's is: a
+        server that dropped the connection mid-handshake raised aiohttp's own error, which is
+        not an OSError, and failed the tests that wait for the page to come back."""
+        import aiohttp
+
+        try:
+            return asyncio.run(_collect(self.base.replace("http", "ws") + "/ws", seconds,
+                                        origin))
+        except aiohttp.ClientConnectionError as exc:
+            raise ConnectionError(f"the page dropped the connection: {exc!r}") from exc
 
 
 class WebDaemon(PageClient):
