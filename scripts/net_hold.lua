@@ -51,7 +51,8 @@ local PILOT_TIMEOUT_S = 1.0
 -- without the net, a doubt) the vehicle only coasts on from the speed it had then, a bounded
 -- distance however long the pause, plus `drift` (a current): a distance that changed more
 -- than that meanwhile is a reading gone wrong.
-local JUMP = {speed = 1.5, drift = 0.05, slack_m = 0.05, slack_share = 0.03, confirm = 3}
+local JUMP = {speed = 1.5, drift = 0.05, drift_away_m = 0.05, slack_m = 0.02,
+              slack_share = 0.05, confirm = 3, longest_s = 2.0}
 local PLAUSIBLE_M = {0.05, 100.0}
 -- Coasting with thrust stopped, as ArduSub SITL's vectored model does (dv/dt = -0.22 v -
 -- 2.18 v|v|: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s), with `margin` for a real vehicle:
@@ -174,7 +175,10 @@ local said_pause = false
 local prev_plane = nil
 local closing_speed = 0  -- toward the net, m/s, from successive planes
 local last_speed = 0     -- the last measured closing speed, kept when a jump clears the above
-local stop_speed = 0     -- the speed when thrust last stopped: what the vehicle coasts on
+-- When thrust last stopped: the speed toward the net and away from it the vehicle may have
+-- had (toward: the larger of the commanded and the measured; away: the commanded only, the
+-- measured is noisy), what it coasts on.
+local stop = {toward = 0, away = 0}
 local v_cmd = 0          -- speed command toward the net, m/s
 local integral = 0
 local yaw_integral = 0
@@ -280,17 +284,39 @@ local function coast_distance(v)
   return math.log(1 + COAST.quadratic / COAST.linear * math.abs(v)) / COAST.quadratic
 end
 
--- How far the distance can change in `elapsed` s: as fast as a vehicle goes (1.5 m/s: the
--- pilot, a wave), except while net hold has stopped thrust: then only what the vehicle coasts
--- from the speed it had, plus a drift. (1.5 m/s over a pause of seconds let a reading at
--- twice the distance pass as movement, and the hold drove to half its set point.)
-local function move_bound(elapsed)
+-- How far the distance can fall and rise in `elapsed` s. In the pilot's hands: as fast as a
+-- vehicle goes (1.5 m/s) either way. While net hold is on, a reading farther than it is is the
+-- dangerous one (the hold drives in), so a rise is bounded by what the vehicle can do away
+-- from the net: while steering, NETH_SPD_MAX; with thrust stopped, only what it coasts from
+-- the speed it had away. A fall may be as fast as a wave pushes while steering (a reading too
+-- near only makes the hold back off), and with thrust stopped what it coasts from the speed it
+-- had toward the net. A drift either way. (1.5 m/s over a pause of seconds, and later the
+-- coasting distance either way, let readings at twice the distance pass as movement.)
+local function move_limits(elapsed)
   elapsed = math.max(elapsed, 0)
-  if engaged and paused then
-    local v = math.abs(stop_speed)
-    return math.min(v * elapsed, coast_distance(v)) + JUMP.drift * elapsed
+  if not engaged then return JUMP.speed * elapsed, JUMP.speed * elapsed end
+  local drift = JUMP.drift * elapsed
+  if paused then
+    -- Away, the drift counts up to `drift_away_m` only: 0.05 m/s over a pause of 2.5 s let a
+    -- reading 1.5 times too far pass at a 0.5 m set point. A current that carries the vehicle
+    -- farther than that meanwhile hands back to the pilot (safe); toward the net it may.
+    return math.min(stop.toward * elapsed, coast_distance(stop.toward)) + drift,
+           math.min(stop.away * elapsed, coast_distance(stop.away))
+           + math.min(drift, JUMP.drift_away_m)
   end
-  return JUMP.speed * elapsed
+  return JUMP.speed * elapsed, get("SPD_MAX") * elapsed + drift
+end
+
+-- Whether the distance went from d0 to d1 in `elapsed` s faster than the vehicle can move.
+local function beyond_movement(d0, d1, elapsed)
+  local fall, rise = move_limits(elapsed)
+  local slack = JUMP.slack_m + JUMP.slack_share * d0
+  return d1 - d0 > rise + slack or d0 - d1 > fall + slack
+end
+
+local function stop_thrust_speeds(measured)
+  stop.toward = math.max(v_cmd, measured, 0)
+  stop.away = math.max(-v_cmd, 0)
 end
 
 local function no_net_at(t)
@@ -349,12 +375,11 @@ local function on_plane(msg, now)
   if dt >= 1.0 or prev_plane.clock_ended then
     closing_speed = 0  -- after a gap the speed before it says nothing
   end
-  if math.abs(plane.d - prev_plane.d) > move_bound(elapsed) + JUMP.slack_m
-      + JUMP.slack_share * prev_plane.d then
+  if beyond_movement(prev_plane.d, plane.d, elapsed) then
     -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
     -- next frames agree with this one.
-    if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival} end
-    if engaged and not paused then stop_speed = closing_speed end  -- thrust stops now
+    if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival, began = now} end
+    if engaged and not paused then stop_thrust_speeds(closing_speed) end  -- thrust stops now
     doubt, doubt_why, closing_speed = JUMP.confirm, "net distance jumped", 0
   else
     if doubt > 0 then
@@ -365,8 +390,7 @@ local function on_plane(msg, now)
         -- cannot be told here, so the pilot takes over.
         -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle only
         -- coasted, however long the wait for the frames to agree.
-        if math.abs(plane.d - jump.d) > move_bound(since(jump.arrival, now)) + JUMP.slack_m
-            + JUMP.slack_share * jump.d then
+        if beyond_movement(jump.d, plane.d, since(jump.arrival, now)) then
           level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
         end
         jump = nil
@@ -663,6 +687,10 @@ local function update()
     disengage(bad, true)
   elseif changed ~= nil then
     disengage(changed, true)
+  elseif doubt > 0 and jump ~= nil and since(jump.began, now) > JUMP.longest_s then
+    -- Readings that keep changing their mind (a harmonic that comes and goes): each change
+    -- starts the doubt again, and the hold would wait with thrust stopped for ever.
+    disengage(string.format("net distance not steady (%.1f s)", since(jump.began, now)), true)
   elseif since(last_pilot, now) > PILOT_TIMEOUT_S then
     -- The pilot could not take over by stick (link lost, joystick gone, a failsafe that only
     -- warns): hand back rather than drive on unattended.
@@ -678,7 +706,7 @@ local function update()
     if not paused then
       -- What the vehicle coasts on from here (the last measured speed: a jump has cleared
       -- closing_speed already).
-      if doubt == 0 then stop_speed = last_speed end
+      if doubt == 0 then stop_thrust_speeds(last_speed) end
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
       -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
       said_pause = since(last_pause_text, now) > 3.0
