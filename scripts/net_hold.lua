@@ -178,7 +178,7 @@ local last_speed = 0     -- the last measured closing speed, kept when a jump cl
 -- When thrust last stopped: the speed toward the net and away from it the vehicle may have
 -- had (toward: the larger of the commanded and the measured; away: the commanded only, the
 -- measured is noisy), what it coasts on.
-local stop = {toward = 0, away = 0}
+local stop = {toward = 0, away = 0, cmd = 0, at = 0}
 local v_cmd = 0          -- speed command toward the net, m/s
 local integral = 0
 local yaw_integral = 0
@@ -314,7 +314,8 @@ local function beyond_movement(d0, d1, elapsed)
   return d1 - d0 > rise + slack or d0 - d1 > fall + slack
 end
 
-local function stop_thrust_speeds(measured)
+local function stop_thrust_speeds(measured, now)
+  stop.cmd, stop.at = v_cmd, now
   stop.toward = math.max(v_cmd, measured, 0)
   stop.away = math.max(-v_cmd, 0)
 end
@@ -379,7 +380,7 @@ local function on_plane(msg, now)
     -- Faster than the vehicle moves (after a gap too: thrust had stopped): doubtful until the
     -- next frames agree with this one.
     if jump == nil then jump = {d = prev_plane.d, arrival = prev_plane.arrival, began = now} end
-    if engaged and not paused then stop_thrust_speeds(closing_speed) end  -- thrust stops now
+    if engaged and not paused then stop_thrust_speeds(closing_speed, now) end  -- thrust stops
     doubt, doubt_why, closing_speed = JUMP.confirm, "net distance jumped", 0
   else
     if doubt > 0 then
@@ -706,7 +707,7 @@ local function update()
     if not paused then
       -- What the vehicle coasts on from here (the last measured speed: a jump has cleared
       -- closing_speed already).
-      if doubt == 0 then stop_thrust_speeds(last_speed) end
+      if doubt == 0 then stop_thrust_speeds(last_speed, now) end
       paused, v_cmd, yaw_rate_cmd = true, 0, 0
       -- At most one message per 3 s: a fish passing must not flood the pilot's screen.
       said_pause = since(last_pause_text, now) > 3.0
@@ -726,6 +727,17 @@ local function update()
     disengage(string.format("net too far (%.2f m)", plane.d), true)
   else
     if paused then
+      -- Closing in when thrust stopped, and long enough that the vehicle may have coasted
+      -- 5 cm since: where it is now cannot be checked against where it was (a reading 1.3
+      -- times too far looks like less coasting), so the pilot takes over rather than the hold
+      -- resuming on it. Holding still, or after a short pause, it resumes.
+      local unknown = math.min(math.max(stop.cmd, 0) * since(stop.at, now),
+                               coast_distance(math.max(stop.cmd, 0)))
+      if unknown > 0.05 then
+        disengage(string.format("net lost while closing in (%.1f s)", since(stop.at, now)),
+                  true)
+        return
+      end
       paused = false
       last_update = now
       if said_pause then say(SEV_INFO, "net back, holding again") end

@@ -113,7 +113,7 @@ def test_no_net_stops_thrust_within_half_a_second_then_disengages(how: str) -> N
 def test_a_short_dropout_pauses_then_resumes() -> None:
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
     applet = engaged_applet(vehicle)
-    run_closed_loop(applet, vehicle, 3.0)
+    run_closed_loop(applet, vehicle, 20.0)  # holding at the set point
     gap = (applet.now, applet.now + 0.9)  # a fish in front of the camera
     trace = run_closed_loop(applet, vehicle, 3.0, sees_net=lambda t: not gap[0] <= t < gap[1])
     assert any(fwd == 1500 for t, _, _, fwd, _ in trace if gap[0] + 0.5 <= t < gap[1])
@@ -121,6 +121,21 @@ def test_a_short_dropout_pauses_then_resumes() -> None:
     assert "thrust stopped" in last_two[0] and last_two[1] == "NetHold: net back, holding again"
     assert applet.engaged  # holding again: steering, not neutral
     assert any(fwd != 1500 for t, _, _, fwd, _ in trace if t > gap[1] + 0.5)
+
+
+def test_a_dropout_while_closing_in_hands_back() -> None:
+    """The same dropout while the vehicle closes in at 0.3 m/s: it coasts on meanwhile, by how
+    much the applet cannot check (a reading 1.3 times too far afterwards looks like less
+    coasting, and the hold drove to 0.31 m at a 0.5 m set point). The pilot takes over; thrust
+    stays stopped."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 3.0)
+    gap = (applet.now, applet.now + 0.9)
+    trace = run_closed_loop(applet, vehicle, 3.0, sees_net=lambda t: not gap[0] <= t < gap[1])
+    assert not applet.engaged
+    assert any("OFF, net lost while closing in" in s for _, s in applet.texts())
+    assert all(fwd <= 1500 for t, _, _, fwd, _ in trace if t >= gap[0] + 0.5)
 
 
 def test_pilot_stick_on_forward_or_yaw_hands_back_at_once_lateral_does_not() -> None:
