@@ -325,16 +325,22 @@ def test_a_plane_stamped_in_the_future_is_not_believed(after: str) -> None:
     assert vehicle.min_distance_seen > 0.9
 
 
-def test_the_autopilot_clock_wrapping_while_holding_is_not_a_frozen_plane() -> None:
-    """millis() wraps after 49.7 days: the planes' stamps (the same clock) wrap with it. The
-    hold goes on across the wrap, and a netpose that falls silent after it still stops thrust
-    within NETH_TIMEOUT."""
+def _engaged_before_the_clock_wraps(hold_s: float) -> tuple[Applet, NetVehicle]:
+    """Engaged by the button 1 s into a run whose millis() wraps 12 s in, then held `hold_s`."""
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
     applet = Applet()
     applet.stub.clock_offset_ms = 4294967296 - 12000  # wraps 12 s into the run
     run_closed_loop(applet, vehicle, 1.0, t0=0.0)
     applet.press(1)
-    run_closed_loop(applet, vehicle, 19.0)
+    run_closed_loop(applet, vehicle, hold_s)
+    return applet, vehicle
+
+
+def test_the_autopilot_clock_wrapping_while_holding_is_not_a_frozen_plane() -> None:
+    """millis() wraps after 49.7 days: the planes' stamps (the same clock) wrap with it. The
+    hold goes on across the wrap, and a netpose that falls silent after it still stops thrust
+    within NETH_TIMEOUT."""
+    applet, vehicle = _engaged_before_the_clock_wraps(19.0)
     assert applet.engaged and abs(vehicle.distance_m - 1.0) < 0.1  # across the wrap
     at = applet.now
     trace = run_closed_loop(applet, vehicle, 4.0, netpose_alive=lambda t: t < at)
@@ -689,12 +695,7 @@ def test_no_pilot_input_across_the_clock_wrap_still_hands_back() -> None:
     """millis() wraps after 49.7 days; the time since the pilot's last input was a plain
     difference, negative after the wrap: a joystick lost 0.5 s before it left the hold on for
     20 s, driving, with nobody able to take over by stick."""
-    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
-    applet = Applet()
-    applet.stub.clock_offset_ms = 4294967296 - 12000  # wraps 12 s into the run
-    run_closed_loop(applet, vehicle, 1.0, t0=0.0)
-    applet.press(1)
-    run_closed_loop(applet, vehicle, 10.5)
+    applet, vehicle = _engaged_before_the_clock_wraps(10.5)
     assert applet.engaged
     lost = applet.now
     run_closed_loop(applet, vehicle, 3.0, pilot_period_s=1e9)
