@@ -144,12 +144,18 @@ class Pipeline:
                 self._next_hole_id, old.tracker if keep_holes and old is not None else None)
         self._inspector = inspector
 
-    def replace_estimator(self, estimator: NetEstimator) -> None:
-        """A new estimator (mesh or tuning changed); the old prior does not carry over."""
+    def replace_estimator(self, estimator: NetEstimator, *, new_scale: bool) -> None:
+        """A new estimator (mesh or tuning changed); the old prior does not carry over. With
+        `new_scale` (the mesh changed) neither does the filter's track: a distance scales with
+        the mesh, and a track on the old scale went on predicting the old distance (sent to
+        the autopilot) until the new measurements, outside its gate, restarted it."""
         self._estimator = estimator
         self._prior = None
         self._prior_t = math.nan
         self._search_deferred = False
+        if new_scale:
+            self._tracker.reset()
+            self._too_close_frames = 0
 
     def set_autopilot_distance(self, which: AutopilotDistance) -> None:
         self._autopilot_distance = which

@@ -313,6 +313,32 @@ def test_reload_applies_filter_and_rejects_a_broken_file(
     assert sum(m.startswith("RELOADING=1") for m in h.notifier.messages) == 3
 
 
+@pytest.mark.parametrize("scale", [1.1, 2.0])
+def test_a_mesh_change_sends_no_distance_on_the_old_scale(
+    tmp_path: Path, frames: list[Frame], scale: float
+) -> None:
+    """A reload that changed `mesh.bar_length_m` (by SIGHUP or the web page) rebuilt the
+    estimator but kept the filter's track, which is on the old scale: its predictions went on
+    to the autopilot (3-4 readings of the old distance, then a gap of 1.1 s while the new
+    measurements fell outside the gate), and a 10 % change let one blended value through. A
+    distance scales with the mesh, so the old track says nothing about the new scale."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(15)
+    before = [r.distance_m for r in h.link.ranges if r.status is RangeStatus.GOOD]
+    assert before and all(d == pytest.approx(RANGE_M, rel=0.02) for d in before)
+    sent = len(h.link.ranges)
+    path.write_text(base.replace("bar_length_m = 0.025", f"bar_length_m = {0.025 * scale:g}"))
+    assert h.daemon.reload()
+    h.run_script()
+    after = [r.distance_m for r in h.link.ranges[sent:] if r.status is RangeStatus.GOOD]
+    assert after, "the new scale's track is confirmed within 15 frames"
+    assert all(d == pytest.approx(RANGE_M * scale, rel=0.02) for d in after), after
+
+
 def test_a_reload_says_what_it_cannot_apply_live(
     tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
 ) -> None:

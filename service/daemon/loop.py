@@ -333,7 +333,11 @@ class Daemon:
             new = self._load_config()
             changed = self.config.changed_sections(new)
             if "mesh" in changed or "estimator" in changed:
-                self.pipeline.replace_estimator(make_estimator(new, self.parts.camera))
+                self.pipeline.replace_estimator(make_estimator(new, self.parts.camera),
+                                                new_scale="mesh" in changed)
+                if "mesh" in changed:
+                    log.info("mesh changed: the net is tracked anew, no distance until the new "
+                             "scale is confirmed")
                 self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
             if "mesh" in changed or "damage" in changed:
                 self.pipeline.replace_inspector(make_inspector(new, self.parts.camera),
