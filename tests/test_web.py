@@ -628,6 +628,24 @@ def test_a_changed_endpoint_needs_a_restart_which_the_page_does(daemon: WebDaemo
     assert "restarting with the saved configuration" in daemon.log()
 
 
+def test_a_change_needing_a_restart_that_is_undone_needs_none(daemon: WebDaemon) -> None:
+    """The endpoint changed and changed back: the running link is the file's again, yet the
+    page went on saying "restart needed" for it, after every later save too."""
+    old_url = daemon.request("GET", "/api/settings")[1]["values"]["mavlink.url"]
+    other_url = f"udpout:127.0.0.1:{daemon.port + 2}"
+    assert other_url != old_url
+    status, reply = daemon.request("POST", "/api/settings",
+                                   {"changes": {"mavlink.url": other_url}}, token=True)
+    assert status == 200 and reply["restart_needed"] == ["mavlink"], reply
+    status, reply = daemon.request("POST", "/api/settings",
+                                   {"changes": {"mavlink.url": old_url}}, token=True)
+    assert status == 200 and reply["restart_needed"] == [], reply
+    assert daemon.request("GET", "/api/settings")[1]["restart_pending"] == []
+    status, reply = daemon.request("POST", "/api/settings",
+                                   {"changes": {"mesh.bar_length_m": 0.026}}, token=True)
+    assert status == 200 and reply["restart_needed"] == [], reply
+
+
 def test_a_stop_during_a_restart_ends_the_service(tmp_path: Path) -> None:
     """`systemctl stop` while the page's restart is closing the old parts: the process ends
     (a stop is final), it does not come back with new parts and go on sending distances."""
@@ -771,6 +789,25 @@ def test_a_first_start_without_mesh_size_or_calibration_is_set_up_on_the_page(
                 texts, _ = d.collect(2.0)
             except OSError:
                 texts = []
+    finally:
+        assert d.stop() == 0, d.log()
+
+
+def test_a_reload_in_set_up_mode_names_what_is_still_wrong_in_the_log(tmp_path: Path) -> None:
+    """An operator who fixes the file over SSH and runs `systemctl reload` in set-up mode must
+    read in the journal what is still wrong, as after any other reload: the rejected key was
+    only on the page and in the unit's status line."""
+    d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml"}}).start()
+    try:
+        assert d.proc is not None and "set-up mode" in d.log()
+        d.config.write_text(d.config.read_text() + "\n[estimator]\nbogus_key = 1\n")
+        d.proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 20.0
+        while "bogus_key" not in d.log():
+            assert time.monotonic() < deadline, d.log()
+            time.sleep(0.2)
+        line = next(line for line in d.log().splitlines() if "bogus_key" in line)
+        assert "set-up mode" in line and "reload" in line, line
     finally:
         assert d.stop() == 0, d.log()
 

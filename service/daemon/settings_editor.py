@@ -118,7 +118,9 @@ class SettingsEditor:
             self._reloads += 1
             self._last_outcome = outcome
             if outcome.ok:
-                self.restart_pending |= set(outcome.restart_needed)
+                # What differs from the running parts now (the daemon compares the file with
+                # them): a change undone needs no restart any more.
+                self.restart_pending = set(outcome.restart_needed)
             self._outcomes.notify_all()
 
     def restarted(self) -> None:

@@ -85,7 +85,10 @@ def run_setup(
                     config = validate()
                 except NetposeError as exc:
                     # Saved (the page checked it as far as set-up allows), still not complete:
-                    # the page says what is left, and set-up goes on.
+                    # the page says what is left, and set-up goes on. The journal says it too,
+                    # for whoever edited the file by hand and reloaded.
+                    log.warning("set-up mode: configuration reloaded, still not complete: %s",
+                                exc)
                     on_reload(ReloadOutcome(ok=True, pending=str(exc)))
                     notifier.status(f"set-up mode: {exc}")
                     continue
