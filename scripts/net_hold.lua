@@ -73,7 +73,7 @@ local PARAMS = {
   {"TIMEOUT", 0.4, 0.1, 1.0},     -- a plane older than this (from its capture) stops thrust, s
   {"GRACE", 3.0, 0.5, 10},        -- no fresh plane for this long disengages, s
   {"KP", 0.5, 0, 5},              -- speed command per metre of distance error, 1/s
-  {"KI", 0.0, 0, 2},              -- integral of the distance error within I_BAND, 1/s^2
+  {"KI", 0.1, 0, 2},              -- integral of the distance error (a current), 1/s^2
   {"I_BAND", 0.2, 0, 2},          -- the integral runs only within this of the set point, m
   {"SPD_MAX", 0.3, 0, 1},         -- speed limit toward and away from the net, m/s
   {"ACC_MAX", 0.3, 0.01, 2},      -- limit on speeding up toward the net, m/s^2
@@ -588,14 +588,22 @@ local function control(now)
   local d = plane.d - closing_speed * clamp(now - plane.t, 0, get("TIMEOUT"))
   local err = d - set_point()  -- positive: too far, move toward the net
   -- Speed toward the net: P + I, limited in speed, and in acceleration toward the net.
-  -- The integral only trims a steady offset near the set point (no wind-up on the approach).
-  if math.abs(err) < get("I_BAND") and d > get("DIST_MIN") then
-    integral = clamp(integral + err * dt, -2.0, 2.0)
-  elseif d <= get("DIST_MIN") then
-    integral = math.min(integral, 0)
-  end
+  -- The integral trims a steady offset: the thrust a current needs. It winds toward the net
+  -- only within I_BAND of the set point (never on the approach); away from the net (too close)
+  -- at any distance, inside the minimum too, where a current pushed a P-only hold and stayed;
+  -- and it unwinds an away trim at any distance, never past zero.
   local spd = get("SPD_MAX")
-  local want = clamp(get("KP") * err + get("KI") * integral, -spd, spd)
+  local grown = integral + err * dt
+  if err < 0 or (math.abs(err) < get("I_BAND") and d > get("DIST_MIN")) then
+    integral = grown
+  elseif integral < 0 then
+    integral = math.min(grown, 0)
+  end
+  if d <= get("DIST_MIN") then integral = math.min(integral, 0) end
+  local ki = get("KI")
+  local i_max = ki > 0 and spd / ki or 0  -- the trim at most NETH_SPD_MAX
+  integral = clamp(integral, -i_max, i_max)
+  local want = clamp(get("KP") * err + ki * integral, -spd, spd)
   local stop_dist = d - get("DIST_MIN") - math.max(closing_speed, 0) * get("TIMEOUT")
   if stop_dist <= 0 then
     want = math.min(want, 0)  -- hard minimum: nothing toward the net

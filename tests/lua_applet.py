@@ -219,7 +219,8 @@ class NetVehicle:
     Forward: steady speed (pwm - 1500) * 0.00515 m/s per us (1550/1600/1700 us gave
     0.26/0.52/1.03 m/s), drag mostly quadratic (coasting from 0.48 m/s: 0.21 m/s after 0.6 s,
     0.09 after 2 s, 0.045 after 4.6 s: dv/dt = -0.22 v - 2.18 v|v|), thrust scaled to match the
-    steady speeds, none within the ESCs' 25 us dead band (SIM_Submarine.cpp). Yaw: rate
+    steady speeds, none within the ESCs' 25 us dead band (SIM_Submarine.cpp); drag on the speed
+    through the water, so a current toward the net needs steady thrust away. Yaw: rate
     (pwm - 1500 - dead zone) * ~0.33 deg/s per us past a ~20 us dead zone, reached with a lag of
     ~0.4 s; heading held otherwise.
     """
@@ -236,6 +237,7 @@ class NetVehicle:
     yaw_tau_s: float = 0.4
     yaw_rate_dps: float = 0.0
     cam_tilt_deg: float = 0.0  # camera looking down by this much
+    current_mps: float = 0.0  # the water's speed toward the net (SITL: SIM_WIND_*, SIM_WIND_T 1)
     min_distance_seen: float = field(default=math.inf)
 
     def _drag(self, v: float) -> float:
@@ -246,7 +248,8 @@ class NetVehicle:
         if abs(offset) <= self.esc_dead_band_us:  # SIM_Submarine.cpp: no thrust within 25 us
             offset = 0
         thrust = self._drag(offset * self.fwd_mps_per_us)
-        self.speed_mps += (thrust - self._drag(self.speed_mps)) * dt
+        # Drag acts on the speed through the water: a current carries a vehicle without thrust.
+        self.speed_mps += (thrust - self._drag(self.speed_mps - self.current_mps)) * dt
         self.distance_m -= self.speed_mps * dt
         offset = (yaw_pwm or 1500) - 1500
         target = 0.0

@@ -32,6 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 MESH = MeshGeometry(0.025, 90.0)
 MOUNT = CameraMount(forward_m=0.2)
 SET_POINT, START, TURN_DEG, DIST_MIN = 1.0, 2.0, 20.0, 0.4
+CURRENT_MPS = 0.2  # toward the net: a modest tidal current at a fish farm
 SITL_TIMEOUT_S = 0.45
 MSG_RC_CHANNELS, MSG_SIM_STATE = 65, 108
 PARAMS = {
@@ -170,6 +171,30 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             results["sweep_speed_mps"] = moved / (along[-1][0] - along[0][0])
             still_on = not any("OFF" in text for t, text in pilot.record.texts if t >= sweep_at)
 
+            # -- B2: a steady current toward the net ------------------------------------------
+            # SITL's wind acts on the submarine's drag as a water current once it is the same
+            # at every height (SIM_WIND_T 1; the default profile is zero below the surface).
+            # Coming from behind the vehicle, it pushes it toward the net: a hold by P alone
+            # settled 13 cm nearer at 0.2 m/s; the integral learns the thrust it needs.
+            pilot.param("SIM_WIND_T", 1)
+            pilot.param("SIM_WIND_DIR", (math.degrees(net.facing) + 180.0) % 360.0)
+            current_at = time.monotonic()
+            pilot.param("SIM_WIND_SPD", CURRENT_MPS)
+            time.sleep(45.0)
+            slack_at = time.monotonic()
+            pilot.param("SIM_WIND_SPD", 0.0)
+            time.sleep(15.0)
+            flow = truth.series(pilot, current_at, slack_at)
+            trimmed = [v.distance_m for t, v in flow if t >= current_at + 25.0]
+            results["current_mean_m"] = sum(trimmed) / len(trimmed)
+            results["current_max_error_m"] = max(abs(d - SET_POINT) for d in trimmed)
+            results["current_min_m"] = min(v.distance_m for _, v in flow)
+            slack = truth.series(pilot, slack_at, time.monotonic())
+            results["slack_max_error_m"] = max(abs(v.distance_m - SET_POINT) for _, v in slack)
+            results["slack_min_m"] = min(v.distance_m for _, v in slack)
+            still_on = still_on and not any("OFF" in text for t, text in pilot.record.texts
+                                            if t >= current_at)
+
             # -- C: pilot forward stick hands control back at once ---------------------------
             stick_at = pilot.set_sticks(x=300)
             off_at, _ = pilot.wait_text("OFF, pilot input", stick_at, 2)
@@ -258,7 +283,8 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
         context = (f"results {results}\nSITL: {sitl.log_tail(800)}\nnetpose: "
                    f"{daemon_log.read_text()[-2000:]}")
         plot = write_plot(pilot, truth, engage_at, tmp_path / "net-hold.png",
-                          {"sweep": sweep_at, "pilot": stick_at, "blocked": blocked_at})
+                          {"sweep": sweep_at, "current": current_at, "slack": slack_at,
+                           "pilot": stick_at, "blocked": blocked_at})
         target = os.environ.get("NETPOSE_NET_HOLD_PLOT")
         if target:
             Path(target).write_bytes(plot.read_bytes())
@@ -272,6 +298,15 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
     assert results["max_closing_mps"] <= 0.3 * 1.25, context  # NETH_SPD_MAX, with lag
     assert still_on and results["sweep_max_error_m"] <= 0.10, context
     assert results["sweep_speed_mps"] >= 0.15, context  # the sweep really happened
+    # In the current: the offset trimmed out (a 0.03 m mean allows the dead band's play).
+    # Before the trim is learned the current's onset (over SIM_WIND_TC, 5 s) carries the
+    # vehicle in by what the speed feedback lets through (9 cm measured), and when it stops the
+    # trim carries it away (12 cm) while it unwinds: bounded, and the second away from the net.
+    assert abs(results["current_mean_m"] - SET_POINT) <= 0.03, context
+    assert results["current_max_error_m"] <= 0.06, context
+    assert results["current_min_m"] >= SET_POINT - 0.15, context
+    assert results["slack_max_error_m"] <= 0.2, context
+    assert results["slack_min_m"] >= SET_POINT - 0.05, context
     assert results["pilot_handback_s"] < 0.3, context
     # After hand-back the forward channel is the pilot's alone: one steady value, forward.
     assert pilot_pwm and len(set(pilot_pwm)) == 1 and pilot_pwm[0] > 1500, (pilot_pwm, context)
@@ -328,8 +363,8 @@ def write_plot(pilot: Pilot, truth: Truth, t0: float, path: Path,
     ax.set_ylabel("camera to net (m)")
     ax.set_ylim(0.0, 2.4)
     ax.legend(loc="lower left", fontsize=8)
-    ax.set_title("Net hold in ArduSub SITL: engage at 2 m / 20 deg, sweep, pilot, camera blocked",
-                 fontsize=9)
+    ax.set_title("Net hold in ArduSub SITL: engage at 2 m / 20 deg, sweep, 0.2 m/s current, "
+                 "pilot, camera blocked", fontsize=9)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
