@@ -231,6 +231,24 @@ def test_a_broken_filestorage_file_is_a_calibration_error(tmp_path: Path, text: 
     assert str(path) in str(err.value)
 
 
+def test_an_opencv_fisheye_calibration_is_refused_not_read_as_plumb_bob(tmp_path: Path) -> None:
+    """OpenCV's calibration sample writes a fisheye lens as `fisheye_model: 1` with four
+    coefficients, k1-k4 of the equidistant model. They were read as plumb-bob k1 k2 p1 p2: rays
+    3.9 deg off at x = 1000 px, 19 deg in the corner, and `run --check` said OK."""
+    path = tmp_path / "fisheye.yml"
+    path.write_text(
+        "%YAML 1.2\n---\nimage_width: 1280\nimage_height: 720\nfisheye_model: 1\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        "   data: [ 560., 0., 640., 0., 560., 360., 0., 0., 1. ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 4\n   cols: 1\n   dt: d\n"
+        "   data: [ 0.05, -0.01, 0.003, -0.001 ]\n", encoding="utf-8")
+    with pytest.raises(CalibrationError, match="fisheye") as err:
+        load_camera(path)
+    assert str(path) in str(err.value)
+    path.write_text(path.read_text().replace("fisheye_model: 1", "fisheye_model: 0"))
+    assert load_camera(path).distortion[:4] == (0.05, -0.01, 0.003, -0.001)
+
+
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="not found") as err:
         load_camera(tmp_path / "nope.yaml")

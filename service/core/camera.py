@@ -292,8 +292,16 @@ def _load_opencv_storage(path: Path) -> CameraModel:
             w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
             missing = w_node.empty() or h_node.empty()
             size = (w_node.real(), h_node.real()) if not missing else (0.0, 0.0)
+            fisheye = fs.getNode("fisheye_model")
+            is_fisheye = not fisheye.empty() and fisheye.real() != 0.0
         except (cv2.error, SystemError):
             raise unreadable from None
+        if is_fisheye:
+            # OpenCV's calibration sample marks the equidistant model so: its four
+            # coefficients are k1-k4 of another lens model, not plumb-bob's k1 k2 p1 p2.
+            raise CalibrationError(
+                f"{path}: fisheye_model is set: fisheye (equidistant) calibrations are not "
+                "supported; calibrate with `netpose calibrate` (plumb_bob or rational_polynomial)")
         if k is None:
             raise CalibrationError(f"{path}: missing key 'camera_matrix'")
         if missing:
