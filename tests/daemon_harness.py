@@ -21,6 +21,7 @@ from drivers.sources import Frame, SourceState, SourceStats, create_source
 from drivers.sources.synthetic import builtin_camera
 from drivers.telemetry import RecordingPublisher
 from service.config import Config
+from service.core.camera import CameraModel
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.wiring import load_daemon_config
 
@@ -178,14 +179,16 @@ class RecordingObserver:
 
 def make_harness(config: Config, script: Iterable[Step], *, start: float = 100.0,
                  load_config: Callable[[], Config] | None = None,
-                 observers: tuple[Any, ...] = (), source_ends: bool = False) -> Harness:
+                 observers: tuple[Any, ...] = (), source_ends: bool = False,
+                 camera: CameraModel | None = None) -> Harness:
     clock = FakeClock(start)
     source = ScriptedSource(script, clock, ends=source_ends)
     link = RecordingAutopilotLink()
     telemetry = RecordingPublisher()
     notifier = RecordingNotifier(watchdog_interval_s=1.0)
     parts = DaemonParts(source=source, link=link, telemetry=telemetry, notifier=notifier,
-                        camera=builtin_camera(640, 360), vehicle="test", observers=observers)
+                        camera=camera or builtin_camera(640, 360), vehicle="test",
+                        observers=observers)
     daemon = Daemon(config, parts, clock=clock, wall_clock=clock.wall, load_config=load_config)
     daemon.start()
     return Harness(daemon, clock, source, link, telemetry, notifier)

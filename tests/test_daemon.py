@@ -339,6 +339,24 @@ def test_a_mesh_change_sends_no_distance_on_the_old_scale(
     assert all(d == pytest.approx(RANGE_M * scale, rel=0.02) for d in after), after
 
 
+def test_a_calibration_scaled_to_the_frames_says_so_once(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A 1280x720 calibration with a camera streaming 640x360 is scaled to it, which is right
+    only if that mode is the whole sensor resized: a cropped or binned mode has another field
+    of view, and every distance would be off by the crop's ratio. That went unsaid."""
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    h = make_harness(demo_config(), steps(frames[:5]), camera=builtin_camera(1280, 720))
+    h.run_script()
+    scaled = [r for r in caplog.records if "scaled" in r.getMessage()]
+    assert len(scaled) == 1 and scaled[0].levelno == logging.WARNING, caplog.text
+    assert "1280x720" in scaled[0].getMessage() and "640x360" in scaled[0].getMessage()
+    caplog.clear()
+    same = make_harness(demo_config(), steps(frames[:5]))
+    same.run_script()
+    assert not [r for r in caplog.records if "scaled" in r.getMessage()]
+
+
 def test_a_reload_says_what_it_cannot_apply_live(
     tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -70,10 +70,13 @@ class TrackLog:
 class SourceWatch:
     """Frame source up / down, judged by the time since the last frame."""
 
-    def __init__(self, url_for_logs: str, stale_after_s: float, started_at: float) -> None:
+    def __init__(self, url_for_logs: str, stale_after_s: float, started_at: float,
+                 calibrated_size: tuple[int, int] | None = None) -> None:
         self._url = url_for_logs
         self.stale_after_s = stale_after_s
         self._started_at = started_at
+        self._calibrated_size = calibrated_size
+        self._sizes_seen: set[tuple[int, int]] = set()
         self.up: bool | None = None  # None: no frame yet
         self.last_frame_at: float | None = None
         # Capture time of the first frame since the source (last) came up; None while down.
@@ -83,8 +86,24 @@ class SourceWatch:
         if not self.up:
             log.info("frame source up: %dx%d from %s", width, height, self._url)
             self.up_since = captured_at
+            self._check_size(width, height)
         self.up = True
         self.last_frame_at = now
+
+    def _check_size(self, width: int, height: int) -> None:
+        """Once per frame size: a calibration scaled to another resolution is right only if
+        that mode shows the whole sensor; a crop or a binned window has another field of view,
+        and every distance would be off by its ratio."""
+        size = (width, height)
+        if self._calibrated_size is None or size == self._calibrated_size \
+                or size in self._sizes_seen:
+            return
+        self._sizes_seen.add(size)
+        cw, ch = self._calibrated_size
+        log.warning("frames are %dx%d, the calibration is for %dx%d: scaled to them, which is "
+                    "right only if this camera mode shows the whole sensor (not a crop or a "
+                    "binned window); calibrate at %dx%d to be sure", width, height, cw, ch,
+                    width, height)
 
     def idle(self, now: float) -> None:
         last = self.last_frame_at if self.last_frame_at is not None else self._started_at

@@ -140,7 +140,8 @@ class Daemon:
         self._url = redact_text(config.camera.url)
         self.track_log = TrackLog(states, config.filter.coast_timeout_s,
                                   config.filter.max_consecutive_rejects)
-        self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now)
+        self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now,
+                                        (parts.camera.width, parts.camera.height))
         self.outputs = FrameOutputs(
             parts.link, parts.telemetry, parts.vehicle, parts.preview, wall_clock, self.problems,
             parts.observers, DamageOutputs(parts.link, parts.telemetry, parts.vehicle,
