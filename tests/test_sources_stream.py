@@ -280,6 +280,33 @@ def test_stalled_stream_goes_down_and_recovers_when_restarted(
     assert any("frames flowing again" in r.getMessage() for r in caplog.records)
 
 
+def test_frames_drained_from_the_decoder_after_a_stall_are_not_passed_off_as_new(
+    streamers: list[Streamer], four_decoder_threads: None
+) -> None:
+    """When the stream stops, FFmpeg's read gives up after the stall time and OpenCV drains
+    the decoder: the frames it held come out one per read, with nothing new going in. Stamped
+    by the rule for a running stream (frame n went in when frame n - H came out), all but the
+    first were stamped as captured a stall time after they were: a net plane from before the
+    outage reached the autopilot as fresh for about a second. No frame from before the stall
+    may come out stamped later than it was sent."""
+    exe, port = ffmpeg_exe(), free_udp_port()
+    first = Streamer(exe, mpegts_output(port))
+    streamers.append(first)
+    with open_source(f"udp://127.0.0.1:{port}", OPTIONS) as source:
+        assert len(read_numbers(source, 20, timeout_s=15.0)) == 20
+        first.stop()
+        frames = []
+        deadline = time.monotonic() + OPTIONS.stall_timeout_s + 3.0
+        while time.monotonic() < deadline:
+            frame = source.read(0.2)
+            if frame is not None:
+                frames.append((read_pattern_number(frame.image), frame.t_monotonic))
+    period = 1.0 / FPS
+    late = {n: t - first.sent_at[n] for n, t in frames if n in first.sent_at}
+    # MPEG-TS frames stay a period late (the demuxer's hold, docs/sources.md): ~2 periods.
+    assert all(offset < 3 * period for offset in late.values()), sorted(late.items())[-8:]
+
+
 def test_rtp_stream_described_by_sdp(streamers: list[Streamer], tmp_path: Path) -> None:
     # BlueOS sends RTP/H.264 to UDP 5600; FFmpeg needs the SDP that describes the payload.
     exe, port = ffmpeg_exe(), free_udp_port()

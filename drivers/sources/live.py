@@ -69,8 +69,10 @@ class LiveSource(FrameSource):
     def _connect(self) -> VideoCaptureLike:
         """Open the capture once; raise SourceError (with a reason) if that fails."""
 
-    def _capture_time(self, cap: VideoCaptureLike, received_mono: float) -> float:
-        """When the frame just read was captured (monotonic). Default: when read() returned."""
+    def _capture_time(self, cap: VideoCaptureLike, received_mono: float,
+                      read_s: float) -> float:
+        """When the frame just read was captured (monotonic), given how long read() took.
+        Default: when read() returned."""
         return received_mono
 
     # -- FrameSource ------------------------------------------------------------------------
@@ -256,13 +258,14 @@ class LiveSource(FrameSource):
                         self._stop.wait(backoff.next_delay(time.monotonic()))
                         continue
                     failed_reads = frames_since_open = 0
+                read_from = time.monotonic()
                 try:
                     ok, image = cap.read()
                 except Exception:  # cv2.error from a broken driver = a failed read
                     ok, image = False, None
                 now = time.monotonic()
                 if ok and image is not None:
-                    t_capture = self._capture_time(cap, now)
+                    t_capture = self._capture_time(cap, now, now - read_from)
                     if self._publish(image, t_capture, now):
                         # Failed reads followed by a good frame were frames the decoder refused.
                         self._count_corrupt(failed_reads)

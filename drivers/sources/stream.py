@@ -17,7 +17,10 @@ OpenCV 4.6 names no codec for MPEG-TS, whose frames stay late by it: docs/source
 frames, not periods: a decoder holding H frames lets frame n out when frame n + H comes in, so
 frame n came in when frame n - H came out, and that is its time. Counted in periods, a pause of
 the stream (a tether hiccup) shrank the measured rate, so the first frame after it was stamped
-seconds before it existed, and the frames held through it were stamped as new.
+seconds before it existed, and the frames held through it were stamped as new. When the stream
+stops, FFmpeg's read gives up after the stall time and OpenCV drains the decoder: its frames
+come out at once, with nothing going in, so frames that come out at once after a long read are
+stamped no later than that read began.
 
 `sdp:/path/to/stream.sdp` opens a raw RTP stream described by an SDP file (FFmpeg needs the
 payload description that RTP itself does not carry), e.g. BlueOS's UDP 5600 stream.
@@ -49,6 +52,13 @@ LOW_LATENCY_OPTIONS = "fflags;nobuffer|flags;low_delay"
 # had three or more frame threads (a Raspberry Pi 4 or 5 has four cores), and it did not shorten
 # their open (0.8-0.9 s either way, 5.8 s on OpenCV 4.6's longer probe).
 RTSP_OPTIONS = "fpsprobesize;0|rtsp_transport;tcp"
+# A read that waited this share of the stall time (FFmpeg's read timeout) or more: a pause of
+# the stream, or its end (then the read ends when the timeout interrupts it).
+_LONG_READ_SHARE = 0.5
+# A read that returned within this share of a frame period (or within 5 ms when the stream
+# states no rate) gave a frame already decoded.
+_INSTANT_READ_SHARE = 0.25
+_INSTANT_READ_S = 0.005
 
 
 def default_ffmpeg_options(url: str) -> str:
@@ -85,6 +95,8 @@ class StreamSource(LiveSource):
         # When the capture's last `frames_held` frames came out of read() (monotonic).
         self._came_out: deque[float] = deque(maxlen=1)
         self._last_stamp = float("-inf")
+        # Start of the last long read, while the frames after it come out at once.
+        self._waited_from: float | None = None
 
     @property
     def ffmpeg_options(self) -> str:
@@ -108,24 +120,46 @@ class StreamSource(LiveSource):
             read_timeout_s=opts.stall_timeout_s,
         )
         self._frames_held = decoder_frames_held(cap)
+        self._waited_from = None
         self._came_out = deque(maxlen=max(1, self._frames_held))
         return cap
 
-    def _capture_time(self, cap: VideoCaptureLike, received_mono: float) -> float:
+    def _capture_time(self, cap: VideoCaptureLike, received_mono: float,
+                      read_s: float) -> float:
         """When the frame went into the decoder: when the frame `frames_held` before it came
         out (module docstring). The first frames of an open have none: when they came out,
         less that many frame periods at the stream's own rate."""
+        # The frames that come out at once after a read that waited long were all in the
+        # decoder before that wait: when the stream stops, FFmpeg's read gives up after the
+        # stall time and OpenCV drains the decoder, one frame per read with nothing new going
+        # in, and the rule below stamped them as captured a stall time after they were (a net
+        # plane from before the outage reached the autopilot as fresh). The demuxer holds one
+        # frame more than `frames_held` counts (MPEG-TS), so the burst, not a count, decides.
+        period = self._frame_period(cap)
+        # (Not before the first frame of an open: what comes out at once after joining a
+        # stream is new.)
+        if read_s >= _LONG_READ_SHARE * self._options.stall_timeout_s and self._came_out:
+            self._waited_from = received_mono - read_s
+        elif read_s > (_INSTANT_READ_SHARE * period if period > 0.0 else _INSTANT_READ_S):
+            self._waited_from = None  # a frame that needed new input: the rule holds again
         held = self._frames_held
         if held <= 0:
-            return received_mono
+            return received_mono if self._waited_from is None else min(received_mono,
+                                                                        self._waited_from)
         came_out = self._came_out
         if len(came_out) == held:
             t = came_out[0]
         else:
-            fps = float(cap.get(cv2.CAP_PROP_FPS))
-            t = received_mono - held / fps if 0.5 <= fps <= 1000.0 else received_mono
+            t = received_mono - held * period if period > 0.0 else received_mono
         came_out.append(received_mono)
+        if self._waited_from is not None:
+            t = min(t, self._waited_from)
         # Never after the time it came out, never before the frame stamped last.
         t = min(max(t, self._last_stamp + 1e-6), received_mono)
         self._last_stamp = t
         return t
+
+    def _frame_period(self, cap: VideoCaptureLike) -> float:
+        """The stream's frame period from its stated rate (0 when it states none)."""
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        return 1.0 / fps if 0.5 <= fps <= 1000.0 else 0.0

@@ -173,7 +173,8 @@ class V4l2Source(LiveSource):
         self.granted = negotiate(cap, self.settings)
         return cap
 
-    def _capture_time(self, cap: VideoCaptureLike, received_mono: float) -> float:
+    def _capture_time(self, cap: VideoCaptureLike, received_mono: float,
+                      read_s: float) -> float:
         """The driver's buffer timestamp when it is usable, else when read() returned.
 
         OpenCV's V4L2 backend reports the kernel's buffer timestamp as CAP_PROP_POS_MSEC; UVC
