@@ -14,10 +14,11 @@ import numpy as np
 
 from service.commands._progress import ProgressBar
 from service.commands.undistort import side_by_side
-from service.core.camera import save_camera
-from service.core.errors import CalibrationError
+from service.core.camera import CameraModel, check_invertible, save_camera
+from service.core.errors import CalibrationError, NetposeError
 from service.tools.calibration import (
     MIN_VIEWS,
+    RECOMMENDED_VIEWS,
     BoardSpec,
     BoardView,
     calibrate,
@@ -28,6 +29,8 @@ from service.tools.calibration import (
 from service.tools.calibration_io import (
     CalibrationInputError,
     Frame,
+    GrayImage,
+    InputPlan,
     plan_inputs,
     read_image,
     sample_video,
@@ -88,39 +91,46 @@ def add_parser(subparsers: Any) -> None:
 
 
 @dataclass
+class _SizeGroup:
+    """The frames of one image size: a calibration is of one camera at one resolution."""
+
+    names: list[str] = field(default_factory=list)
+    views: list[BoardView] = field(default_factory=list)
+    preview: GrayImage | None = None  # one frame showing the board, for --preview
+
+
+@dataclass
 class _Collected:
-    views: list[Any] = field(default_factory=list)  # BoardView
-    image_size: tuple[int, int] | None = None
+    groups: dict[tuple[int, int], _SizeGroup] = field(default_factory=dict)
     frames_seen: int = 0
     no_board: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
-    wrong_size: list[str] = field(default_factory=list)
     video_skipped: int = 0
-    # A few frames kept for the board-size hint and the preview (not all: memory).
-    sample_frames: list[Any] = field(default_factory=list)
+    # Video frames in which the quick look on a small copy saw the board.
+    video_board_seen: int = 0
+    # A few frames without the board, for the board-size hint (not all: memory).
+    guess_frames: list[Frame] = field(default_factory=list)
 
 
-def _collect(args: argparse.Namespace, board: Any) -> _Collected:
-    plan = plan_inputs(args.inputs)
+def _collect(args: argparse.Namespace, plan: InputPlan, board: BoardSpec) -> _Collected:
     out = _Collected()
 
     def handle(frame: Frame) -> None:
         out.frames_seen += 1
         size = (int(frame.gray.shape[1]), int(frame.gray.shape[0]))
-        if out.image_size is None:
-            out.image_size = size
-        elif size != out.image_size:
-            out.wrong_size.append(f"{frame.name} ({size[0]}x{size[1]})")
-            return
+        # Every size is kept apart until all are read: the first image read need not be of the
+        # size most of them have.
+        group = out.groups.setdefault(size, _SizeGroup())
+        group.names.append(frame.name)
         corners = detect_board(frame.gray, board)
         if corners is None:
             out.no_board.append(frame.name)
-            if len(out.sample_frames) < SIZE_GUESS_FRAMES:
-                out.sample_frames.append(frame)
+            if len(out.guess_frames) < SIZE_GUESS_FRAMES:
+                out.guess_frames.append(frame)
             return
-        out.views.append(BoardView(name=frame.name, corners=corners))
-        if not any(f.name == "preview" for f in out.sample_frames):
-            out.sample_frames.append(Frame(name="preview", gray=frame.gray))
+        group.views.append(BoardView(name=frame.name, corners=corners))
+        if group.preview is None:
+            group.preview = frame.gray
 
     if plan.images:
         with ProgressBar("detecting board", enabled=args.progress) as bar:
@@ -134,70 +144,177 @@ def _collect(args: argparse.Namespace, board: Any) -> _Collected:
                 bar.update(done, len(plan.images))
     for video in plan.videos:
         with ProgressBar(f"scanning {video.name}", enabled=args.progress) as bar:
-            frames, _decoded, skipped = sample_video(video, args.max_frames, bar.update)
-        out.video_skipped += skipped
+            sample = sample_video(video, args.max_frames, board.pattern_size, bar.update)
+        out.video_skipped += sample.skipped
+        out.video_board_seen += sample.board_seen
         with ProgressBar("detecting board", enabled=args.progress) as bar:
-            for done, frame in enumerate(frames, start=1):
+            for done, frame in enumerate(sample.frames, start=1):
                 handle(frame)
-                bar.update(done, len(frames))
+                bar.update(done, len(sample.frames))
     return out
 
 
-def _no_board_error(collected: _Collected, board: Any) -> CalibrationError:
-    candidates = [f for f in collected.sample_frames if f.name != "preview"]
-    guesses = [g for g in (guess_board_size(f.gray) for f in candidates) if g is not None]
-    found = len(collected.views)
-    seen = (
-        f"{collected.frames_seen} frame(s)" if not found
-        else f"{collected.frames_seen} frame(s) but {found} (at least {MIN_VIEWS} are needed)"
+def _choose_size(collected: _Collected) -> tuple[int, int]:
+    """The image size with the most board views; refused when another size has as many."""
+    ranked = sorted(
+        collected.groups.items(), key=lambda item: (len(item[1].views), len(item[1].names)),
+        reverse=True,
     )
+    (size, group), rest = ranked[0], ranked[1:]
+    if group.views and any(len(g.views) == len(group.views) for _, g in rest):
+        counts = " and ".join(
+            f"{len(g.views)} at {w}x{h}" for (w, h), g in ranked if g.views
+        )
+        raise CalibrationError(
+            f"the inputs are of mixed sizes with as many boards in each ({counts}): a "
+            "calibration is of one camera at one resolution; give the images of one size only"
+        )
+    return size
+
+
+def _other_sizes(collected: _Collected, size: tuple[int, int]) -> list[str]:
+    return [
+        f"{name} ({w}x{h})"
+        for (w, h), group in collected.groups.items() if (w, h) != size
+        for name in group.names
+    ]
+
+
+def _left_out(collected: _Collected, size: tuple[int, int]) -> str:
+    """What was read but not used, for the too-few-views error: the board may be in it."""
+    notes = []
+    others = _other_sizes(collected, size)
+    if others:
+        notes.append(f"{len(others)} frame(s) of another size than {size[0]}x{size[1]} were "
+                     "skipped: " + ", ".join(others[:3]) + (", ..." if len(others) > 3 else ""))
+    if collected.video_skipped:
+        notes.append(f"{collected.video_skipped} video frame(s) were left out as blurred or "
+                     "repeating a view already taken (move the board between views and hold "
+                     "it still a moment in each)")
+    return "".join(f"; {note}" for note in notes)
+
+
+def _too_few_views_error(
+    collected: _Collected, board: BoardSpec, size: tuple[int, int]
+) -> CalibrationError:
+    found = len(collected.groups[size].views)
+    left_out = _left_out(collected, size)
+    if found:
+        return CalibrationError(
+            f"found a {board.label} checkerboard in only {found} of {collected.frames_seen} "
+            f"frame(s); at least {MIN_VIEWS} are needed ({RECOMMENDED_VIEWS} or more "
+            f"recommended, at varied tilts and positions){left_out}"
+        )
+    # A guess of the very board asked for (a blurred board the guesser still makes out) is no
+    # hint: "try --board 7x4" to one who gave --board 7x4.
+    asked = {board.pattern_size, board.pattern_size[::-1]}
+    guesses = [g for g in (guess_board_size(f.gray) for f in collected.guess_frames)
+               if g is not None and g not in asked]
     if guesses:
         cols, rows = max(set(guesses), key=guesses.count)
         return CalibrationError(
-            f"found no {board.label} board in any of {seen}; the images look like a "
-            f"{cols}x{rows} board (inner corners): try --board {cols}x{rows}"
+            f"found no {board.label} board in any of {collected.frames_seen} frame(s); the "
+            f"images look like a {cols}x{rows} board (inner corners): try --board {cols}x{rows}"
+        )
+    if collected.video_board_seen:
+        # The board was there (a quick look saw it) but its corners could not be measured:
+        # --board is not what is wrong.
+        return CalibrationError(
+            f"found no {board.label} checkerboard sharp enough to measure in any of "
+            f"{collected.frames_seen} frame(s), though it showed in "
+            f"{collected.video_board_seen} video frame(s) scanned: hold the board still, in "
+            f"focus and well lit{left_out}"
         )
     return CalibrationError(
-        f"found no {board.label} checkerboard in any of {seen}; check --board (inner corners, "
-        "not squares), lighting and focus"
+        f"found no {board.label} checkerboard in any of {collected.frames_seen} frame(s); check "
+        f"--board (inner corners, not squares), lighting and focus{left_out}"
     )
 
 
+def _check_destination(path: Path, option: str, plan: InputPlan, force: bool) -> None:
+    """Refuse, before any work, a file that cannot or must not be written: never an input
+    (not even with --force: the photos are what the calibration is checked against), an
+    existing file only with --force, and only into a folder that exists."""
+    target = path.resolve()
+    if any(target == p.resolve() for p in (*plan.images, *plan.videos)):
+        raise CalibrationError(f"{option} {path} would overwrite one of the inputs")
+    if path.is_dir():
+        raise CalibrationError(f"{option} {path} is a folder, not a file name")
+    if path.exists() and not force:
+        raise CalibrationError(f"{path} exists; use --force to overwrite it")
+    if not path.parent.is_dir():
+        raise CalibrationError(f"{path.parent}: {option} folder does not exist")
+
+
+def _check_destinations(args: argparse.Namespace, plan: InputPlan) -> None:
+    _check_destination(args.output, "--output", plan, args.force)
+    if args.preview is None:
+        return
+    _check_destination(args.preview, "--preview", plan, args.force)
+    if args.preview.resolve() == args.output.resolve():
+        raise CalibrationError("--preview and --output name the same file")
+    if not cv2.haveImageWriter(str(args.preview)):
+        raise CalibrationError(
+            f"--preview {args.preview} is not an image type OpenCV can write (.png, .jpg)"
+        )
+
+
+def _refuse_folding_model(camera: CameraModel, output: Path) -> None:
+    """The loader's own check (load_camera refuses a lens model that folds the image over, so
+    undistort, estimate and run would all refuse the file): run before writing, not after."""
+    try:
+        check_invertible(camera, output)
+    except CalibrationError:
+        raise CalibrationError(
+            f"the solved lens model cannot be inverted over the whole {camera.width}x"
+            f"{camera.height} image (its distortion folds the image over, e.g. in corners no "
+            f"board reached), so every netpose command would refuse it; {output} not written: "
+            "add views with the board near the corners of the image, or hold k3 at zero with "
+            "--fix-k3 (a fisheye lens is beyond the plumb-bob model)"
+        ) from None
+
+
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except (NetposeError, OSError) as exc:
+        if args.json:
+            # As `netpose estimate --json` does: a failure is a JSON object too, so that a
+            # script reading stdout sees why (the message also goes to stderr, as always).
+            print(json.dumps({"error": str(exc)}), flush=True)
+        raise
+
+
+def _run(args: argparse.Namespace) -> int:
     board = BoardSpec(*parse_board_size(args.board), square=args.square)
     if args.max_frames < 1:
         raise CalibrationError(f"--max-frames must be at least 1, got {args.max_frames}")
-    if args.output.exists() and not args.force:
-        raise CalibrationError(f"{args.output} exists; use --force to overwrite it")
-    if not args.output.parent.is_dir():
-        raise CalibrationError(f"{args.output.parent}: output folder does not exist")
+    plan = plan_inputs(args.inputs)
+    _check_destinations(args, plan)
 
-    collected = _collect(args, board)
+    collected = _collect(args, plan, board)
     if collected.frames_seen == 0:
         raise CalibrationInputError(
             "no input could be read: " + "; ".join(collected.unreadable[:3])
         )
-    if len(collected.views) < MIN_VIEWS:
-        # Mostly no board: most likely the wrong --board; say what the images do show.
-        raise _no_board_error(collected, board)
-    assert collected.image_size is not None
-    result = calibrate(
-        collected.views, board, collected.image_size, fix_k3=args.fix_k3, name=args.name
-    )
+    size = _choose_size(collected)
+    group = collected.groups[size]
+    if len(group.views) < MIN_VIEWS:
+        raise _too_few_views_error(collected, board, size)
+    result = calibrate(group.views, board, size, fix_k3=args.fix_k3, name=args.name)
+    _refuse_folding_model(result.camera, args.output)
     save_camera(result.camera, args.output)
 
     notes = list(result.warnings)
     if collected.unreadable:
         notes.append(f"skipped {len(collected.unreadable)} unreadable input(s): "
                      + "; ".join(collected.unreadable))
-    if collected.wrong_size:
-        notes.append(
-            f"skipped {len(collected.wrong_size)} frame(s) of another size than "
-            f"{collected.image_size[0]}x{collected.image_size[1]}: "
-            + ", ".join(collected.wrong_size)
-        )
+    others = _other_sizes(collected, size)
+    if others:
+        notes.append(f"skipped {len(others)} frame(s) of another size than {size[0]}x{size[1]}: "
+                     + ", ".join(others))
     if args.preview is not None:
-        _write_preview(args.preview, result.camera, collected)
+        _write_preview(args.preview, result.camera, group.preview)
 
     summary = result.summary()
     summary.update(
@@ -218,11 +335,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_preview(path: Path, camera: Any, collected: _Collected) -> None:
-    frame = next((f for f in collected.sample_frames if f.name == "preview"), None)
-    if frame is None:
+def _write_preview(path: Path, camera: CameraModel, gray: GrayImage | None) -> None:
+    if gray is None:
         return
-    if not cv2.imwrite(str(path), side_by_side(camera, frame.gray)):
+    if not cv2.imwrite(str(path), side_by_side(camera, gray)):
         raise CalibrationError(f"{path}: cannot write the preview image")
 
 

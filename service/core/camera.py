@@ -380,13 +380,14 @@ def load_camera(path: str | Path) -> CameraModel:
         except RecursionError:  # the parser recurses per nested list or mapping
             raise CalibrationError(f"{p}: invalid YAML (nested too deeply)") from None
         camera = camera_from_ros_dict(doc, source=str(p))
-    _check_invertible(camera, p)
+    check_invertible(camera, p)
     return camera
 
 
-def _check_invertible(camera: CameraModel, path: Path) -> None:
+def check_invertible(camera: CameraModel, path: Path) -> None:
     """A lens model that folds over within the frame (k1 = 50: no ray reaches its edges) is
-    refused when its file is read, not at the first frame whose ROIs reach there."""
+    refused when its file is read, not at the first frame whose ROIs reach there (and by
+    `netpose calibrate` before it writes one); `path` names the file in the error."""
     cols, rows = _CHECK_GRID
     xs = np.linspace(0.0, camera.width - 1.0, cols)
     ys = np.linspace(0.0, camera.height - 1.0, rows)
