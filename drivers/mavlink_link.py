@@ -59,6 +59,9 @@ from service.core.state_log import StateLog, not_logged_note
 log = logging.getLogger(__name__)
 
 HEARTBEAT_PERIOD_S = 1.0
+# Messages with a bad signature, and none with a good one, that show the autopilot signs with
+# another key (one could be a corrupted frame).
+_WRONG_KEY_SIGNATURES = 3
 # How long one wait for incoming data may last: bounds how late close() is noticed.
 _POLL_LIMIT_S = 0.1
 # Incoming messages handled per loop turn, so a flood cannot starve the send schedule.
@@ -277,6 +280,7 @@ class MavlinkLink(AutopilotLink):
         self._signing_key = (
             load_signing_key(settings.signing_key_file) if settings.signing_key_file else None
         )
+        self._wrong_key_said = False
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -500,6 +504,23 @@ class MavlinkLink(AutopilotLink):
                 if msg is None:
                     break
                 self._handle(msg, self._clock())
+            self._check_signatures(conn)
+
+    def _check_signatures(self, conn: Any) -> None:
+        """An autopilot that signs with another key rejects every message netpose signs, while
+        its own (accepted here like unsigned ones, which a router may forward) kept the link
+        "connected": said once, and kept as the link's last error."""
+        signing = getattr(conn.mav, "signing", None)
+        if self._signing_key is None or signing is None or self._wrong_key_said:
+            return
+        if signing.badsig_count >= _WRONG_KEY_SIGNATURES and signing.goodsig_count == 0:
+            self._wrong_key_said = True
+            message = ("the autopilot's messages are signed with another key than "
+                       "mavlink.signing_key_file: it rejects every message netpose sends "
+                       f"({signing.badsig_count} bad signatures, none good)")
+            with self._lock:
+                self._last_error = message
+            log.warning("MAVLink: %s", message)
 
     def _take_arrival(self, last_capture_sent: float) -> float | None:
         """The capture time of a reading that arrived since the last look and is to go out now

@@ -113,6 +113,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=getattr(logging, args.log_level or "INFO"),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    # pymavlink says "sig mismatch" at INFO for every message signed with another key (tens a
+    # second from an autopilot): the link says it once (drivers/mavlink_link.py).
+    logging.getLogger("pymavlink").setLevel(logging.WARNING)
     handler: Handler | None = getattr(args, "handler", None)
     if handler is None:  # no command: a command-line mistake too
         parser.print_help()

@@ -503,7 +503,9 @@ def test_no_net_plane_is_stamped_in_a_rebooted_autopilots_future() -> None:
     assert planes[0].t - rebooted_at <= 1.0  # asked for, not waited for the streams
 
 
-def test_signed_link_is_accepted_only_with_the_right_key(tmp_path: Path) -> None:
+def test_signed_link_is_accepted_only_with_the_right_key(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     key = os.urandom(32)
     (tmp_path / "good.key").write_bytes(key)
     (tmp_path / "bad.key").write_bytes(bytes(32))
@@ -514,13 +516,19 @@ def test_signed_link_is_accepted_only_with_the_right_key(tmp_path: Path) -> None
             wait_status(link, "state", "connected")
     assert all(r.msg.get_signed() for r in sensors)
 
-    with FakeAutopilot(UdpServerTransport(), signing_key=key) as autopilot:
+    with FakeAutopilot(UdpServerTransport(), signing_key=key) as autopilot, \
+            caplog.at_level(logging.INFO, logger="drivers.mavlink_link"):
         link = MavlinkLink(settings(autopilot.url, signing_key_file=str(tmp_path / "bad.key")))
         with link, feeding(link):
-            time.sleep(0.6)
+            time.sleep(1.5)
             status = link.status()
     assert status.sent["DISTANCE_SENSOR"] >= 3
     assert autopilot.received() == []  # every message rejected by the signature check
+    # Said once, naming the key to fix, and in the status: the autopilot's own messages carry
+    # another key's signature, so it rejects netpose's (it said "connected" and nothing more).
+    warned = [r.getMessage() for r in caplog.records if "another key" in r.getMessage()]
+    assert len(warned) == 1 and "signing_key_file" in warned[0], warned
+    assert "signing_key_file" in status.last_error
 
 
 def test_recording_link_stands_in_for_the_daemon() -> None:
