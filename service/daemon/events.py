@@ -7,6 +7,8 @@ from __future__ import annotations
 import logging
 import math
 
+from service.core.camera import CameraModel
+from service.core.errors import CalibrationError
 from service.core.state_log import StateLog, not_logged_note
 from service.core.tracking import Outcome, TrackOutput, TrackState
 
@@ -71,11 +73,11 @@ class SourceWatch:
     """Frame source up / down, judged by the time since the last frame."""
 
     def __init__(self, url_for_logs: str, stale_after_s: float, started_at: float,
-                 calibrated_size: tuple[int, int] | None = None) -> None:
+                 camera: CameraModel | None = None) -> None:
         self._url = url_for_logs
         self.stale_after_s = stale_after_s
         self._started_at = started_at
-        self._calibrated_size = calibrated_size
+        self._camera = camera
         self._sizes_seen: set[tuple[int, int]] = set()
         self.up: bool | None = None  # None: no frame yet
         self.last_frame_at: float | None = None
@@ -95,11 +97,15 @@ class SourceWatch:
         that mode shows the whole sensor; a crop or a binned window has another field of view,
         and every distance would be off by its ratio."""
         size = (width, height)
-        if self._calibrated_size is None or size == self._calibrated_size \
-                or size in self._sizes_seen:
+        camera = self._camera
+        if camera is None or size == (camera.width, camera.height) or size in self._sizes_seen:
             return
         self._sizes_seen.add(size)
-        cw, ch = self._calibrated_size
+        try:
+            camera.scaled_to(width, height)
+        except CalibrationError:
+            return  # not the calibrated view resized at all: the estimator refuses it, and says so
+        cw, ch = camera.width, camera.height
         log.warning("frames are %dx%d, the calibration is for %dx%d: scaled to them, which is "
                     "right only if this camera mode shows the whole sensor (not a crop or a "
                     "binned window); calibrate at %dx%d to be sure", width, height, cw, ch,

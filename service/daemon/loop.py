@@ -141,7 +141,7 @@ class Daemon:
         self.track_log = TrackLog(states, config.filter.coast_timeout_s,
                                   config.filter.max_consecutive_rejects)
         self.source_watch = SourceWatch(self._url, config.camera.stale_after_s, now,
-                                        (parts.camera.width, parts.camera.height))
+                                        parts.camera)
         self.outputs = FrameOutputs(
             parts.link, parts.telemetry, parts.vehicle, parts.preview, wall_clock, self.problems,
             parts.observers, DamageOutputs(parts.link, parts.telemetry, parts.vehicle,
