@@ -58,6 +58,8 @@ local PLAUSIBLE_M = {0.05, 100.0}
 -- 2.18 v|v|: 0.63 m from 0.3 m/s, 1.1 m from 1 m/s), with `margin` for a real vehicle:
 -- toward the net it never goes faster than it can coast to a stop outside NETH_DIST_MIN.
 local COAST = {linear = 0.22, quadratic = 2.18, margin = 1.5}
+-- Nearer than the set point by this (beyond the dead band's play): a trim toward the net goes.
+local TRIM_DROP_M = 0.05
 -- millis() is a uint32: it wraps after 49.7 days.
 local CLOCK_WRAP_S = 4294967.296
 local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
@@ -180,7 +182,9 @@ local last_speed = 0     -- the last measured closing speed, kept when a jump cl
 -- measured is noisy), what it coasts on.
 local stop = {toward = 0, away = 0, cmd = 0, at = 0}
 local v_cmd = 0          -- speed command toward the net, m/s
-local integral = 0
+-- The integral of the distance error (`sum`, m*s): the trim a current needs. `held`: the last
+-- run's output toward the net was held back by a limit (no winding toward the net then).
+local trim = {sum = 0, held = false}
 local yaw_integral = 0
 local last_update = nil
 local last_report = 0
@@ -508,7 +512,7 @@ disengage = function(why, to_neutral)
   if not engaged then return end
   engaged, paused, yaw_rate_cmd = false, false, 0
   if to_neutral then neutral() end
-  v_cmd, integral, yaw_integral = 0, 0, 0
+  v_cmd, trim.sum, trim.held, yaw_integral = 0, 0, false, 0
   say(SEV_WARNING, "OFF, " .. why)
   gcs:send_named_float("NH_ON", 0)
 end
@@ -547,7 +551,7 @@ engage = function()
   end
   engaged, paused, yaw_rate_cmd = true, false, 0
   engaged_mode = vehicle:get_mode()
-  v_cmd, integral, yaw_integral = 0, 0, 0
+  v_cmd, trim.sum, trim.held, yaw_integral = 0, 0, false, 0
   last_update = now
   say(SEV_INFO, string.format("ON, holding %.2f m (net at %.2f m)", set_point(), plane.d))
   gcs:send_named_float("NH_ON", 1)
@@ -589,21 +593,26 @@ local function control(now)
   local err = d - set_point()  -- positive: too far, move toward the net
   -- Speed toward the net: P + I, limited in speed, and in acceleration toward the net.
   -- The integral trims a steady offset: the thrust a current needs. It winds toward the net
-  -- only within I_BAND of the set point (never on the approach); away from the net (too close)
-  -- at any distance, inside the minimum too, where a current pushed a P-only hold and stayed;
-  -- and it unwinds an away trim at any distance, never past zero.
+  -- only within I_BAND of the set point (never on the approach) and while the output toward
+  -- the net was not held back by a limit (a trim wound there filled to NETH_SPD_MAX, and when
+  -- the current stopped it drove a 0.6 m hold to the minimum); away from the net (too close) at
+  -- any distance, inside the minimum too, where a current pushed a P-only hold and stayed; and
+  -- it unwinds an away trim at any distance, never past zero. A trim toward the net is dropped
+  -- once the vehicle is TRIM_DROP_M nearer than the set point: the current it stood against
+  -- has eased, and the trim would carry the vehicle on in (14 cm at a 1 m set point, 9 now).
   local spd = get("SPD_MAX")
-  local grown = integral + err * dt
-  if err < 0 or (math.abs(err) < get("I_BAND") and d > get("DIST_MIN")) then
-    integral = grown
-  elseif integral < 0 then
-    integral = math.min(grown, 0)
+  local grown = trim.sum + err * dt
+  if err < 0 or (math.abs(err) < get("I_BAND") and d > get("DIST_MIN") and not trim.held) then
+    trim.sum = grown
+  elseif trim.sum < 0 then
+    trim.sum = math.min(grown, 0)
   end
-  if d <= get("DIST_MIN") then integral = math.min(integral, 0) end
+  if d <= get("DIST_MIN") or err < -TRIM_DROP_M then trim.sum = math.min(trim.sum, 0) end
   local ki = get("KI")
   local i_max = ki > 0 and spd / ki or 0  -- the trim at most NETH_SPD_MAX
-  integral = clamp(integral, -i_max, i_max)
-  local want = clamp(get("KP") * err + ki * integral, -spd, spd)
+  trim.sum = clamp(trim.sum, -i_max, i_max)
+  local asked = get("KP") * err + ki * trim.sum
+  local want = clamp(asked, -spd, spd)
   local stop_dist = d - get("DIST_MIN") - math.max(closing_speed, 0) * get("TIMEOUT")
   if stop_dist <= 0 then
     want = math.min(want, 0)  -- hard minimum: nothing toward the net
@@ -618,6 +627,7 @@ local function control(now)
     coast_speed = (math.exp(COAST.quadratic * room) - 1) * COAST.linear / COAST.quadratic
   end
   want = math.min(want, coast_speed)
+  local held = asked > want
   if want > v_cmd then
     v_cmd = math.min(want, v_cmd + get("ACC_MAX") * dt)
   else
@@ -636,7 +646,9 @@ local function control(now)
   local lateral = rc:get_pwm(lateral_rc) or NEUTRAL
   local dz = get("FWD_DZ") * clamp(1.0 - math.abs(lateral - NEUTRAL) / 25.0, 0.0, 1.0)
   fwd = fwd + dz * clamp(fwd / get("FWD_DZ_RAMP"), -1.0, 1.0)
-  fwd = clamp(fwd, -fwd_max, math.min(fwd_max, spd * get("FWD_GAIN")))
+  local fwd_toward = math.min(fwd_max, spd * get("FWD_GAIN"))
+  trim.held = held or fwd > fwd_toward
+  fwd = clamp(fwd, -fwd_max, fwd_toward)
   if stop_dist <= 0 then fwd = math.min(fwd, 0) end
   fwd_channel:set_override(math.floor(NEUTRAL + fwd + 0.5))
 

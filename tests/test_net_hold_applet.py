@@ -235,6 +235,28 @@ def test_the_trim_for_a_current_unwinds_when_the_current_stops() -> None:
     assert min(d for _, d, *_ in trace) > 0.95  # it backs off; it never overshoots inward
 
 
+@pytest.mark.parametrize(("set_point", "current_mps"), [(0.6, -0.2), (0.5, -0.15), (1.0, -0.25)])
+def test_a_trim_toward_the_net_does_not_carry_the_vehicle_in_when_the_current_stops(
+    set_point: float, current_mps: float
+) -> None:
+    """A current away from the net needs a trim toward it. Wound while the output was held at
+    a limit (the vehicle short of the set point, the trim still growing), it filled to the
+    full NETH_SPD_MAX, and when the current stopped it drove a 0.6 m hold to the 0.4 m
+    minimum, and kept it there for 6 s (before the integral: 0.58 m). The trim winds toward
+    the net only while the output is not held back, and is dropped once the vehicle is 5 cm
+    nearer than the set point: the current it stood against has eased."""
+    vehicle = NetVehicle(distance_m=set_point + 0.3, heading_error_deg=0.0,
+                         current_mps=current_mps)
+    applet = engaged_applet(vehicle, DIST=set_point)
+    run_closed_loop(applet, vehicle, 60.0)
+    held = vehicle.distance_m
+    vehicle.current_mps = 0.0
+    trace = run_closed_loop(applet, vehicle, 40.0)
+    lowest = min(d for _, d, *_ in trace)
+    assert lowest > set_point - 0.1, (held, lowest)
+    assert abs(trace[-1][1] - set_point) < 0.04 and applet.engaged
+
+
 @pytest.mark.parametrize("speed_mps", [0.0, -0.3, -0.6])
 def test_inside_the_hard_minimum_there_is_no_thrust_toward_the_net(speed_mps: float) -> None:
     """Pushed inside NETH_DIST_MIN (a wave, the pilot), still or moving away: the loop would
