@@ -10,6 +10,7 @@ each frame is; stopping the streamer or the server is a real stall.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import itertools
 import logging
@@ -26,6 +27,7 @@ from drivers.errors import SourceError
 from drivers.net import free_port
 from drivers.sources import FrameSource, SourceOptions, SourceState, open_source, opencv_capture
 from drivers.sources.fake_capture import read_pattern_number
+from drivers.sources.stream import StreamSource
 from tests.stream_peers import (
     FPS,
     HEIGHT,
@@ -305,6 +307,40 @@ def test_frames_drained_from_the_decoder_after_a_stall_are_not_passed_off_as_new
     late = {n: t - first.sent_at[n] for n, t in frames if n in first.sent_at}
     # MPEG-TS frames stay a period late (the demuxer's hold, docs/sources.md): ~2 periods.
     assert all(offset < 3 * period for offset in late.values()), sorted(late.items())[-8:]
+
+
+class _StatedRate:
+    """A capture as the stamping rule sees it: its stated frame rate, nothing else."""
+
+    def __init__(self, fps: float) -> None:
+        self.fps = fps
+
+    def get(self, prop_id: int) -> float:
+        return self.fps if prop_id == cv2.CAP_PROP_FPS else 0.0
+
+
+def test_a_stream_stating_too_low_a_rate_is_stamped_as_it_goes_after_a_pause() -> None:
+    """A stream that states 5 frames/s and sends 30: every read returns within a quarter of
+    the stated period, so after one pause the cap on the frames drained from the decoder never
+    lifted, and every later frame was stamped a microsecond after the pause began (the net
+    planes looked older and older; net hold let go, with nothing in the log). The cap holds for
+    the frames the decoder can have held, no more."""
+    source = StreamSource("udp://127.0.0.1:9", OPTIONS)  # the rule alone: never opened
+    source._frames_held = 2
+    source._came_out = collections.deque(maxlen=2)
+    cap = _StatedRate(5.0)
+    t, period = 100.0, 1.0 / 30.0
+    stamps = []
+    for _ in range(30):
+        t += period
+        stamps.append(source._capture_time(cap, t, period))  # type: ignore[arg-type]
+    t += 0.8  # over half the stall time: the decoder's frames come out at once after it
+    stamps.append(source._capture_time(cap, t, 0.8))  # type: ignore[arg-type]
+    for _ in range(30):
+        t += period
+        stamps.append(source._capture_time(cap, t, period))  # type: ignore[arg-type]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+    assert t - stamps[-1] < 3 * period, (t, stamps[-5:])
 
 
 def test_rtp_stream_described_by_sdp(streamers: list[Streamer], tmp_path: Path) -> None:

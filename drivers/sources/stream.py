@@ -55,10 +55,12 @@ RTSP_OPTIONS = "fpsprobesize;0|rtsp_transport;tcp"
 # A read that waited this share of the stall time (FFmpeg's read timeout) or more: a pause of
 # the stream, or its end (then the read ends when the timeout interrupts it).
 _LONG_READ_SHARE = 0.5
-# A read that returned within this share of a frame period (or within 5 ms when the stream
-# states no rate) gave a frame already decoded.
+# A read that returned within this share of a frame period, and within 5 ms, gave a frame
+# already decoded.
 _INSTANT_READ_SHARE = 0.25
 _INSTANT_READ_S = 0.005
+# Frames beyond `frames_held` that may still come out of a drain (the demuxer's, the first).
+_CAP_EXTRA_FRAMES = 3
 
 
 def default_ffmpeg_options(url: str) -> str:
@@ -97,6 +99,7 @@ class StreamSource(LiveSource):
         self._last_stamp = float("-inf")
         # Start of the last long read, while the frames after it come out at once.
         self._waited_from: float | None = None
+        self._capped_left = 0  # frames the cap may still hold back
 
     @property
     def ffmpeg_options(self) -> str:
@@ -121,6 +124,7 @@ class StreamSource(LiveSource):
         )
         self._frames_held = decoder_frames_held(cap)
         self._waited_from = None
+        self._capped_left = 0
         self._came_out = deque(maxlen=max(1, self._frames_held))
         return cap
 
@@ -133,15 +137,21 @@ class StreamSource(LiveSource):
         # decoder before that wait: when the stream stops, FFmpeg's read gives up after the
         # stall time and OpenCV drains the decoder, one frame per read with nothing new going
         # in, and the rule below stamped them as captured a stall time after they were (a net
-        # plane from before the outage reached the autopilot as fresh). The demuxer holds one
-        # frame more than `frames_held` counts (MPEG-TS), so the burst, not a count, decides.
+        # plane from before the outage reached the autopilot as fresh). The cap holds while
+        # frames come out at once (within 5 ms, and a quarter of the stated period), for at
+        # most a few frames more than the decoder holds (the demuxer held two more than
+        # `frames_held` counts, MPEG-TS with four threads): a stream that states too low a rate
+        # has every read within a quarter of it, and a lasting cap froze its stamps at a pause.
         period = self._frame_period(cap)
         # (Not before the first frame of an open: what comes out at once after joining a
         # stream is new.)
         if read_s >= _LONG_READ_SHARE * self._options.stall_timeout_s and self._came_out:
             self._waited_from = received_mono - read_s
-        elif read_s > (_INSTANT_READ_SHARE * period if period > 0.0 else _INSTANT_READ_S):
+            self._capped_left = self._frames_held + _CAP_EXTRA_FRAMES
+        elif read_s > min(_INSTANT_READ_SHARE * period if period > 0.0 else _INSTANT_READ_S,
+                          _INSTANT_READ_S) or self._capped_left <= 0:
             self._waited_from = None  # a frame that needed new input: the rule holds again
+        self._capped_left = max(0, self._capped_left - 1)
         held = self._frames_held
         if held <= 0:
             return received_mono if self._waited_from is None else min(received_mono,
