@@ -76,7 +76,7 @@ local PARAMS = {
   {"GRACE", 3.0, 0.5, 10},        -- no fresh plane for this long disengages, s
   {"KP", 0.5, 0, 5},              -- speed command per metre of distance error, 1/s
   {"KI", 0.1, 0, 2},              -- integral of the distance error (a current), 1/s^2
-  {"I_BAND", 0.2, 0, 2},          -- the integral runs only within this of the set point, m
+  {"I_BAND", 0.2, 0, 2},          -- the integral winds toward the net only this near, m
   {"SPD_MAX", 0.3, 0, 1},         -- speed limit toward and away from the net, m/s
   {"ACC_MAX", 0.3, 0.01, 2},      -- limit on speeding up toward the net, m/s^2
   {"FWD_GAIN", 190, 10, 1000},    -- forward PWM offset per m/s (SITL vectored: ~194 us per m/s)
