@@ -326,9 +326,10 @@ def test_a_stream_stating_too_low_a_rate_is_stamped_as_it_goes_after_a_pause() -
     planes looked older and older; net hold let go, with nothing in the log). The cap holds for
     the frames the decoder can have held, no more."""
     source = StreamSource("udp://127.0.0.1:9", OPTIONS)  # the rule alone: never opened
-    source._frames_held = 2
-    source._came_out = collections.deque(maxlen=2)
     cap = _StatedRate(5.0)
+    source._frames_held = 2  # what an open finds out (`_connect`)
+    source._period = 1.0 / cap.fps
+    source._came_out = collections.deque(maxlen=2)
     t, period = 100.0, 1.0 / 30.0
     stamps = []
     for _ in range(30):

@@ -100,6 +100,7 @@ class StreamSource(LiveSource):
         # Start of the last long read, while the frames after it come out at once.
         self._waited_from: float | None = None
         self._capped_left = 0  # frames the cap may still hold back
+        self._period = 0.0  # the stream's stated frame period, read once per open
 
     @property
     def ffmpeg_options(self) -> str:
@@ -123,6 +124,7 @@ class StreamSource(LiveSource):
             read_timeout_s=opts.stall_timeout_s,
         )
         self._frames_held = decoder_frames_held(cap)
+        self._period = _stated_period(cap)
         self._waited_from = None
         self._capped_left = 0
         self._came_out = deque(maxlen=max(1, self._frames_held))
@@ -142,7 +144,7 @@ class StreamSource(LiveSource):
         # most a few frames more than the decoder holds (the demuxer held two more than
         # `frames_held` counts, MPEG-TS with four threads): a stream that states too low a rate
         # has every read within a quarter of it, and a lasting cap froze its stamps at a pause.
-        period = self._frame_period(cap)
+        period = self._period
         # (Not before the first frame of an open: what comes out at once after joining a
         # stream is new.)
         if read_s >= _LONG_READ_SHARE * self._options.stall_timeout_s and self._came_out:
@@ -169,7 +171,8 @@ class StreamSource(LiveSource):
         self._last_stamp = t
         return t
 
-    def _frame_period(self, cap: VideoCaptureLike) -> float:
-        """The stream's frame period from its stated rate (0 when it states none)."""
-        fps = float(cap.get(cv2.CAP_PROP_FPS))
-        return 1.0 / fps if 0.5 <= fps <= 1000.0 else 0.0
+
+def _stated_period(cap: VideoCaptureLike) -> float:
+    """The stream's frame period from the rate it states at the open (0 when it states none)."""
+    fps = float(cap.get(cv2.CAP_PROP_FPS))
+    return 1.0 / fps if 0.5 <= fps <= 1000.0 else 0.0
