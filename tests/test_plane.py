@@ -8,7 +8,13 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.core.plane import PRIOR_DOF, axis_leverage, fit_plane, tilt_leverage
+from service.core.plane import (
+    PRIOR_DOF,
+    axis_leverage,
+    fit_plane,
+    plane_through,
+    tilt_leverage,
+)
 
 F64 = npt.NDArray[np.float64]
 CELL_M2 = 0.015**2
@@ -97,6 +103,22 @@ def test_small_outliers_against_noise_are_flagged_too() -> None:
     assert fit is not None
     assert not fit.used[7]
     assert fit.distance_m == pytest.approx(distance, rel=0.005)
+
+
+def test_the_plane_through_every_roi_keeps_them_all() -> None:
+    """`plane_through` is the weighted fit without choosing: exact areas give the plane, and an
+    outlier that `fit_plane` leaves out pulls it (what the estimator's sigma weighs)."""
+    normal, distance = POSES[2]
+    rays = _rays()
+    areas = _areas(rays, normal, distance)
+    through = plane_through(rays, areas, np.full(15, 0.01), CELL_M2)
+    assert through is not None
+    np.testing.assert_allclose(through[0], normal, atol=1e-9)
+    assert through[1] == pytest.approx(distance, abs=1e-9)
+    areas[7] *= 1.10
+    pulled = plane_through(rays, areas, np.full(15, 0.01), CELL_M2)
+    assert pulled is not None and pulled[1] != pytest.approx(distance, rel=1e-4)
+    assert plane_through(rays[:2], areas[:2], np.full(2, 0.01), CELL_M2) is None
 
 
 def test_fewer_rois_than_required_give_no_plane() -> None:

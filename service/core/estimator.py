@@ -56,6 +56,7 @@ from service.core.plane import (
     PlaneFit,
     axis_leverage,
     fit_plane,
+    plane_through,
     relative_sigma_c,
     tilt_leverage,
 )
@@ -1542,6 +1543,10 @@ class NetEstimator:
             sigma_r / range_m, _MODEL_FLOOR))
         sigma_d = math.hypot(sigma_d, off_axis * d_new)
         sigma_r = math.hypot(sigma_r, off_axis * range_m)
+        left_d, left_r, left_n = _left_out_pull(p, self.mesh.cell_area_m2)
+        sigma_d = math.hypot(sigma_d, _CHANGE_SHARE * left_d * d_new)
+        sigma_r = math.hypot(sigma_r, _CHANGE_SHARE * left_r * range_m)
+        sigma_n = math.hypot(sigma_n, _CHANGE_SHARE * left_n)
         too_uncertain = (sigma_r > s.max_sigma_range_fraction * range_m
                          or sigma_n > s.max_sigma_normal_deg)
         if too_uncertain or not settled:
@@ -2104,6 +2109,37 @@ def _deformation(p: _Pass, agreeing: list[_Roi], cell_area_m2: float,
     tilt = math.degrees(math.sqrt(seen**2 * pinned
                                   + _UNSEEN_TILT**2 * max(0.0, pinned - whole)))
     return relative, tilt
+
+
+def _left_out_pull(p: _Pass, cell_area_m2: float) -> tuple[float, float, float]:
+    """How far the ROIs that show the net's lattice but that the plane left out would pull
+    it: the relative change of the distance and of the range on the optical axis, and the
+    angle (deg) between the normals, from the pass's plane to the one through all of them.
+
+    The plane's own sigma is made of the ROIs it kept, and it keeps those that agree with
+    each other. On a real net that is not one plane (a fouled strip, a seam's pull, a bulge)
+    the ROIs that show the net's lattice can split into two groups that each agree: which one
+    the fit keeps then turns on noise, and each answer claims the small sigma of its own
+    group (two noisy copies of the fouled-seam still: 14.2 +- 1.3 deg and 4.1 +- 2.6 deg).
+    The ROIs left out are the net, not a fish (they show its lattice), so where they would
+    move the plane is what the choice is uncertain by; half of it counts, as for the change
+    between passes. A single stray ROI among many moves the plane little (rendered frames:
+    3 of 1,282 valid outputs refused, `netpose bench integrity --frames 3000 --seed 7`)."""
+    plane = p.plane
+    on = [m for m in p.on_lattice if m.fit is not None]
+    if plane is None or len(on) <= int(plane.used.sum()):
+        return 0.0, 0.0, 0.0
+    through = plane_through(np.array([m.ray for m in on]), np.array([m.area_norm for m in on]),
+                            np.array([m.fit.relative_area_sigma for m in on
+                                      if m.fit is not None]), cell_area_m2)
+    if through is None:
+        return 0.0, 0.0, 0.0
+    normal, distance = through
+    axis = p.rotation @ np.array([0.0, 0.0, 1.0])
+    range_all = distance / max(float(normal @ axis), 1e-6)
+    range_kept = plane.distance_m / max(float(plane.normal_away @ axis), 1e-6)
+    angle = math.degrees(math.acos(min(1.0, float(normal @ plane.normal_away))))
+    return (abs(distance / plane.distance_m - 1.0), abs(range_all / range_kept - 1.0), angle)
 
 
 def _footprint(p: _Pass, cell_area_m2: float) -> float:

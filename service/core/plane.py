@@ -133,6 +133,23 @@ def fit_plane(
     )
 
 
+def plane_through(rays: F64, cell_area_norm: F64, relative_area_sigma: F64,
+                  mesh_cell_area_m2: float) -> tuple[F64, float] | None:
+    """The weighted least-squares plane through every ROI given, none left out: its unit
+    normal (camera -> net) and distance; None for a degenerate layout."""
+    if rays.shape[0] < 3:
+        return None
+    c = np.cbrt(cell_area_norm / mesh_cell_area_m2)
+    fitted = _solve(rays, c, relative_sigma_c(relative_area_sigma))
+    if fitted is None:
+        return None
+    m = fitted[0]
+    norm = float(np.linalg.norm(m))
+    if norm <= 0 or m[2] <= 0:
+        return None
+    return m / norm, norm**-1.5
+
+
 def _solve(rays: F64, c: F64, rel_sigma_c: F64) -> tuple[F64, F64, int] | None:
     """Weighted least squares for c = r . m; the covariance scaled by the pooled variance
     factor (the noise model as PRIOR_DOF prior degrees of freedom, the residuals' chi-square as
