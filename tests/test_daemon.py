@@ -98,8 +98,9 @@ def test_frames_stamped_ahead_of_the_clock_still_coast_out_in_real_time(
     day. Between frames, time passes from the last frame by what the clock measures."""
     coast, report = 0.6, 0.2
     cfg = demo_config(f"filter.coast_timeout_s={coast}", f"filter.report_coasting_s={report}")
-    # One frame a second of media time, read 50 a second: 24 s ahead when they stop.
-    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 1.0, 100.0)]
+    # 2.5 frames a second of media time (closer than the coast timeout, so they track), read
+    # 50 a second: about 9 s ahead when they stop.
+    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 2.5, 100.0)]
     h = make_harness(cfg, [*ahead, *[Step(wait_s=0.2)] * 15])
     h.run_script()
     assert any(r.status is RangeStatus.GOOD for r in h.link.ranges[:25])
@@ -118,7 +119,7 @@ def test_frames_stamped_behind_the_last_ones_do_not_keep_a_blank_view_tracking(
     long as the old stamps led, 21 readings of 21. Time that goes back starts the track
     afresh."""
     cfg = demo_config("filter.coast_timeout_s=0.6", "filter.report_coasting_s=0.2")
-    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 1.0, 100.0)]
+    ahead = [Step(frame=f, clock_follows=False) for f in frames_at(frames[:25], 2.5, 100.0)]
     blank = [Step(frame=f) for f in frames_at(frames[:20], 10.0, 101.2,
                                                  image=lambda im: np.zeros_like(im))]
     h = make_harness(cfg, [*ahead, Step(wait_s=0.5), *blank])

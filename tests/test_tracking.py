@@ -231,9 +231,9 @@ def test_a_new_track_does_not_coast_on_the_search_rate_of_open_water() -> None:
 def test_the_coasting_window_never_outlasts_the_track_and_can_be_fixed() -> None:
     slow = NetTracker(FilterSettings(report_coasting_s=0.3, coast_timeout_s=1.0))
     fixed = NetTracker(FilterSettings(report_coasting_s=0.3, report_coasting_frames=0.0))
-    for i in range(6):  # one frame a second
-        slow.step(float(i), estimate(1.5, sd=0.01))
-        fixed.step(float(i), estimate(1.5, sd=0.01))
+    for i in range(6):  # a frame every 0.9 s (one every coast_timeout_s ends the track)
+        slow.step(0.9 * i, estimate(1.5, sd=0.01))
+        fixed.step(0.9 * i, estimate(1.5, sd=0.01))
     assert slow.report_coasting_limit_s() == pytest.approx(1.0)  # coast_timeout_s
     assert fixed.report_coasting_limit_s() == pytest.approx(0.3)
     with pytest.raises(ConfigError, match=r"filter\.report_coasting_frames"):
@@ -363,3 +363,87 @@ def test_a_slow_camera_does_not_stretch_the_reported_coasting_past_a_second() ->
     for i in range(8):
         tracker.step(float(i), estimate(1.0))
     assert tracker.report_coasting_limit_s() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("ticks", [False, True])
+def test_a_measurement_after_the_coast_timeout_starts_a_new_tentative_track(ticks: bool) -> None:
+    """A frame that comes more than coast_timeout_s after the last accepted one (a stalled
+    camera, a slow whole-frame search) meets a prediction whose uncertainty has grown to let
+    anything through: a mesh harmonic at 1.5 times the distance joined the old confirmed
+    track as TRACKING, and its velocity then rejected the true frames after it. The track is
+    over by then: the frame starts a new one, tentative until acquire_count frames confirm it.
+    Ticks through the gap (the daemon's, while its reader waits) must not change what follows:
+    a recording keeps no ticks, and its replay meets the same frames."""
+    s = FilterSettings(coast_timeout_s=1.0, acquire_count=3)
+    tracker = NetTracker(s)
+    for i in range(30):
+        tracker.step(i / 10.0, estimate(2.0, sd=0.02))
+    t = 2.9 + 1.5
+    if ticks:
+        for k in range(1, 6):
+            tracker.step(2.9 + 0.25 * k, None)
+    outs = [tracker.step(t, estimate(3.0, sd=0.02))]
+    outs += [tracker.step(t + k / 10.0, estimate(2.0, sd=0.02)) for k in range(1, 4)]
+    assert outs[0].measurement is Outcome.RESET
+    assert outs[0].state is TrackState.LOST and not outs[0].valid
+    # The harmonic was a track of one frame: the first true frame replaces it (a track not
+    # yet confirmed is not defended by the gate), and they earn trust again.
+    assert outs[1].measurement is Outcome.RESET
+    assert not outs[1].valid and not outs[2].valid
+    assert outs[3].valid and outs[3].distance_m == pytest.approx(2.0, abs=0.01)
+    replayed = NetTracker(s)
+    for i in range(30):
+        replayed.step(i / 10.0, estimate(2.0, sd=0.02))
+    replayed.step(t, estimate(3.0, sd=0.02))
+    for k in range(1, 4):
+        replayed.step(t + k / 10.0, estimate(2.0, sd=0.02))
+    assert replayed.snapshot() == tracker.snapshot()
+
+
+@pytest.mark.parametrize(("measured", "valid"), [(1.4, False), (2.6, True)])
+def test_a_nearer_measurement_the_gate_rejects_withdraws_the_prediction(measured: float,
+                                                                        valid: bool) -> None:
+    """The net stepped nearer (a billow, the vehicle pushed in): the gate rejects the first
+    frames that say so, and the prediction coasting on the old, farther distance was still
+    sent for the reporting window. Farther than the net really is, the dangerous way: a
+    rejected measurement that puts the net nearer withdraws the distance at once. One that
+    puts it farther (a sub-lattice, twice the period) leaves the window as it was: the
+    prediction then errs on the side of a nearer net."""
+    tracker = NetTracker(FilterSettings())
+    for i in range(30):
+        tracker.step(i / FPS, estimate(2.0, sd=0.02))
+    out = tracker.step(30 / FPS, estimate(measured, sd=0.02))
+    assert out.measurement is Outcome.REJECTED and out.state is TrackState.COASTING
+    assert out.valid is valid
+    if not valid:
+        assert not tracker.step(31 / FPS, None).valid  # nor a tick after it
+    back = tracker.step(32 / FPS, estimate(2.0, sd=0.02))
+    assert back.measurement is Outcome.ACCEPTED and back.valid
+
+
+@pytest.mark.parametrize(("yaw", "pitch"), [(0.0, 0.0), (45.0, 0.0), (70.0, 0.0),
+                                            (0.0, 65.0), (50.0, 40.0)])
+def test_the_angle_noise_follows_the_tilt(yaw: float, pitch: float) -> None:
+    """The estimator's sigma_normal_deg is the normal's error in any direction. As the two
+    angles of the state, it is that in the plane of the tilt, but across it the angle's error
+    grows as 1 / cos(tilt) (tan(pitch) = n_y / n_z, and n_z shrinks): a net 70 deg off square
+    with 2 deg of normal noise rejected 17 % of its good frames (and with them their
+    distance), where the gate (4 sigma in 3 dimensions) should reject about 0.1 %."""
+    rng = np.random.default_rng(11)
+    tracker = NetTracker(FilterSettings())
+    true = np.array(normal_from_angles(yaw, pitch, -1.0))
+    sigma = 2.0
+    basis = np.linalg.svd(true[None, :])[2][1:]  # two unit vectors across the normal
+    rejected = 0
+    for i in range(600):
+        tip = np.radians(sigma) * rng.standard_normal(2) @ basis
+        n = true + tip
+        n /= np.linalg.norm(n)
+        est = NetEstimate(detected=True, confidence=0.9, normal=(float(n[0]), float(n[1]),
+                                                                 float(n[2])),
+                          distance_m=1.5 + rng.normal(0.0, 0.02), range_m=1.5,
+                          sigma_distance_m=0.02, sigma_normal_deg=sigma)
+        out = tracker.step(i / FPS, est)
+        rejected += out.measurement is Outcome.REJECTED
+    assert tracker.resets_total == 0
+    assert rejected <= 6, rejected  # 1 % of the frames

@@ -3,8 +3,8 @@
 The state is the perpendicular distance to the net plane and the net's orientation as two angles,
 each with its rate: x = [d, d', yaw, yaw', pitch, pitch'] (metres, degrees). `yaw` is the angle
 of the net normal in the camera's x-z plane, `pitch` in the y-z plane (0, 0 = facing the net
-squarely). Angles rather than normal components keep the measurement noise (the estimator's
-`sigma_normal_deg`) directly usable and stay linear over the tilts the estimator can measure.
+squarely). Angles rather than normal components stay linear over the tilts the estimator can
+measure; their noise follows from the estimator's `sigma_normal_deg` (`angle_covariance`).
 
 Validity (what decides what the autopilot is told):
   TRACKING  this frame's measurement was accepted;
@@ -15,9 +15,12 @@ Validity (what decides what the autopilot is told):
             as that many intervals hold whatever their timing: one missed frame must not cut
             the distance of a loaded CPU that processes three frames a second, nor of one whose
             last frames were slow);
-  LOST      no track, or nothing accepted for `coast_timeout_s`.
+  LOST      no track, or nothing accepted for `coast_timeout_s` (a frame after that starts a
+            new track rather than meeting a prediction wide enough to accept anything).
 A new track starts tentative (state LOST) and becomes TRACKING after `acquire_count`
-measurements that pass the gate, so a single false detection never reaches the autopilot.
+measurements that pass the gate, so a single false detection never reaches the autopilot; a
+tentative track that meets a rejection restarts from it. A coasting prediction is not given
+after a rejected frame that put the net nearer than it (it may be too far, the dangerous way).
 """
 
 from __future__ import annotations
@@ -182,6 +185,19 @@ def normal_from_angles(yaw_deg: float, pitch_deg: float, sign: float) -> tuple[f
     return tx / norm, ty / norm, sign / norm
 
 
+def angle_covariance(yaw_deg: float, pitch_deg: float, sigma_deg: float) -> FloatArray:
+    """Covariance (deg^2) of (yaw, pitch) for a normal known to `sigma_deg` in every
+    direction across it. Each angle is the normal's tilt in one plane of the camera (tan(yaw) =
+    n_x / n_z, tan(pitch) = n_y / n_z): in the plane of the net's tilt its error is the
+    normal's, across it the error grows as 1 / cos(tilt), and the two correlate when the tilt
+    is oblique. J J^T of the angles' gradients over the unit normal, which lie across it."""
+    nx, ny, nz = normal_from_angles(yaw_deg, pitch_deg, 1.0)
+    xz = nx * nx + nz * nz
+    yz = ny * ny + nz * nz
+    return float(sigma_deg) ** 2 * np.array([[1.0 / xz, nx * ny / (xz * yz)],
+                                             [nx * ny / (xz * yz), 1.0 / yz]])
+
+
 def measurement_from_estimate(
     estimate: NetEstimate, settings: FilterSettings
 ) -> Measurement | None:
@@ -257,6 +273,8 @@ class NetTracker:
         self._frames = FrameIntervals(_INTERVAL_WINDOW, _MIN_INTERVALS)
         # Processed frames since the last accepted measurement.
         self._misses = 0
+        # A rejected frame put the net nearer than the prediction: no coasting is reported.
+        self._withdrawn = False
         self.accepted_total = 0
         self.rejected_total = 0
         self.resets_total = 0
@@ -279,6 +297,7 @@ class NetTracker:
         # (`budget.search_hz`, as slow as one frame in two seconds) must not stretch a new one.
         self._frames.clear()
         self._misses = 0
+        self._withdrawn = False
 
     # -- state, for recordings that start mid-dive ------------------------------------------
     def snapshot(self) -> dict[str, Any]:
@@ -288,7 +307,7 @@ class NetTracker:
             "has_track": self._has_track, "confirmed": self._confirmed, "hits": self._hits,
             "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
             "facing_sign": self._facing_sign, "intervals": self._frames.values(),
-            "t_frame": self._frames.last, "misses": self._misses,
+            "t_frame": self._frames.last, "misses": self._misses, "withdrawn": self._withdrawn,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -305,26 +324,31 @@ class NetTracker:
         # Absent from states saved before the coasting window followed the frame rate.
         self._frames.restore(state.get("intervals", ()), state.get("t_frame"))
         self._misses = int(state.get("misses", 0))
+        self._withdrawn = bool(state.get("withdrawn", False))
 
     # -- the filter ------------------------------------------------------------------------
     def _start(self, m: Measurement, t: float) -> None:
         s = self._settings
         self._kf.x = np.array([[m.distance_m], [0.0], [m.yaw_deg], [0.0], [m.pitch_deg], [0.0]])
-        self._kf.P = np.diag(
+        P = np.diag(
             [
                 m.sigma_distance_m**2,
                 s.initial_sigma_distance_rate**2,
-                m.sigma_angle_deg**2,
+                0.0,
                 s.initial_sigma_angle_rate**2,
-                m.sigma_angle_deg**2,
+                0.0,
                 s.initial_sigma_angle_rate**2,
             ]
         )
+        P[np.ix_([_YAW, _PITCH], [_YAW, _PITCH])] = angle_covariance(
+            m.yaw_deg, m.pitch_deg, m.sigma_angle_deg)
+        self._kf.P = P
         self._has_track = True
         self._confirmed = s.acquire_count <= 1
         self._hits = 1
         self._rejects = 0
         self._misses = 0
+        self._withdrawn = False
         self._t_accepted = t
         self._facing_sign = m.facing_sign
 
@@ -342,7 +366,9 @@ class NetTracker:
 
     def _gate(self, m: Measurement) -> tuple[FloatArray, FloatArray, float]:
         z = np.array([[m.distance_m], [m.yaw_deg], [m.pitch_deg]])
-        R = np.diag([m.sigma_distance_m**2, m.sigma_angle_deg**2, m.sigma_angle_deg**2])
+        R = np.zeros((3, 3))
+        R[0, 0] = m.sigma_distance_m**2
+        R[1:, 1:] = angle_covariance(m.yaw_deg, m.pitch_deg, m.sigma_angle_deg)
         y = z - self._H @ self._kf.x
         S = self._H @ self._kf.P @ self._H.T + R
         d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
@@ -381,6 +407,13 @@ class NetTracker:
             # track would read as TRACKING on a blank view for as long as the old stamps led.
             self.reset()
             self._t_last = None
+        if (self._has_track and self._t_accepted is not None
+                and t - self._t_accepted >= s.coast_timeout_s):
+            # The track is over before this frame is judged: its prediction has grown wide
+            # enough to let anything through the gate (a mesh harmonic after a stalled camera
+            # joined it as TRACKING), and a frame must find the track ended whether or not
+            # ticks came through the gap (a recording keeps no ticks).
+            self.reset()
         if estimate is not None:  # a processed frame (ticks and unmeasured frames are not)
             if self._has_track:
                 self._frames.add(t)
@@ -415,6 +448,7 @@ class NetTracker:
                     self._hits += 1
                     self._facing_sign = m.facing_sign
                     self._misses = 0
+                    self._withdrawn = False
                     if self._hits >= s.acquire_count:
                         self._confirmed = True
                     outcome = Outcome.ACCEPTED
@@ -423,9 +457,17 @@ class NetTracker:
                     self._rejects += 1
                     self.rejected_total += 1
                     outcome = Outcome.REJECTED
-                    if self._rejects >= s.max_consecutive_rejects:
+                    # A frame that puts the net clearly nearer than the prediction says the
+                    # prediction may be too far, the way that drives a vehicle into the net:
+                    # it is not given again until a frame confirms it. (Farther errs safe.)
+                    innovation = float(z[0, 0] - self._kf.x[_D, 0])
+                    if innovation < -math.sqrt(float(self._kf.P[_D, _D]) + R[0, 0]):
+                        self._withdrawn = True
+                    if not self._confirmed or self._rejects >= s.max_consecutive_rejects:
                         # The world moved beyond the model: start again from what is seen now,
-                        # and earn trust again before telling the autopilot anything.
+                        # and earn trust again before telling the autopilot anything. A track
+                        # not yet confirmed has no trust to keep: one false detection (a mesh
+                        # harmonic) must not hold off the net's own frames for several more.
                         self._start(m, t)
                         self._confirmed = s.acquire_count <= 1
                         self.resets_total += 1
@@ -434,9 +476,6 @@ class NetTracker:
         if estimate is not None and outcome not in (Outcome.ACCEPTED, Outcome.RESET):
             self._misses += 1
         since = None if self._t_accepted is None else t - self._t_accepted
-        if self._has_track and since is not None and since >= s.coast_timeout_s:
-            self.reset()
-            since = None
 
         if not self._has_track or not self._confirmed:
             state = TrackState.LOST
@@ -473,6 +512,7 @@ class NetTracker:
             or (
                 state is TrackState.COASTING
                 and since is not None
+                and not self._withdrawn
                 and self._coasting_reported(t, since)
             )
         )
