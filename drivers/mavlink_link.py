@@ -239,7 +239,9 @@ def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any
         device = serial_device(settings.url)
         lock_fd = _claim_serial_port(device)
         try:
-            conn = mavutil.mavlink_connection(device, baud=settings.baud, **common)
+            # Not mavlink_connection: it takes any name with a colon for UDP, and a Pi's stable
+            # names for a USB autopilot (/dev/serial/by-path/...-usb-0:1.3:1.0-port0) have them.
+            conn = mavutil.mavserial(device, baud=settings.baud, **common)
         except BaseException:
             os.close(lock_fd)
             raise

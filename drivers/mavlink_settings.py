@@ -32,6 +32,12 @@ DEFAULT_COMPONENT_ID = 197
 AUTOPILOT_RANGEFINDER_TIMEOUT_S = 0.5
 
 _URL_PATTERN = re.compile(r"^(udpout|udpin|tcp):([^:\s]+):(\d{1,5})$")
+# A serial device written with its baud rate, as pymavlink and MAVProxy take it
+# (/dev/ttyACM0:921600, /dev/serial0,921600): here the rate is mavlink.baud.
+_BAUD_SUFFIX = re.compile(r"[:,](\d{4,7})$")
+# The lowest minimum distance: "too close" goes out at the minimum, and at 0 cm an autopilot
+# whose own RNGFNDn_MIN is 0 reads it as a Good reading of 0.00 m (its test is strict).
+MIN_MIN_DISTANCE_M = 0.01
 
 
 def _is_serial_url(url: str) -> bool:
@@ -104,6 +110,10 @@ class MavlinkSettings:
         if not 0 <= self.orientation <= 40:
             self._fail("orientation", "must be a MAV_SENSOR_ORIENTATION 0..40 (0 forward, "
                        f"25 down), got {self.orientation}")
+        if math.isfinite(self.min_distance_m) and 0.0 <= self.min_distance_m < MIN_MIN_DISTANCE_M:
+            self._fail("min_distance_m", f"must be at least {MIN_MIN_DISTANCE_M} m: 'too close' "
+                       "is sent at the minimum, and at 0 the autopilot may read it as a good "
+                       f"0.00 m, got {self.min_distance_m}")
         if not (
             math.isfinite(self.min_distance_m)
             and math.isfinite(self.max_distance_m)
@@ -132,6 +142,10 @@ class MavlinkSettings:
         if _is_serial_url(self.url):
             if not serial_device(self.url).startswith("/"):
                 self._fail("url", f"serial device must be an absolute path, got {self.url!r}")
+            suffix = _BAUD_SUFFIX.search(serial_device(self.url))
+            if suffix is not None:
+                self._fail("url", f"{self.url!r} ends in a baud rate: give the device alone and "
+                           f"the rate as mavlink.baud = {suffix.group(1)}")
             return
         match = _URL_PATTERN.match(self.url)
         if match is None:

@@ -104,6 +104,12 @@ def from_link(r: Any) -> bool:
         ("url", {"url": "http://127.0.0.1:5777"}),
         ("url", {"url": "tcp:127.0.0.1"}),
         ("url", {"url": "ttyACM0"}),
+        # The baud rate belongs in mavlink.baud: these were opened as a device of that name.
+        ("url", {"url": "/dev/ttyACM0:921600"}),
+        ("url", {"url": "serial:/dev/serial0,921600"}),
+        # "Too close" goes out at the minimum: at 0 cm an autopilot whose own RNGFNDn_MIN is 0
+        # reads it as a Good reading of 0.00 m, not as out of range.
+        ("min_distance_m", {"min_distance_m": 0.0}),
         ("source_system", {"source_system": 255}),
         ("source_system", {"source_system": 0}),
         ("source_component", {"source_component": 191}),
@@ -407,6 +413,20 @@ def test_serial_link_through_a_pseudo_terminal() -> None:
         link = MavlinkLink(settings(autopilot.url, baud=57600))
         with link, feeding(link):
             sensors = autopilot.wait_for("DISTANCE_SENSOR", count=5)
+            wait_status(link, "state", "connected")
+    assert all(r.msg.current_distance == 235 for r in sensors)
+
+
+def test_a_serial_path_with_colons_is_opened_as_serial(tmp_path: Path) -> None:
+    """A Pi's stable names for a USB autopilot, /dev/serial/by-path/...-usb-0:1.3:1.0-port0,
+    hold colons, and pymavlink's URL parser takes any device with a colon for UDP
+    ("UDP ports must be specified as host:port"): no DISTANCE_SENSOR ever went out."""
+    with FakeAutopilot(PtyTransport()) as autopilot:
+        by_path = tmp_path / "platform-fd500000.pcie-pci-0000:01:00.0-usb-0:1.3:1.0-port0"
+        by_path.symlink_to(autopilot.url)
+        link = MavlinkLink(settings(f"serial:{by_path}", baud=57600))
+        with link, feeding(link):
+            sensors = autopilot.wait_for("DISTANCE_SENSOR", count=3)
             wait_status(link, "state", "connected")
     assert all(r.msg.current_distance == 235 for r in sensors)
 
