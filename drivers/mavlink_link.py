@@ -223,6 +223,16 @@ def _release_on_close(conn: Any, lock_fd: int) -> None:
     conn.close = close_and_release
 
 
+def _hint(message: str) -> str:
+    """What to do about a failure whose cause is not in its message."""
+    if "Operation not permitted" in message:
+        # systemd resolves the unit's DeviceAllow= classes when it starts; a device of a class
+        # whose driver loaded later stays refused until the service starts again.
+        return (" - a device the service could not reach when it started: "
+                "`systemctl restart netpose`")
+    return ""
+
+
 def open_connection(settings: MavlinkSettings, signing_key: bytes | None) -> Any:
     """Open a pymavlink connection whose failures raise instead of printing and retrying.
 
@@ -308,6 +318,7 @@ class MavlinkLink(AutopilotLink):
         self._received = 0
         self._errors = 0
         self._last_error: str | None = None
+        self._outage_reason = ""  # the failure last logged in the current outage
         self._reconnects = 0
         self._sending_distance = False
         self._sending_net_plane = False
@@ -442,14 +453,22 @@ class MavlinkLink(AutopilotLink):
             # the heartbeat timeout must not log a second time.
             self._autopilot_alive = False
         if first:
-            # Once per outage; the retries that follow are only at DEBUG level.
+            # Once per outage and reason; the retries that follow are only at DEBUG level.
+            self._outage_reason = message
             log.warning(
-                "MAVLink link %s %s (%s); retrying with backoff up to %.1f s",
+                "MAVLink link %s %s (%s)%s; retrying with backoff up to %.1f s",
                 self._url,
                 "lost" if was_up else "unavailable",
                 message,
+                _hint(message),
                 self.settings.retry_max_s,
             )
+        elif message != self._outage_reason:
+            # The fault changed under the same outage (the device appeared, and its open now
+            # fails another way): the journal must not keep showing the first reason.
+            self._outage_reason = message
+            log.warning("MAVLink link %s still down, now: %s%s", self._url, message,
+                        _hint(message))
         else:
             log.debug("MAVLink link %s attempt %d failed: %s", self._url, attempts, message)
 

@@ -431,7 +431,7 @@ def test_a_serial_path_with_colons_is_opened_as_serial(tmp_path: Path) -> None:
     assert all(r.msg.current_distance == 235 for r in sensors)
 
 
-def test_unplugged_serial_device_is_retried_and_logged_once(
+def test_unplugged_serial_device_is_retried_and_logged_once_per_reason(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
@@ -449,8 +449,33 @@ def test_unplugged_serial_device_is_retried_and_logged_once(
         status = link.status()
     assert status.state == "lost" and status.errors >= 3
     assert f"cannot open {autopilot.url}: No such file" in status.last_error
-    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
-    assert len(warnings) == 1 and "lost" in warnings[0].getMessage()
+    # Once per reason, not per retry: the loss, then why it cannot open again.
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 2 and "lost" in warnings[0], warnings
+    assert "still down, now" in warnings[1] and "No such file" in warnings[1]
+
+
+def test_a_new_reason_for_the_same_outage_is_logged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Only the first failure of an outage was logged: when the reason then changed (the
+    device appeared, but the unit's sandbox refused it), the journal still said "No such file
+    or directory" and nothing pointed at the real fault. Each new reason is logged once."""
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
+    device = tmp_path / "ttyACM0"
+    link = MavlinkLink(settings(f"serial:{device}"))
+    with link:
+        deadline = time.monotonic() + 5.0
+        while link.status().errors < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        device.mkdir()  # now it exists, and opening it fails another way
+        while "Is a directory" not in link.status().last_error and time.monotonic() < deadline:
+            time.sleep(0.02)
+        while link.status().errors < 6 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 2, warnings
+    assert "No such file" in warnings[0] and "Is a directory" in warnings[1]
 
 
 def test_udpin_answers_the_autopilot() -> None:

@@ -89,3 +89,44 @@ def test_the_daemon_runs_under_the_units_memory_and_syscall_rules() -> None:
     # found and tracked.
     assert "net acquired" in proc.stderr
     assert "stopped cleanly" in proc.stderr
+
+
+# Device classes the unit allows whose kernel driver is a module loaded when the first such
+# device appears, and that module.
+_LATE_DRIVERS = {"ttyACM": "cdc_acm", "ttyUSB": "usbserial", "video4linux": "videodev"}
+
+
+def _unit_values(key: str) -> list[str]:
+    values = []
+    for line in (REPO / "systemd" / "netpose.service").read_text().splitlines():
+        name, _, value = line.partition("=")
+        if name.strip() == key:
+            values += value.split()
+    return values
+
+
+def test_device_classes_whose_driver_loads_late_are_loaded_before_the_unit_starts() -> None:
+    """systemd resolves DeviceAllow=char-NAME when the unit starts, and drops a name the kernel
+    does not know yet: on a Pi whose autopilot is plugged in after boot, cdc_acm was not loaded
+    then, and every open of /dev/ttyACM0 failed with EPERM until the service was restarted by
+    hand. modprobe@MODULE.service loads the driver first (a built-in one is no error)."""
+    allowed = {v.removeprefix("char-") for v in _unit_values("DeviceAllow") if v != "rw"}
+    wants, after = set(_unit_values("Wants")), set(_unit_values("After"))
+    for device_class, module in _LATE_DRIVERS.items():
+        assert device_class in allowed
+        assert f"modprobe@{module}.service" in wants, module
+        assert f"modprobe@{module}.service" in after, module
+
+
+@pytest.mark.skipif(not Path("/usr/bin/systemd-analyze").exists(),
+                    reason="systemd-analyze not installed")
+def test_the_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
+    unit = tmp_path / "netpose.service"
+    # ExecStart's binary must exist for verify: the installed path, pointed at this venv's.
+    unit.write_text((REPO / "systemd" / "netpose.service").read_text().replace(
+        "/opt/netpose/venv/bin/netpose", str(Path(sys.executable).parent / "netpose")))
+    result = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True,
+                            text=True, timeout=60)
+    problems = [line for line in (result.stdout + result.stderr).splitlines()
+                if "netpose.service" in line]
+    assert result.returncode == 0 and not problems, result.stdout + result.stderr
