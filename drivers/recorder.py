@@ -31,7 +31,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import re
 import shutil
 import threading
@@ -50,6 +49,7 @@ from drivers.errors import DriverError
 from drivers.lifecycle import Closeable
 from service import __version__
 from service.core.camera import CameraModel, save_camera
+from service.core.files import write_atomically
 from service.core.messages import DamageMessage, EstimateMessage, StatusMessage, to_json
 
 log = logging.getLogger(__name__)
@@ -453,6 +453,5 @@ class Recorder(Closeable):
                      "opening_angle_deg": setup.mesh_opening_angle_deg},
             "image": "8-bit grey PNG, the estimator's input",
         }
-        tmp = session.folder / (MANIFEST + ".tmp")
-        tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-        os.replace(tmp, session.folder / MANIFEST)
+        write_atomically(session.folder / MANIFEST,
+                         (json.dumps(manifest, indent=1) + "\n").encode("utf-8"))

@@ -8,10 +8,10 @@ JSON lines, plot distance and confidence over time, or ask the vehicle's queryab
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import logging
 import math
-import os
 import queue
 import sys
 import threading
@@ -26,6 +26,7 @@ import zenoh
 from drivers.telemetry import TelemetrySettings, build_zenoh_config, zenoh_error_text
 from service.core.backoff import Backoff
 from service.core.errors import ConfigError, NetposeError
+from service.core.files import write_atomically
 from service.core.messages import ESTIMATE_SUFFIX, STATE_SUFFIX
 from service.signals import SignalFlags, handle_signals
 from service.tools.monitor_view import MonitorState, Received
@@ -251,14 +252,12 @@ def _handle(
     if plot is not None and received.kind == ESTIMATE_SUFFIX and received.payload is not None:
         plot.add(recv_mono, received)
     if preview_path is not None and received.kind == "preview":
-        _write_atomically(preview_path, data)
+        _write_preview(preview_path, data)
 
 
-def _write_atomically(path: Path, data: bytes) -> None:
-    temporary = path.with_name(path.name + ".tmp")
+def _write_preview(path: Path, data: bytes) -> None:
     try:
-        temporary.write_bytes(data)
-        os.replace(temporary, path)
+        write_atomically(path, data, durable=False)  # a viewer's picture, not a record
     except OSError as exc:
         log.warning("cannot write preview %s: %s", path, exc)
 
@@ -350,10 +349,10 @@ class LivePlot:
         ax.grid(True, alpha=0.3)
         self.figure.tight_layout()
         if self.png is not None:
-            temporary = self.png.with_name(self.png.name + ".tmp.png")
             try:
-                self.figure.savefig(temporary)
-                os.replace(temporary, self.png)
+                image = io.BytesIO()
+                self.figure.savefig(image, format="png")
+                write_atomically(self.png, image.getvalue(), durable=False)
             except OSError as exc:  # a full disk must not end the pilot's topside view
                 if not self._write_failed:
                     log.warning("--plot-png %s: %s; the plot is not updated", self.png,

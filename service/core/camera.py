@@ -19,6 +19,7 @@ import numpy.typing as npt
 import yaml
 
 from service.core.errors import CalibrationError
+from service.core.files import write_atomically
 
 FloatArray = npt.NDArray[np.float64]
 # How far a frame may be from the calibrated size scaled and still count as that size
@@ -400,7 +401,5 @@ def check_invertible(camera: CameraModel, path: Path) -> None:
 
 def save_camera(camera: CameraModel, path: str | Path) -> None:
     """Write a calibration in the ROS camera_info YAML layout."""
-    Path(path).write_text(
-        yaml.safe_dump(camera.to_ros_dict(), sort_keys=False, default_flow_style=None),
-        encoding="utf-8",
-    )
+    write_atomically(path, yaml.safe_dump(camera.to_ros_dict(), sort_keys=False,
+                                          default_flow_style=None).encode("utf-8"))

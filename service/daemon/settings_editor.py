@@ -19,7 +19,6 @@ import dataclasses
 import hashlib
 import logging
 import os
-import shutil
 import threading
 import types
 import typing
@@ -32,6 +31,7 @@ from tomlkit.items import Table
 
 from service.config import Config
 from service.core.errors import CalibrationError, ConfigError
+from service.core.files import write_atomically
 from service.core.redact import REDACTED, redact_config
 from service.daemon.loop import ReloadOutcome
 
@@ -203,14 +203,7 @@ class SettingsEditor:
             if new_text == old_text:
                 return {"saved": False, "message": "nothing to change", "changed": [],
                         "restart_needed": sorted(self.restart_pending)}
-            candidate = self.path.with_name(f".{self.path.name}.new")
-            candidate.write_text(new_text, encoding="utf-8")
-            try:
-                self._validate(candidate)
-                shutil.copymode(self.path, candidate)
-                os.replace(candidate, self.path)
-            finally:
-                candidate.unlink(missing_ok=True)
+            write_atomically(self.path, new_text.encode("utf-8"), check=self._validate)
             log.info("configuration changed from the web page: %s",
                      ", ".join(sorted(changes)))
             outcome = self._reload()
@@ -235,7 +228,7 @@ class SettingsEditor:
         target = self.path.parent / f"calibration-{digest}{path.suffix.lower()}"
         created = not target.exists()
         if created:
-            shutil.copyfile(path, target)
+            write_atomically(target, path.read_bytes())
         try:
             return self.apply({"camera.calibration": target.name})
         except ConfigError:

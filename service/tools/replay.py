@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.errors import NetposeError
+from service.core.files import write_atomically
 from service.core.messages import json_value
 from service.core.results import NetEstimate, RoiResult
 from service.core.tracking import TrackOutput
@@ -688,10 +689,7 @@ class ReplayStats:
 
 def write_json(path: str | Path, document: Mapping[str, Any]) -> None:
     """Write JSON atomically (temporary file, then rename): never half a file."""
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(document, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    tmp.replace(p)
+    write_atomically(path, (json.dumps(document, indent=2, allow_nan=False) + "\n").encode())
 
 
 # -- plots ------------------------------------------------------------------------------------

@@ -1,0 +1,56 @@
+"""Writing a file that must survive a power cut, whole or not at all.
+
+A vehicle's power is cut at the end of every dive, often within seconds of a change made from
+the web page. A file written in place can be left half written; one renamed over the old can
+be left empty, pointing nothing at the data that never reached the card (ext4 usually saves
+the rename-over case, nothing guarantees it). So the new content goes to a temporary file
+beside the target, is flushed to the card, renamed over the target, and the rename itself is
+flushed with the folder. After a cut the target is the old file or the new one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+
+def write_atomically(path: str | Path, data: bytes, *,
+                     check: Callable[[Path], object] | None = None, durable: bool = True) -> None:
+    """Replace `path` with `data`: whole or not at all, on the card when this returns.
+
+    `check` sees the new file (beside the target) before it replaces anything; an exception
+    from it leaves the target as it was. An existing target's permissions are kept. `durable`
+    False skips the flushes, for files that only a viewer reads (a preview image).
+    """
+    target = Path(path)
+    temporary = target.with_name(f".{target.name}.new")
+    try:
+        with open(temporary, "wb") as out:
+            out.write(data)
+            out.flush()
+            if durable:
+                os.fsync(out.fileno())
+        if check is not None:
+            check(temporary)
+        if target.exists():
+            shutil.copymode(target, temporary)
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)
+    if durable:
+        _sync_folder(target.parent)
+
+
+def _sync_folder(folder: Path) -> None:
+    # A folder cannot be opened for writing; read-only is what fsync of a directory needs.
+    # Some filesystems (a FAT card, a network share) refuse it: the rename is then as durable
+    # as they make it.
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        with contextlib.suppress(OSError):
+            os.fsync(fd)
+    finally:
+        os.close(fd)
