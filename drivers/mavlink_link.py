@@ -526,6 +526,10 @@ class MavlinkLink(AutopilotLink):
                     break
                 self._handle(msg, self._clock())
             self._check_signatures(conn)
+        # Stopping: a text still queued (the hole the daemon confirmed in its last frames,
+        # flushed as it closes) goes now, or never.
+        with contextlib.suppress(Exception):
+            self._send_texts(conn)
 
     def _check_signatures(self, conn: Any) -> None:
         """An autopilot that signs with another key rejects every message netpose signs, while

@@ -249,7 +249,7 @@ class Pipeline:
                                               measured.estimate_ms)
             except Exception as exc:  # inspection must never cost the distance
                 log.debug("net inspection crashed on frame %d", measured.index, exc_info=True)
-                damage = DamageReport(False, f"inspection failed: {type(exc).__name__}: {exc}")
+                damage = DamageReport(False, f"{type(exc).__name__}: {exc}", failed=True)
         return replace(measured, damage=damage)
 
     def skip(self, t: float, index: int, why: str) -> PipelineResult:

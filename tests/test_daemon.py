@@ -29,6 +29,7 @@ from drivers.sdnotify import RecordingNotifier
 from drivers.sources import Frame, SourceState, create_source
 from drivers.sources.synthetic import builtin_camera
 from drivers.telemetry import RecordingPublisher, TelemetrySettings, make_publisher
+from service.core import files
 from service.core.camera import save_camera
 from service.core.readings import RangeStatus
 from service.daemon.loop import Daemon, DaemonParts
@@ -944,6 +945,7 @@ def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
 
     monkeypatch.setattr(Path, "write_bytes", read_only)
     monkeypatch.setattr(Path, "write_text", read_only)
+    monkeypatch.setattr(files, "open", read_only, raising=False)  # the atomic writes' open()
     h.run_script()
     deadline = time.monotonic() + 10.0
     while recorder.status().active and time.monotonic() < deadline:
@@ -1147,3 +1149,45 @@ def test_one_missed_frame_while_tracking_defers_the_whole_frame_search() -> None
     # The work done, counted in ROI spectra rather than timed: the search did several times
     # the deferred miss's.
     assert sum(searched.fft_counts.values()) >= 2 * sum(missed.fft_counts.values())
+
+
+def test_a_net_inspection_that_fails_is_said_once_and_the_distance_goes_on(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """An inspector that raised on every frame (a bug in the hole detector) left a debug line
+    only: hole detection could be dead for a whole dive with nobody told. It is a warning, once,
+    and the distance is not affected."""
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    h = make_harness(demo_config("damage.enabled=true"), steps(frames[:25]))
+    inspector = h.daemon.pipeline.inspector
+    assert inspector is not None
+
+    def broken(*args: Any, **kwargs: Any) -> Any:
+        raise IndexError("index 7 is out of bounds for axis 0 with size 7")
+
+    inspector.detector.inspect = broken  # type: ignore[method-assign]
+    h.run_script()
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    failed = [m for m in warnings if "inspection" in m]
+    assert len(failed) == 1 and "IndexError" in failed[0], warnings
+    assert sum(r.status is RangeStatus.GOOD for r in h.link.ranges) >= 15
+
+
+def test_a_failure_withdrawing_the_distance_on_stop_still_closes_everything(
+    frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """The last steps of a stop (withdraw the distance, flush a hole's text) ran before the
+    closers' guard: one that raised left the recorder unfinished (its recording listed as
+    interrupted), telemetry, the link and the camera open."""
+    observer = RecordingObserver()
+    h = make_harness(demo_config(), steps(frames[:5]), observers=(observer,))
+    h.run_script()
+
+    def refuse(*_args: Any) -> None:
+        raise OSError("link gone")
+
+    h.link.set_range = refuse  # type: ignore[method-assign, assignment]
+    with caplog.at_level(logging.ERROR, logger="netpose.daemon"):
+        h.daemon.close()
+    assert observer.closed and h.source.closed and h.telemetry.closed
+    assert any("closing the distance failed" in r.getMessage() for r in caplog.records)

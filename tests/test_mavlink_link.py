@@ -820,6 +820,19 @@ def test_pilot_notices_go_out_as_statustext_in_order() -> None:
     assert link.status().sent["STATUSTEXT"] == 2
 
 
+def test_a_pilot_notice_queued_as_the_service_stops_still_goes_out() -> None:
+    """The daemon's close flushes the last hole's text to the link, then closes the link at
+    once: texts went out only on the link's 10 Hz schedule, so that one was lost."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url, rate_hz=4.0))
+        with link:
+            autopilot.wait_for("HEARTBEAT", count=1, where=from_link)
+            time.sleep(0.05)  # just after a scheduled turn: the next is 0.2 s away
+            link.notify_pilot("netpose: hole 1 ~6x4 cm ahead at 1.1 m")
+        texts = autopilot.wait_for("STATUSTEXT", count=1)
+    assert texts[0].msg.text == "netpose: hole 1 ~6x4 cm ahead at 1.1 m"
+
+
 def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
     """So the net-hold applet stops on the first frame without the net, not at its timeout."""
     with FakeAutopilot(UdpServerTransport()) as autopilot:

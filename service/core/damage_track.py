@@ -331,6 +331,7 @@ class DamageReport:
     confirmed: tuple[ConfirmedHole, ...] = ()  # holes confirmed by this frame
     tracks: tuple[TrackView, ...] = ()  # candidates being followed (confirmed or not)
     inspect_ms: float = 0.0
+    failed: bool = False  # the inspection raised (a bug): `reason` says what
 
 
 class NetInspector:

@@ -281,10 +281,13 @@ class Daemon:
         if self._closed:
             return
         self._closed = True
-        parts.link.set_range(RangeReading.none(self.clock()))
-        if self.outputs.damage is not None:
-            self.outputs.damage.notices.flush(self.clock())  # a hole's text still waiting
-        closers = [(type(o).__name__, o.close) for o in parts.observers]
+        # Each step on its own: one that raises must not leave a recording unfinished or a
+        # port open.
+        closers = [("distance", lambda: parts.link.set_range(RangeReading.none(self.clock())))]
+        damage = self.outputs.damage
+        if damage is not None:  # a hole's text still waiting goes before the link closes
+            closers.append(("pilot notices", lambda: damage.notices.flush(self.clock())))
+        closers += [(type(o).__name__, o.close) for o in parts.observers]
         closers += [("telemetry", parts.telemetry.close), ("MAVLink link", parts.link.close),
                     ("frame source", parts.source.close)]
         for name, closer in closers:
@@ -319,6 +322,13 @@ class Daemon:
         elif result.estimate is not None:
             self.problems.cleared("estimator-input", "estimator accepts frames again")
             self.problems.cleared("estimator-crash", "estimator works again")
+        if result.damage is not None and result.damage.failed:
+            # A bug in the hole detector: the distance goes on, but nobody would know that
+            # inspection is dead for the dive (its traceback is at DEBUG level).
+            self.problems.problem("inspection-crash", "net inspection failed on a frame: %s "
+                                  "(the distance is not affected)", result.damage.reason)
+        elif result.damage is not None and result.damage.inspected:
+            self.problems.cleared("inspection-crash", "net inspection works again")
 
     # -- reload ----------------------------------------------------------------------------
     def reload(self) -> bool:
