@@ -53,15 +53,18 @@ def test_estimate_says_net_seen_for_a_frame_too_uncertain_for_a_distance() -> No
     folder = shared_data_dir() / "real-field" / "sequence_2024-08-22_142905"
     if not folder.is_dir():
         pytest.skip(f"real-field data set not found at {folder.parent}")
+    # Which few frames are measured differs between numeric stacks (OpenCV 4.6 and 5 decode
+    # these frames a grey level apart): one of these is on each.
+    measured = ("003.png", "032.png")
     done = subprocess.run(
         [sys.executable, "-m", "service.cli", "estimate", "-c", str(folder / "camera.yaml"),
-         "--mesh-size", "0.0275", str(folder / "038.png"), str(folder / "032.png")],
+         "--mesh-size", "0.0275", str(folder / "038.png"), *(str(folder / m) for m in measured)],
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert done.returncode == 0, done.stderr
-    seen, measured = done.stdout.splitlines()
+    seen, *others = done.stdout.splitlines()
     assert "038.png: net seen, ~0." in seen and "no distance (plane too uncertain" in seen
-    assert "032.png: net detected" in measured
+    assert any(f"{m}: net detected" in line for m, line in zip(measured, others, strict=True))
 
 
 def test_estimate_reads_the_images_of_a_folder_in_name_order(tmp_path: Path) -> None:
