@@ -135,9 +135,10 @@ def test_a_recorded_source_needs_allow_simulated_to_start(tmp_path: Path, url: s
     """A recording played as the camera (a dive video, a folder of stills, a netpose
     recording) is not what the vehicle sees now: its distances would steer a real vehicle by a
     net that is somewhere else. Like a rendered source, it starts only where the configuration
-    says so (a bench test, SITL); the check needs no file to be there."""
+    says so (a bench test, SITL)."""
     camera = tmp_path / "camera.yaml"
     save_camera(builtin_camera(640, 360), camera)
+    (tmp_path / "dive.avi").write_bytes(b"")  # there (not opened by the check)
     overrides = [f"camera.url={url.format(folder=tmp_path)}", f"camera.calibration={camera}"]
     with pytest.raises(ConfigError) as info:
         build_parts(demo_config(*overrides, "mavlink.allow_simulated=false"), NullNotifier())
@@ -146,6 +147,45 @@ def test_a_recorded_source_needs_allow_simulated_to_start(tmp_path: Path, url: s
     assert source.recorded and not source.rendered
     assert not build_source(demo_config("camera.url=rtsp://127.0.0.1:8554/x")).recorded
     assert not build_source(demo_config()).recorded  # rendered, not recorded
+
+
+@pytest.mark.parametrize("allow", [False, True])
+@pytest.mark.parametrize("url", ["/dev/vide0", "rtsp//typo:8554/cam", "file:{folder}/dive.avi",
+                                 "images:{folder}/stills"])
+def test_a_recorded_source_that_is_not_there_is_a_camera_url_error(
+    tmp_path: Path, url: str, allow: bool
+) -> None:
+    """A mistyped camera path was refused as "mavlink.allow_simulated: camera.url plays
+    recorded frames" (the key to fix is camera.url), and where the configuration allows
+    recorded frames --check said OK and the service retried "no such file" for ever."""
+    camera = tmp_path / "camera.yaml"
+    save_camera(builtin_camera(640, 360), camera)
+    config = demo_config(f"camera.url={url.format(folder=tmp_path)}",
+                         f"camera.calibration={camera}",
+                         f"mavlink.allow_simulated={str(allow).lower()}")
+    with pytest.raises(ConfigError) as info:
+        build_parts(config, NullNotifier())
+    assert info.value.key == "camera.url" and "no such file" in info.value.problem
+    if url.startswith("/dev/"):
+        assert "/dev/videoN" in info.value.problem
+
+
+def test_a_recorded_source_is_found_beside_the_configuration(tmp_path: Path) -> None:
+    """Like camera.calibration: the service runs in /var/lib/netpose, its configuration and
+    the dive video it names in /etc/netpose."""
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    (folder / "dive.avi").write_bytes(b"")
+    config = folder / "netpose.toml"
+    config.write_text(DEMO.read_text())
+    source = build_source(load_daemon_config(str(config), ["camera.url=dive.avi"]))
+    assert source.recorded and getattr(source, "path", None) == folder / "dive.avi"
+
+
+def test_a_bare_camera_index_is_a_camera() -> None:
+    """OpenCV's habit: camera.url = "0" is the first camera, not a video file named 0."""
+    source = build_source(demo_config("camera.url='0'"))
+    assert not source.recorded and not source.rendered
 
 
 def test_files_a_configuration_names_are_found_beside_it(tmp_path: Path) -> None:

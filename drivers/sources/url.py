@@ -154,8 +154,8 @@ def _bare_path(text: str) -> SourceUrl:
                 else f"netpose's own are {', '.join(f'{s}:' for s in OWN_SCHEMES)} and sdp:; "
                 "network streams are rtsp://, udp://, ...")
         raise url_error(text, f"unknown scheme {name + ':'!r} ({hint})")
-    if path.startswith("/dev/video") or path.startswith("/dev/v4l/"):
-        scheme = "v4l2"
+    if path.startswith("/dev/video") or path.startswith("/dev/v4l/") or path.isdigit():
+        scheme = "v4l2"  # a bare number is a camera index, as OpenCV takes it
     elif Path(path).is_dir() and (Path(path) / "recording.json").is_file():
         scheme = "recording"  # a folder written by drivers/recorder.py
     elif Path(path).is_dir():

@@ -10,6 +10,7 @@ import ctypes
 import dataclasses
 import logging
 import os
+import re
 import sys
 import threading
 import time
@@ -24,6 +25,7 @@ from drivers.recorder import Recorder, RecordingSetup
 from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
 from drivers.sources import SourceOptions, create_source
+from drivers.sources.url import is_network_url, parse_source_url
 from drivers.telemetry import TelemetrySettings, make_publisher
 from drivers.web import WebSettings
 from service.config import Config, load_config
@@ -79,7 +81,31 @@ def build_source(config: Config) -> DriverFrameSource:
     # A live source that delivers nothing for stale_after_s is re-opened by the source itself.
     options = SourceOptions(stall_timeout_s=config.camera.stale_after_s, wait_at_start=True,
                             realtime_default=True)
-    return create_source(config.camera.url, options)
+    return create_source(_source_url(config), options)
+
+
+def _source_url(config: Config) -> str:
+    """camera.url, with a recorded source (a video file, a folder of stills, a recording)
+    found beside the configuration like every file it names, and refused when it is not there:
+    a mistyped path was otherwise refused for the wrong key (mavlink.allow_simulated) or, where
+    recorded frames are allowed, retried as "no such file" for ever. A camera or a stream may
+    appear after the service starts; a file does not."""
+    text = config.camera.url.strip()
+    if text.startswith("sdp:") or is_network_url(text):
+        return text
+    parsed = parse_source_url(text)
+    if parsed.scheme not in ("file", "images", "recording"):
+        return text
+    path = config.file_path(parsed.path)
+    if not path.exists():
+        hint = ""
+        if parsed.path.startswith("/dev/"):
+            hint = " (a camera is /dev/videoN, or /dev/v4l/by-id/... which keeps its name)"
+        elif re.match(r"^[A-Za-z][A-Za-z0-9+.-]*//", parsed.path):
+            hint = " (a network stream is scheme://host..., with the colon)"
+        raise ConfigError("camera.url", f"no such file or folder: {path}{hint}")
+    query = text.partition("?")[2]
+    return f"{parsed.scheme}:{path}" + (f"?{query}" if query else "")
 
 
 def check_simulated(config: Config, source: DriverFrameSource) -> None:
