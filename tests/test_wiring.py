@@ -180,6 +180,9 @@ def test_a_recorded_source_is_found_beside_the_configuration(tmp_path: Path) -> 
     config.write_text(DEMO.read_text())
     source = build_source(load_daemon_config(str(config), ["camera.url=dive.avi"]))
     assert source.recorded and getattr(source, "path", None) == folder / "dive.avi"
+    (folder / "stills").mkdir()
+    globbed = build_source(load_daemon_config(str(config), ["camera.url='images:stills/*.png'"]))
+    assert globbed.recorded
 
 
 def test_a_bare_camera_index_is_a_camera() -> None:

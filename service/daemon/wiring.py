@@ -97,7 +97,9 @@ def _source_url(config: Config) -> str:
     if parsed.scheme not in ("file", "images", "recording"):
         return text
     path = config.file_path(parsed.path)
-    if not path.exists():
+    # images: takes a glob too (frames/*.png): its folder must be there.
+    there = path.parent if any(c in path.name for c in "*?[") else path
+    if not there.exists():
         hint = ""
         if parsed.path.startswith("/dev/"):
             hint = " (a camera is /dev/videoN, or /dev/v4l/by-id/... which keeps its name)"
