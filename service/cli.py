@@ -99,6 +99,41 @@ SINGLE_THREADED_NUMERICS = MappingProxyType({"OPENBLAS_NUM_THREADS": "1", "OMP_N
 QUIET_OPENCV = MappingProxyType({"OPENCV_LOG_LEVEL": "ERROR"})
 
 
+CONSOLE_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+# The journal stamps each line itself, and reads a leading <N> as its syslog priority.
+JOURNAL_FORMAT = "%(levelname)s %(name)s: %(message)s"
+
+
+class _JournalFormatter(logging.Formatter):
+    """Each line prefixed with its syslog priority, so `journalctl -p warning` finds it (every
+    line of a stream without one is priority info)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.levelno >= logging.CRITICAL:
+            priority = 2
+        elif record.levelno >= logging.ERROR:
+            priority = 3
+        elif record.levelno >= logging.WARNING:
+            priority = 4
+        elif record.levelno >= logging.INFO:
+            priority = 6
+        else:
+            priority = 7
+        # A traceback's lines are one record: each line gets the priority.
+        return "\n".join(f"<{priority}>{line}" for line in super().format(record).split("\n"))
+
+
+def _stderr_is_the_journal() -> bool:
+    """systemd names the stream it connected stderr to in JOURNAL_STREAM (device:inode); a
+    child's stderr redirected elsewhere no longer matches it."""
+    stream = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        st = os.fstat(sys.stderr.fileno())
+    except (OSError, ValueError, AttributeError):
+        return False
+    return stream == f"{st.st_dev}:{st.st_ino}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # Before the command's module imports numpy and OpenCV; a value set by the user wins.
     for name, value in (*SINGLE_THREADED_NUMERICS.items(), *QUIET_OPENCV.items()):
@@ -109,10 +144,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     args.early_signals = early
+    journal = _stderr_is_the_journal()
     logging.basicConfig(
         level=getattr(logging, args.log_level or "INFO"),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        format=JOURNAL_FORMAT if journal else CONSOLE_FORMAT,
     )
+    if journal:
+        for handler_ in logging.getLogger().handlers:
+            handler_.setFormatter(_JournalFormatter(JOURNAL_FORMAT))
     # pymavlink says "sig mismatch" at INFO for every message signed with another key (tens a
     # second from an autopilot): the link says it once (drivers/mavlink_link.py).
     logging.getLogger("pymavlink").setLevel(logging.WARNING)
@@ -120,16 +159,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if handler is None:  # no command: a command-line mistake too
         parser.print_help()
         return EXIT_CONFIG
+    err = "<3>" if journal else ""  # the service's last line: an error in the journal too
     try:
         return handler(args)
     except ConfigError as exc:
-        print(f"netpose: configuration error: {exc}", file=sys.stderr)
+        print(f"{err}netpose: configuration error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     except CalibrationError as exc:
-        print(f"netpose: calibration error: {exc}", file=sys.stderr)
+        print(f"{err}netpose: calibration error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     except NetposeError as exc:
-        print(f"netpose: error: {exc}", file=sys.stderr)
+        print(f"{err}netpose: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

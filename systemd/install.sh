@@ -21,6 +21,7 @@
 #     (78 for a configuration error, as the service would).
 #
 # Variables: PREFIX (/opt/netpose), CONF_DIR (/etc/netpose), UNIT_DIR (/etc/systemd/system),
+# BIN_DIR (/usr/local/bin: the `netpose` command, a link into the venv),
 # PROFILE (raspberrypi), CONFIG (a file to install instead of the profile: relative to this
 # checkout, or absolute), PYTHON (python3), START (0).
 #
@@ -31,6 +32,7 @@ SRC_DIR=$(CDPATH= cd -- "$(dirname -- "$0")/.." && pwd)
 PREFIX=${PREFIX:-/opt/netpose}
 CONF_DIR=${CONF_DIR:-/etc/netpose}
 UNIT_DIR=${UNIT_DIR:-/etc/systemd/system}
+BIN_DIR=${BIN_DIR:-/usr/local/bin}
 PROFILE=${PROFILE:-raspberrypi}
 CONFIG=${CONFIG:-config/$PROFILE.toml}
 PYTHON=${PYTHON:-python3}
@@ -112,6 +114,10 @@ fi
 if ! "$PREFIX/venv/bin/python" -c "import cv2" 2>/dev/null; then
     "$PREFIX/venv/bin/python" -m pip install --quiet "opencv-python-headless>=4.6"
 fi
+# `sudo netpose mavlink-check ...` as the docs write it: the command on PATH, a link that an
+# upgrade keeps pointing at the venv.
+install -d -m 0755 "$BIN_DIR"
+ln -sfn "$PREFIX/venv/bin/netpose" "$BIN_DIR/netpose"
 
 echo "netpose: configuration in $CONF_DIR"
 install -d -m 0750 -o root -g "$SERVICE_USER" "$CONF_DIR"

@@ -7,6 +7,7 @@ whole command group with a TypeError; nothing but formatting every parser finds 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import subprocess
 import sys
@@ -15,6 +16,8 @@ from pathlib import Path
 import pytest
 
 from service.cli import COMMANDS, build_parser
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _all_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
@@ -329,3 +332,36 @@ def test_the_service_keeps_its_traceback_for_an_os_error(monkeypatch: pytest.Mon
     finally:
         for sig, handler in before.items():
             signal.signal(sig, handler)
+
+
+def _warn_once(tmp_path: Path, env: dict[str, str], stderr_file: Path) -> str:
+    """`run --check` with a world-readable signing key: a WARNING, then "configuration OK"."""
+    key = tmp_path / "mav.key"
+    key.write_text("00" * 32)
+    key.chmod(0o644)
+    with open(stderr_file, "w") as err:
+        stat = os.fstat(err.fileno())
+        env = {**env, **({"JOURNAL_STREAM": f"{stat.st_dev}:{stat.st_ino}"}
+                         if "JOURNAL_STREAM" in env else {})}
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli", "run", "--config", str(REPO / "config" /
+                                                                           "demo.toml"),
+             "--check", "--set", f"mavlink.signing_key_file={key}"],
+            stdout=subprocess.PIPE, stderr=err, text=True, timeout=60, env=env, check=False)
+    assert done.returncode == 0, stderr_file.read_text()
+    return stderr_file.read_text()
+
+
+def test_log_lines_carry_their_priority_for_the_journal(tmp_path: Path) -> None:
+    """Under systemd every line went to the journal as priority info (`journalctl -u netpose
+    -p warning` showed nothing), with a second timestamp beside the journal's own. With stderr
+    connected to the journal (JOURNAL_STREAM names it), each line starts with its syslog
+    priority (<4> a warning) and no timestamp; elsewhere lines keep their timestamp."""
+    env = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}
+    journal = _warn_once(tmp_path, {**env, "JOURNAL_STREAM": ""}, tmp_path / "journal.txt")
+    line = next(x for x in journal.splitlines() if "readable by every user" in x)
+    assert line.startswith("<4>"), line
+    assert not any(ch.isdigit() for ch in line[3:7]), line  # no date first
+    console = _warn_once(tmp_path, env, tmp_path / "console.txt")
+    line = next(x for x in console.splitlines() if "readable by every user" in x)
+    assert line[:4].isdigit() and "WARNING" in line, line

@@ -78,7 +78,8 @@ def make_sandbox(root: Path) -> Sandbox:
     sandbox.env = {
         **os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
         "PREFIX": str(sandbox.prefix), "CONF_DIR": str(sandbox.conf_dir),
-        "UNIT_DIR": str(sandbox.unit_dir), "SANDBOX_LOG": str(sandbox.log),
+        "UNIT_DIR": str(sandbox.unit_dir), "BIN_DIR": str(root / "usr-local-bin"),
+        "SANDBOX_LOG": str(sandbox.log),
         "SANDBOX_UNIT_ACTIVE": "0",
     }
     return sandbox
@@ -155,6 +156,10 @@ def test_an_upgrade_with_a_valid_configuration_restarts_the_running_service(
     assert done.returncode == 0, done.stdout + done.stderr
     assert "upgraded and restarted" in done.stdout
     assert "systemctl restart netpose.service" in sandbox.calls()
+    # The command the docs write (`sudo netpose mavlink-check ...`) is on PATH, into the venv.
+    command = sandbox.root / "usr-local-bin" / "netpose"
+    assert command.is_symlink() and command.resolve() == (sandbox.prefix / "venv" / "bin" /
+                                                          "netpose").resolve()
 
 
 # What pip and the build backend bring into a venv; the sandbox's venv keeps its own.
