@@ -31,6 +31,8 @@ RANGEFINDER_INSTANCES = tuple("123456789A")
 # ArduSub 4.5 names the limits in cm (RNGFNDn_MIN_CM/MAX_CM), 4.7 in metres (RNGFNDn_MIN/MAX);
 # asking for both tells which firmware generation answered.
 INSTANCE_SUFFIXES = ("TYPE", "ORIENT", "MIN_CM", "MAX_CM", "MIN", "MAX")
+# The first ArduSub whose Lua has what scripts/net_hold.lua calls.
+NET_HOLD_MIN_FIRMWARE = (4, 5, 0)
 
 
 def instance_params(instance: str) -> tuple[str, ...]:
@@ -62,6 +64,12 @@ class AutopilotReport:
     mavlink_version: int
     flight_sw_version: int | None
     params: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def version(self) -> tuple[int, int, int] | None:
+        """(major, minor, patch) from AUTOPILOT_VERSION."""
+        v = self.flight_sw_version
+        return None if v is None else ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
 
     @property
     def firmware(self) -> str | None:
@@ -262,6 +270,12 @@ def advise(report: AutopilotReport, settings: MavlinkSettings, net_hold: bool = 
                          "rangefinder (SURFTRAK); a forward reading is stored, logged and "
                          "readable from Lua scripts whatever its quality")
     if net_hold:
+        version = report.version
+        if version is not None and version < NET_HOLD_MIN_FIRMWARE:
+            # The applet's Lua bindings (sub:get_and_clear_button_count, mavlink:block_command)
+            # came in 2023: on an older firmware the script does not load at all.
+            changes.append(f"update the autopilot to ArduSub 4.5 or later (it runs "
+                           f"{report.firmware}): the net-hold applet needs its Lua bindings")
         if p.get("SCR_ENABLE") is None or int(p["SCR_ENABLE"]) != 1:
             changes.append("set SCR_ENABLE = 1 (Lua scripting, for the net-hold applet) and "
                            "reboot the autopilot")

@@ -120,6 +120,27 @@ def test_advice_on_missing_rangefinder_support() -> None:
     assert report.firmware is None
 
 
+def _version(major: int, minor: int, patch: int) -> int:
+    """AUTOPILOT_VERSION.flight_sw_version of an official release."""
+    return (major << 24) | (minor << 16) | (patch << 8) | 255
+
+
+@pytest.mark.parametrize(("firmware", "too_old"), [((4, 1, 2), True), ((4, 4, 0), True),
+                                                   ((4, 5, 0), False), ((4, 7, 0), False)])
+def test_net_hold_needs_an_ardusub_with_the_applets_lua_bindings(
+    firmware: tuple[int, int, int], too_old: bool
+) -> None:
+    """net_hold.lua uses sub:get_and_clear_button_count and mavlink:block_command, bindings
+    added to ArduPilot in 2023 (ArduSub 4.5): on an older autopilot the applet does not load,
+    and mavlink-check said "Ready" with every parameter right."""
+    report = AutopilotReport(1, 1, 12, 3, 2, _version(*firmware), params=READY_47)
+    changes = advise(report, MavlinkSettings(), net_hold=True).changes
+    assert any("ArduSub 4.5 or later" in c for c in changes) == too_old, changes
+    assert not advise(report, MavlinkSettings()).changes  # a distance alone: no such need
+    dev = AutopilotReport(1, 1, 12, 3, 2, (4 << 24) | (7 << 16), params=READY_47)
+    assert not advise(dev, MavlinkSettings(), net_hold=True).changes  # 4.7.0-dev
+
+
 def ardusub_47(**instances: tuple[int, int]) -> dict[str, float]:
     """ArduSub 4.7's rangefinder parameters on a board with ten instances (every one is
     reported, off unless set): `instances` maps "1".."9", "A" to (TYPE, ORIENT)."""
