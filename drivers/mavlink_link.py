@@ -66,6 +66,9 @@ _WRONG_KEY_SIGNATURES = 3
 _POLL_LIMIT_S = 0.1
 # Incoming messages handled per loop turn, so a flood cannot starve the send schedule.
 _MAX_MESSAGES_PER_TURN = 200
+# Bytes from a serial port with no MAVLink frame among them that mean a wrong baud rate (a
+# heartbeat alone is 17-21 bytes; a second of a mismatched 57600 baud link is thousands).
+_GARBLED_BYTES = 256
 # A serial write that cannot finish in this time means the port is dead or wedged.
 _SERIAL_WRITE_TIMEOUT_S = 0.2
 # How long close() waits for the link thread.
@@ -492,6 +495,9 @@ class MavlinkLink(AutopilotLink):
         next_clock_ask = now
         last_capture_sent = -math.inf
         period = self.settings.period_s
+        opened = now
+        garbled_said = False
+        decoded = 0  # MAVLink messages read on this connection (from anyone)
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_heartbeat:
@@ -517,6 +523,8 @@ class MavlinkLink(AutopilotLink):
                 self._send_texts(conn)
                 next_plane = _advance(next_plane, period, now)
             self._check_autopilot_timeout(now)
+            if not garbled_said and self.settings.is_serial:
+                garbled_said = self._check_garbled(conn, now - opened, decoded)
             wait = min(next_heartbeat, next_distance, next_plane, next_clock_ask) - self._clock()
             if wait > 0:
                 self._wait(conn, min(wait, _POLL_LIMIT_S))
@@ -524,6 +532,7 @@ class MavlinkLink(AutopilotLink):
                 msg = conn.recv_msg()
                 if msg is None:
                     break
+                decoded += msg.get_type() != "BAD_DATA"
                 self._handle(msg, self._clock())
             self._check_signatures(conn)
         # Stopping: a text still queued (the hole the daemon confirmed in its last frames,
@@ -782,6 +791,22 @@ class MavlinkLink(AutopilotLink):
                      msg.type)
         elif back:
             log.info("MAVLink: autopilot heartbeat back")
+
+    def _check_garbled(self, conn: Any, open_s: float, decoded: int) -> bool:
+        """A serial port that delivers bytes of which none is a MAVLink frame, for longer than
+        the heartbeat timeout, is at another rate than the autopilot's (or is another device):
+        said once per connection, and kept as the link's last error. True once said."""
+        mav = getattr(conn, "mav", None)
+        received = int(getattr(mav, "total_bytes_received", 0))
+        if open_s < self.settings.heartbeat_timeout_s or received < _GARBLED_BYTES or decoded:
+            return False
+        message = (f"{received} bytes in {open_s:.1f} s from {self._url}, none of them MAVLink: "
+                   f"is mavlink.baud ({self.settings.baud}) the autopilot's SERIALn_BAUD, and "
+                   "is this its port?")
+        with self._lock:
+            self._last_error = message
+        log.warning("MAVLink: %s", message)
+        return True
 
     def _check_autopilot_timeout(self, now: float) -> None:
         with self._lock:

@@ -140,9 +140,14 @@ def _probe(
     while heartbeat is None:
         now = time.monotonic()
         if now > deadline:
+            received = int(getattr(conn.mav, "total_bytes_received", 0))
+            why = ("is the autopilot powered and the URL right?" if not settings.is_serial
+                   or received == 0 else
+                   f"{received} bytes arrived, none of them an autopilot's heartbeat: is "
+                   f"--baud ({settings.baud}) the autopilot's SERIALn_BAUD, and is this its "
+                   "port?")
             raise MavlinkLinkError(
-                f"no autopilot heartbeat on {settings.url} within {timeout_s:g} s "
-                "(is the autopilot powered and the URL right?)"
+                f"no autopilot heartbeat on {settings.url} within {timeout_s:g} s ({why})"
             )
         if now >= next_heartbeat:
             _heartbeat(conn)

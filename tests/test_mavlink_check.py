@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -104,6 +106,32 @@ def test_no_autopilot_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) ->
     err = capsys.readouterr().err
     assert code == 1
     assert "no autopilot heartbeat" in err and err.count("\n") == 1
+
+
+def test_a_serial_port_at_the_wrong_rate_is_named_as_such(
+    capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Bytes that are no MAVLink (a UART at another rate than SERIALn_BAUD) said only "is the
+    autopilot powered and the URL right?"."""
+    port = PtyTransport()
+    stop = threading.Event()
+
+    def garbled() -> None:  # from when the port is open (opening it flushes what came before)
+        while not stop.wait(0.02):
+            with contextlib.suppress(OSError):
+                port.write(bytes(range(0x10, 0xF0)))  # no frame start among them
+
+    writer = threading.Thread(target=garbled, daemon=True)
+    writer.start()
+    try:
+        code = main(["mavlink-check", "--url", port.url, "--baud", "57600", "--timeout", "0.5"])
+    finally:
+        stop.set()
+        writer.join(timeout=2.0)
+        port.close()
+    err = capsys.readouterr().err
+    assert code == 1 and err.count("\n") == 1
+    assert "bytes arrived" in err and "--baud (57600)" in err, err
 
 
 def test_bad_arguments_are_configuration_errors(capsys: pytest.CaptureFixture[str]) -> None:

@@ -3,6 +3,7 @@ TCP and a pseudo-terminal, and optionally against ArduSub SITL (NETPOSE_ARDUSUB_
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -20,6 +21,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from drivers.mavlink_link import MavlinkLink, RecordingAutopilotLink
@@ -476,6 +478,42 @@ def test_a_new_reason_for_the_same_outage_is_logged(
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 2, warnings
     assert "No such file" in warnings[0] and "Is a directory" in warnings[1]
+
+
+def test_bytes_that_are_not_mavlink_on_a_serial_port_point_at_the_baud_rate(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """At another baud rate than the autopilot's SERIALn_BAUD every byte arrives garbled: the
+    link said "open", then "waiting" for ever, and nothing pointed at mavlink.baud. What a UART
+    at the wrong rate delivers (bytes, none of them a MAVLink frame) is said once, naming it."""
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
+    port = PtyTransport()
+    stop = threading.Event()
+    rng = np.random.default_rng(5)
+
+    def garbled() -> None:
+        while not stop.wait(0.02):
+            # No 0xFD/0xFE start bytes: nothing for the parser to try.
+            noise = rng.integers(0, 0xF0, 64, dtype=np.uint8).tobytes()
+            with contextlib.suppress(OSError):
+                port.write(noise)
+
+    writer = threading.Thread(target=garbled, daemon=True)
+    writer.start()
+    try:
+        link = MavlinkLink(settings(port.url, baud=57600))
+        with link:
+            deadline = time.monotonic() + 5.0
+            while "baud" not in (link.status().last_error or "") and time.monotonic() < deadline:
+                time.sleep(0.05)
+            status = link.status()
+    finally:
+        stop.set()
+        writer.join(timeout=2.0)
+        port.close()
+    assert "mavlink.baud (57600)" in (status.last_error or ""), status
+    said = [r.getMessage() for r in caplog.records if "baud" in r.getMessage()]
+    assert len(said) == 1 and "SERIALn_BAUD" in said[0], said
 
 
 def test_udpin_answers_the_autopilot() -> None:
