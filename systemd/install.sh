@@ -180,6 +180,15 @@ if [ "$check_status" -eq 0 ]; then
     else
         echo "netpose: installed and enabled; start with: systemctl start netpose"
     fi
+elif [ "$check_status" -ne 78 ]; then
+    # Not a verdict on the configuration: the new code itself does not run (a numpy/OpenCV
+    # that does not import, a venv left half-written by a power cut). The service would not
+    # exit 78 but crash and be restarted every few seconds, so the fix is the installation.
+    echo "netpose: installed and enabled, but the new version does not run (exit $check_status," >&2
+    echo "         the lines above); $CONF_DIR/netpose.toml was not judged. The service would" >&2
+    echo "         crash and be restarted every few seconds: stop it (systemctl stop netpose)," >&2
+    echo "         then repair the venv, e.g. rm -rf $PREFIX/venv and run this script again." >&2
+    exit "$check_status"
 else
     # The new code is on disk and enabled, but it will not start on this configuration. A
     # running unit is still the previous version: `systemctl start` does nothing to it, and at

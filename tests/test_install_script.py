@@ -139,6 +139,22 @@ def test_a_rejected_configuration_while_the_old_version_runs_fails_the_upgrade(
     assert "systemctl enable netpose.service" in sandbox.calls()
 
 
+def test_new_code_that_does_not_run_is_not_blamed_on_the_configuration(tmp_path: Path) -> None:
+    """A new version that fails to import (exit 1) was reported as "rejects your
+    configuration ... fix the file": the file was never judged, and the service would crash
+    and restart every few seconds, not stay down as it does on exit 78."""
+    sandbox = make_sandbox(tmp_path)
+    stand_in_venv(sandbox)
+    (sandbox.prefix / "venv" / "bin" / "netpose").write_text(
+        "#!/bin/sh\necho 'ImportError: numpy.core.multiarray failed to import' >&2\nexit 1\n")
+    done = run_install(sandbox, CONFIG="config/demo.toml", SANDBOX_UNIT_ACTIVE="1")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "does not run" in done.stderr and "was not judged" in done.stderr
+    assert "rejects" not in done.stderr
+    assert not [c for c in sandbox.calls() if c.startswith(("systemctl restart",
+                                                            "systemctl start"))]
+
+
 def test_a_rejected_configuration_of_a_stopped_service_fails_the_install(tmp_path: Path) -> None:
     sandbox, done = _rejected_upgrade(tmp_path, active=False)
     assert done.returncode == 78, done.stdout + done.stderr
