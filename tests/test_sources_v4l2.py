@@ -12,6 +12,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import cv2
 import pytest
@@ -208,6 +209,29 @@ def test_missing_device_is_a_clear_error_naming_the_url() -> None:
         open_source("v4l2:/dev/video97?width=640&height=480")
     assert err.value.url.startswith("v4l2:/dev/video97")
     assert "/dev/video97" in str(err.value) and "cannot open" in str(err.value)
+
+
+def test_a_cameras_second_node_is_named_as_its_metadata(tmp_path: Path) -> None:
+    """A UVC camera shows as two nodes, /dev/video0 for its frames and /dev/video1 for their
+    metadata, which gives no frames: picking it said only "missing, unplugged, no
+    permission". The kernel numbers a device's nodes (sysfs `index`); one that is not 0 is
+    named as such, with the name that stays right."""
+    sysfs = tmp_path / "sys"
+    (sysfs / "video1").mkdir(parents=True)
+    (sysfs / "video1" / "index").write_text("1\n")
+    camera = FakeCamera(MODES)
+    camera.unplug()
+    source = V4l2Source("v4l2:/dev/video1", FAST, capture_factory=camera.open, sysfs=sysfs)
+    with pytest.raises(SourceError) as err:
+        source.open()
+    source.close()
+    assert "node 1 of its device" in str(err.value) and "video-index0" in str(err.value)
+    (sysfs / "video1" / "index").write_text("0\n")  # a camera's own node: no such hint
+    source = V4l2Source("v4l2:/dev/video1", FAST, capture_factory=camera.open, sysfs=sysfs)
+    with pytest.raises(SourceError) as err:
+        source.open()
+    source.close()
+    assert "node" not in str(err.value)
 
 
 def test_a_camera_absent_at_start_is_an_error_not_a_retry() -> None:

@@ -15,6 +15,7 @@ import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 
@@ -129,6 +130,30 @@ def _open_v4l2_capture(device: str) -> VideoCaptureLike:
     return cv2.VideoCapture(int(device) if device.isdigit() else device, cv2.CAP_V4L2)
 
 
+# Where the kernel describes each video node (its `index` among its device's nodes).
+SYSFS_VIDEO = Path("/sys/class/video4linux")
+
+
+def _node_hint(device: str, sysfs: Path) -> str:
+    """Why a node that exists gives no frames, when the kernel says: a UVC camera's second
+    node (index 1) carries its frames' metadata, not frames."""
+    if device.isdigit():
+        device = f"/dev/video{device}"
+    try:
+        name = Path(device).resolve(strict=True).name  # /dev/v4l/by-id/... -> videoN
+    except OSError:
+        name = Path(device).name
+    try:
+        index = int((sysfs / name / "index").read_text().strip())
+    except (OSError, ValueError):
+        return ""
+    if index == 0:
+        return ""
+    return (f"; {device} is node {index} of its device, which carries no frames (a UVC "
+            "camera's metadata): use its node 0, /dev/v4l/by-id/...-video-index0, which also "
+            "keeps its name when the camera is plugged in again")
+
+
 class V4l2Source(LiveSource):
     """A V4L2 camera device; a camera that disappears is re-opened with backoff."""
 
@@ -138,10 +163,12 @@ class V4l2Source(LiveSource):
         options: SourceOptions | None = None,
         *,
         capture_factory: Callable[[str], VideoCaptureLike] = _open_v4l2_capture,
+        sysfs: Path = SYSFS_VIDEO,
     ) -> None:
         super().__init__(url, options)
         self.settings = parse_v4l2_url(url)
         self._capture_factory = capture_factory
+        self._sysfs = sysfs
         self.granted: GrantedFormat | None = None
         self._use_driver_timestamps = True
 
@@ -168,7 +195,8 @@ class V4l2Source(LiveSource):
             raise SourceError(
                 self.url,
                 f"cannot open {device} (missing, unplugged, no permission: is the user in "
-                "group 'video'? or held by another program such as the BlueOS camera manager)",
+                "group 'video'? or held by another program such as the BlueOS camera "
+                f"manager){_node_hint(device, self._sysfs)}",
             )
         self.granted = negotiate(cap, self.settings)
         return cap
