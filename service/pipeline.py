@@ -3,8 +3,10 @@
 The daemon, `netpose replay`, the benchmarks and the tests all run frames through `Pipeline`,
 so a replay of a recording runs exactly the code the ROV runs (openpilot's process-replay idea).
 Time comes from the data: `process` takes the frame's capture time, `tick` the time at which no
-frame came; nothing here reads a clock that affects the output. The estimator's own stage
-timings are measurements only and never change a result.
+frame came; nothing here reads a clock that affects the estimate, the filter or the distance.
+The estimator's time does decide one thing: which frames net inspection searches for holes
+(a share of that time, on the vehicle's CPU). The daemon's estimate message says which it
+searched, a recording keeps that, and a replay searches the same frames (`process(inspect=)`).
 
 The last detection is fed back to the estimator as its prior (tracking skips the scale
 search); after one frame that misses it, the next tries it again before the frame is searched.
@@ -184,10 +186,11 @@ class Pipeline:
         self._search_deferred = bool(state.get("search_deferred", False))
 
     def process(self, image: npt.NDArray[Any], t: float, index: int,
-                budget: int = 0) -> PipelineResult:
+                budget: int = 0, inspect: bool | None = None) -> PipelineResult:
         """One frame captured at `t`, at the estimator's work level `budget` (0 = full):
-        `measure`, then `inspect`."""
-        return self.inspect(image, self.measure(image, t, index, budget))
+        `measure`, then `inspect` (`inspect`: a recording's decision whether to search this
+        frame for holes; None: the inspector's own)."""
+        return self.inspect(image, self.measure(image, t, index, budget), due=inspect)
 
     def measure(self, image: npt.NDArray[Any], t: float, index: int,
                 budget: int = 0) -> PipelineResult:
@@ -234,9 +237,12 @@ class Pipeline:
             tracked=estimate is not None and not estimate.searched,
         )
 
-    def inspect(self, image: npt.NDArray[Any], measured: PipelineResult) -> PipelineResult:
+    def inspect(self, image: npt.NDArray[Any], measured: PipelineResult,
+                due: bool | None = None) -> PipelineResult:
         """Net inspection of the frame `measured` came from. A separate step so that the daemon
-        sends the distance first: a hole search never delays what the autopilot is told."""
+        sends the distance first: a hole search never delays what the autopilot is told. `due`:
+        whether to search this frame (a recording's decision, made by the vehicle's CPU time);
+        None: the inspector decides."""
         if self._inspector is None or measured.index is None:
             return measured
         if measured.budget > INSPECT_MAX_BUDGET:
@@ -246,7 +252,7 @@ class Pipeline:
             try:
                 damage = self._inspector.step(image, measured.estimate, measured.t,
                                               measured.index, measured.track.valid,
-                                              measured.estimate_ms)
+                                              measured.estimate_ms, due=due)
             except Exception as exc:  # inspection must never cost the distance
                 log.debug("net inspection crashed on frame %d", measured.index, exc_info=True)
                 damage = DamageReport(False, f"{type(exc).__name__}: {exc}", failed=True)

@@ -1000,9 +1000,9 @@ def test_a_frames_distance_goes_to_the_autopilot_before_its_hole_search(
     handed_over: list[bool] = []
     real_step = inspector.step
 
-    def step(image: Any, estimate: Any, t: float, index: int, *rest: Any) -> Any:
+    def step(image: Any, estimate: Any, t: float, index: int, *rest: Any, **kw: Any) -> Any:
         handed_over.append(bool(h.link.ranges) and h.link.ranges[-1].t_capture == t)
-        return real_step(image, estimate, t, index, *rest)
+        return real_step(image, estimate, t, index, *rest, **kw)
 
     monkeypatch.setattr(inspector, "step", step)
     h.run_script()
@@ -1191,3 +1191,30 @@ def test_a_failure_withdrawing_the_distance_on_stop_still_closes_everything(
         h.daemon.close()
     assert observer.closed and h.source.closed and h.telemetry.closed
     assert any("closing the distance failed" in r.getMessage() for r in caplog.records)
+
+
+def test_a_recording_replays_the_holes_search_on_the_frames_the_vehicle_searched(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """Which frames the vehicle searched for holes follows its CPU time (the search gets a
+    share of the estimator's): a replay that searched every frame, or chose by its own
+    machine's time, confirmed other holes at other frames than the vehicle reported. Each
+    frame's estimate says whether it was searched; the recording keeps that, and the replay
+    searches the same frames."""
+    observer = RecordingObserver()
+    holder: list[Any] = []
+    cfg = demo_config("damage.enabled=true", "damage.max_cost_fraction=0.3")
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(cfg, steps(frames[:25]), observers=(observer, recorder))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    status = recorder.stop()
+    live = dict(observer.frames)
+    flags = {i: m.inspected for i, m in live.items()}
+    assert True in flags.values() and False in flags.values(), flags  # the budget chose
+    rows = _replayed_rows(tmp_path, status.name)
+    assert len(rows) == status.frames
+    for index, row in rows.items():
+        assert row["inspected"] == ("" if flags[index] is None else str(int(flags[index]))), \
+            (index, row["inspected"], flags[index])

@@ -50,6 +50,9 @@ class Frame:
     # False when a recording says the vehicle read this frame without measuring it (a paced
     # search in open water, service/daemon/search_pace.py): a replay does not measure it either.
     measured: bool = True
+    # Whether the vehicle searched this frame for holes, when a recording says so (its CPU
+    # time chose): a replay searches the same frames. None: not recorded, the replay chooses.
+    inspected: bool | None = None
 
 
 class SourceState(Enum):

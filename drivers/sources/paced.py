@@ -55,6 +55,7 @@ class MediaFrame:
     truth: object | None = None
     budget: int | None = None  # a recording's budget level for this frame
     measured: bool = True  # False: the recording's vehicle did not measure this frame
+    inspected: bool | None = None  # a recording's: the vehicle searched it for holes
     skipped_before: int = 0  # unreadable frames passed over just before this one
 
 
@@ -314,5 +315,6 @@ class PacedSource(FrameSource):
                 truth=media.truth,
                 budget=media.budget,
                 measured=media.measured,
+                inspected=media.inspected,
             )
             return media, frame

@@ -52,7 +52,7 @@ class RecordingSource(PacedSource):
         super().__init__(url, options, realtime=parsed.flag(
             "realtime", (options or SourceOptions()).realtime_default))
         self.path = Path(parsed.path).expanduser()
-        self._entries: list[tuple[str, int, float, float, int | None, bool]] = []
+        self._entries: list[tuple[str, int, float, float, int | None, bool, bool | None]] = []
         self._position = 0
         self._camera: CameraModel | None = None
         self._period = 0.1
@@ -105,9 +105,11 @@ class RecordingSource(PacedSource):
                 estimate = row.get("estimate") or {}
                 budget = estimate.get("budget_level") if isinstance(estimate, dict) else None
                 measured = estimate.get("measured") if isinstance(estimate, dict) else None
+                inspected = estimate.get("inspected") if isinstance(estimate, dict) else None
                 entry = (str(row["frame"]), int(row["index"]), float(row["t_mono"]),
                          float(row["t_unix"]), int(budget) if isinstance(budget, int) else None,
-                         measured is not False)
+                         measured is not False,
+                         inspected if isinstance(inspected, bool) else None)
             except (ValueError, KeyError, TypeError, AttributeError):
                 damaged.append(number)
                 continue
@@ -138,12 +140,12 @@ class RecordingSource(PacedSource):
     def _next_media(self) -> MediaFrame:
         if self._position >= len(self._entries):
             raise EndOfMediaError
-        name, index, t_mono, _, budget, measured = self._entries[self._position]
+        name, index, t_mono, _, budget, measured, inspected = self._entries[self._position]
         self._position += 1
         flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
         image: Any = cv2.imread(str(self.path / name), flags)
         return MediaFrame(image=image, number=index, media_time_s=t_mono - self._entries[0][2],
-                          budget=budget, measured=measured)
+                          budget=budget, measured=measured, inspected=inspected)
 
     def _skip_to(self, number: int) -> int:
         """Skip the frames recorded before `number` frame periods of media time. By time, not

@@ -215,6 +215,7 @@ def replay_frames(
             truth=truth_from_object(frame.truth),
             budget=frame.budget or 0,
             measured=frame.measured,
+            inspected=frame.inspected,
             source_file=files[frame.index].name if frame.index < len(files) else "",
         )
 

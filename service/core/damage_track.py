@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -338,8 +339,12 @@ class NetInspector:
     """Detector + tracker + the decision which frames to inspect (pure; times come in)."""
 
     def __init__(self, camera: CameraModel, mesh: MeshGeometry,
-                 settings: DamageSettings | None = None) -> None:
+                 settings: DamageSettings | None = None,
+                 timer: Callable[[], float] = time.perf_counter) -> None:
+        # `timer` measures what an inspection costs against the estimator's time (the budget);
+        # only which frames are inspected depends on it, and a recording keeps those.
         self.settings = settings or DamageSettings()
+        self._timer = timer
         self.detector = DamageDetector(camera, mesh, self.settings)
         self.tracker = HoleTracker(camera, self.settings)
         # Inspection time earned (max_cost_fraction of the estimator's time per tracked frame)
@@ -352,9 +357,12 @@ class NetInspector:
         self.skipped_frames = 0
 
     def step(self, image: npt.NDArray[Any], estimate: NetEstimate | None, t: float,
-             frame_index: int, track_valid: bool, estimate_ms: float) -> DamageReport:
+             frame_index: int, track_valid: bool, estimate_ms: float,
+             due: bool | None = None) -> DamageReport:
         """One frame of the pipeline. Inspects it when the track is valid, the frame has a
-        detection and the budget allows; follows candidates either way."""
+        detection and the budget allows (or, with `due` given, as a recording says the vehicle
+        decided: its CPU time chose, and a replay must search the same frames); follows
+        candidates either way."""
         st = self.settings
         if not st.enabled:
             return DamageReport(False, "inspection is off (damage.enabled = false)")
@@ -363,18 +371,19 @@ class NetInspector:
         earned = st.max_cost_fraction * max(estimate_ms, 0.0)
         self._credit_ms = min(self._credit_ms + earned, CREDIT_FRAMES * earned)
         self._tracked_frames += 1
-        if st.every_n_frames > 0:
-            due = (self._tracked_frames - 1) % st.every_n_frames == 0
-        else:
-            due = self._credit_ms >= 0.0
+        if due is None:
+            if st.every_n_frames > 0:
+                due = (self._tracked_frames - 1) % st.every_n_frames == 0
+            else:
+                due = self._credit_ms >= 0.0
         if not due:
             self.skipped_frames += 1
             return DamageReport(False, "skipped: inspection budget",
                                 tracks=tuple(self.tracker.tracks))
-        t0 = time.perf_counter()
+        t0 = self._timer()
         scan = self.detector.inspect(image, estimate, revisit=self.tracker.open_places(t))
         confirmed = self.tracker.update(scan, t, frame_index)
-        ms = (time.perf_counter() - t0) * 1e3
+        ms = (self._timer() - t0) * 1e3
         if st.every_n_frames <= 0:
             self._credit_ms -= ms
         self.inspected_frames += 1

@@ -215,6 +215,7 @@ class ReplayFrame:
     truth: Truth | None = None
     budget: int = 0  # the estimator's work level (a recording's, so a replay matches it)
     measured: bool = True  # False: the recording's vehicle did not measure it (paced search)
+    inspected: bool | None = None  # a recording's: the vehicle searched it for holes
     source_file: str = ""  # the image file it came from (image folders)
 
 
@@ -310,7 +311,7 @@ class ReplayRunner:
         t0 = time.perf_counter()
         if frame.measured:
             result = self._pipeline.process(frame.image, frame.t_capture, frame.index,
-                                            budget=frame.budget)
+                                            budget=frame.budget, inspect=frame.inspected)
         else:
             result = self._pipeline.skip(frame.t_capture, frame.index, NOT_MEASURED_ON_VEHICLE)
         if result.failure is not None and not result.crashed:
@@ -350,6 +351,8 @@ CSV_COLUMNS = (
     "range_error_m", "distance_error_m", "normal_error_deg", "filtered_distance_error_m",
     # the frame's image file (image folders), last so that earlier columns keep their places
     "source_file",
+    # net inspection searched the frame for holes (empty: inspection off)
+    "inspected",
 )
 
 
@@ -414,6 +417,7 @@ def csv_row(result: FrameResult) -> list[str]:
         result.normal_error_deg(),
         result.filtered_distance_error_m(),
         result.frame.source_file,
+        None if result.result.damage is None else result.result.damage.inspected,
     ]
     return [_cell(v) for v in values]
 
