@@ -68,6 +68,10 @@ NAME_PATTERN = re.compile(r"^netpose-[A-Za-z0-9_.-]+-\d{8}T\d{6}Z(-\d+)?$")
 PNG_LEVEL = 1
 # Free disk below this stops a recording (the data volume also holds the configuration).
 MIN_FREE_BYTES = 200 * 1024 * 1024
+# How long a stop waits for the writer to put the queued frames on the card: within the unit's
+# TimeoutStopSec (5 s) with room for the rest of the stop, or systemd kills the process before
+# the manifest is written.
+RECORDER_CLOSE_WAIT_S = 2.5
 QUEUE_FRAMES = 64
 
 
@@ -159,12 +163,17 @@ class _Session:
             self._queue.append(item)
             self._cond.notify()
 
-    def close(self, timeout_s: float = 10.0) -> None:
+    def close(self, timeout_s: float = RECORDER_CLOSE_WAIT_S) -> bool:
+        """Let the writer finish what is queued; False when it is still busy after
+        `timeout_s` (a stalled card): its log is then left to it, not closed under it."""
         with self._cond:
             self._closing = True
             self._cond.notify()
         self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            return False
         self._log.close()
+        return True
 
     def _run(self) -> None:
         while True:
@@ -357,10 +366,17 @@ class Recorder(Closeable):
 
     def _finish(self, session: _Session, setup: RecordingSetup) -> RecorderStatus:
         """Close a session's files and write its finished manifest."""
-        session.close()
+        written = session.close()
         error = session.error
+        if not written:
+            # The card stalls: the frames it took stay, and the recording is not marked
+            # finished (a replay reads what is there; the page lists it as interrupted).
+            why = (f"the card did not finish writing within {RECORDER_CLOSE_WAIT_S:g} s; "
+                   "the last frames may be missing")
+            error = f"{error}; {why}" if error else why
+            log.warning("recording %s: %s", session.folder.name, why)
         try:
-            self._manifest(session, setup, finished=True)
+            self._manifest(session, setup, finished=written)
         except OSError as exc:
             # The frames written stay; the recording is not marked finished (a replay can
             # still read it), and the page says why.

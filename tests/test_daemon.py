@@ -1218,3 +1218,42 @@ def test_a_recording_replays_the_holes_search_on_the_frames_the_vehicle_searched
     for index, row in rows.items():
         assert row["inspected"] == ("" if flags[index] is None else str(int(flags[index]))), \
             (index, row["inspected"], flags[index])
+
+
+def test_a_card_that_stalls_does_not_hold_the_stop_past_systemds_budget(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A card that takes a write and does not come back (a failing SD card): the stop waited
+    10 s for the recorder's writer, past the unit's TimeoutStopSec=5 (SIGKILL, the manifest
+    never written), then closed the frames log under the still-running writer. It waits a
+    bounded time, leaves the log to the writer, and marks the recording unfinished."""
+    import threading
+    import time
+
+    from drivers.recorder import RECORDER_CLOSE_WAIT_S
+
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(demo_config(), steps(frames[:12]), observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.iterate(4)
+    released = threading.Event()
+    real_write_bytes = Path.write_bytes
+
+    def stalled(self: Path, data: Any) -> int:
+        if self.suffix == ".png":
+            released.wait(30.0)
+        return real_write_bytes(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", stalled)
+    h.run_script()
+    t0 = time.monotonic()
+    status = recorder.stop()
+    took = time.monotonic() - t0
+    released.set()
+    assert took <= RECORDER_CLOSE_WAIT_S + 1.0 < 5.0, took
+    assert "did not finish writing" in status.error
+    listed = {r["name"]: r for r in recorder.recordings()}
+    assert listed[status.name]["finished"] is False
+
