@@ -425,3 +425,23 @@ def test_a_calibration_for_another_frame_shape_than_the_url_asks_for_is_refused(
     assert "640x480" in str(err.value) and "camera.url asks for 1280x720" in str(err.value)
     assert check_config(str(DEMO), [url, f"camera.calibration={tmp_path / 'cam640x360.yaml'}",
                                     "mavlink.allow_simulated=false"]).startswith("configuration OK")
+
+
+def test_check_warns_of_files_the_services_sandbox_hides(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The unit runs the service with its own /tmp and without /home (PrivateTmp, ProtectHome):
+    a calibration in /tmp passed `--check`, then the service exited 78 for a file it could not
+    see. The check says so (a warning: outside systemd the path is fine)."""
+    assert tmp_path.is_relative_to("/tmp")  # pytest's folders: where a user might put a file
+    camera = tmp_path / "camera.yaml"
+    save_camera(builtin_camera(640, 360), camera)
+    caplog.set_level(logging.WARNING, logger="service.daemon.wiring")
+    assert check_config(str(DEMO), [f"camera.calibration={camera}"]).startswith(
+        "configuration OK")
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1 and "camera.calibration" in warned[0], warned
+    assert "PrivateTmp" in warned[0] and str(camera) in warned[0]
+    caplog.clear()
+    check_config(str(DEMO), [])  # the demo names no file: nothing to say
+    assert not caplog.records

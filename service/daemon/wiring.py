@@ -237,7 +237,32 @@ def check_config(config_path: str | None, overrides: Iterable[str] = ()) -> str:
         config = checked_config(config_path, overrides, incomplete_ok=True)
         return (f"configuration incomplete, the service starts in set-up mode (the web page "
                 f"asks for it): {config.path or 'defaults'}: {problem}")
+    for key, path in _named_files(config):
+        hidden = next((h for h in _HIDDEN_BY_THE_UNIT if path.is_relative_to(h[0])), None)
+        if hidden is not None:
+            log.warning("%s: %s is under %s, which the systemd unit hides from the service "
+                        "(%s): it will not find it there; keep it beside the configuration",
+                        key, path, hidden[0], hidden[1])
     return f"configuration OK: {config.path or 'defaults'} ({config.digest})"
+
+
+# What systemd/netpose.service's sandbox gives the service instead of the host's folders.
+_HIDDEN_BY_THE_UNIT = ((Path("/tmp"), "PrivateTmp=yes"), (Path("/var/tmp"), "PrivateTmp=yes"),
+                       (Path("/home"), "ProtectHome=yes"), (Path("/root"), "ProtectHome=yes"),
+                       (Path("/run/user"), "ProtectHome=yes"))
+
+
+def _named_files(config: Config) -> list[tuple[str, Path]]:
+    """The files and folders a configuration names, by key, as the service would look."""
+    named: list[tuple[str, Path]] = []
+    calibration = config.calibration_path()
+    if calibration is not None:
+        named.append(("camera.calibration", calibration))
+    for section_name, key in _FILE_KEYS:
+        value = getattr(dict(config.sections)[section_name], key)
+        if value:
+            named.append((f"{section_name}.{key}", Path(value)))
+    return named
 
 
 def checked_config(config_path: str | None, overrides: Iterable[str] = (), *,
