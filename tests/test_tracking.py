@@ -447,3 +447,18 @@ def test_the_angle_noise_follows_the_tilt(yaw: float, pitch: float) -> None:
         rejected += out.measurement is Outcome.REJECTED
     assert tracker.resets_total == 0
     assert rejected <= 6, rejected  # 1 % of the frames
+
+
+def test_a_frame_stamped_a_moment_before_the_last_does_not_end_the_track() -> None:
+    """Time that goes back means the frames' clock changed (a source re-opened with older
+    stamps): the track starts afresh. A frame stamped a millisecond before the last one (a
+    driver's timestamp jitter) restarted it too, and the distance was withdrawn for the frames
+    a new track needs to be confirmed. Within a frame's jitter it is the same instant."""
+    tracker = NetTracker(FilterSettings())
+    for i in range(30):
+        tracker.step(i / FPS, estimate(1.5, sd=0.01))
+    out = tracker.step(29 / FPS - 0.001, estimate(1.5, sd=0.01))
+    assert out.valid and tracker.resets_total == 0 and out.measurement is Outcome.ACCEPTED
+    assert tracker.step(30 / FPS, estimate(1.5, sd=0.01)).valid
+    jumped = tracker.step(30 / FPS - 2.0, estimate(1.5, sd=0.01))  # a new clock
+    assert not jumped.valid and jumped.measurement is Outcome.RESET

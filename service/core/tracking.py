@@ -50,6 +50,9 @@ MAX_REPORT_COASTING_S = 1.0
 # The longest a track may go unconfirmed and still be a track.
 MAX_COAST_TIMEOUT_S = 5.0
 MAX_REPORT_COASTING_FRAMES = 5.0
+# How far a frame may be stamped before the last one and still be the same clock (a driver's
+# timestamp jitter): a quarter of a 60 frames/s interval.
+STAMP_JITTER_S = 0.004
 _INTERVAL_WINDOW = 15
 _MIN_INTERVALS = 3
 
@@ -400,13 +403,15 @@ class NetTracker:
 
     def step(self, t: float, estimate: NetEstimate | None) -> TrackOutput:
         s = self._settings
-        if self._t_last is not None and t < self._t_last:
+        if self._t_last is not None and t < self._t_last - STAMP_JITTER_S:
             # Time went back: the frames' clock changed under the track (a source that
             # re-opened with stamps behind those it gave before). The filter cannot predict
             # backwards, and "since the last accepted measurement" would stay negative, so the
             # track would read as TRACKING on a blank view for as long as the old stamps led.
             self.reset()
             self._t_last = None
+        elif self._t_last is not None and t < self._t_last:
+            t = self._t_last  # a driver's stamp a moment early: the same instant, not a clock
         if (self._has_track and self._t_accepted is not None
                 and t - self._t_accepted >= s.coast_timeout_s):
             # The track is over before this frame is judged: its prediction has grown wide
