@@ -37,25 +37,36 @@ class CpuLimit:
         for root in _V2_ROOTS:
             if (root / "cgroup.controllers").is_file() and "cpu" in (
                     root / "cgroup.controllers").read_text():
-                group = root / f"netpose-soak-{pid}"
-                with contextlib.suppress(OSError):
-                    group.mkdir()
-                    (group / "cpu.max").write_text(f"{quota} {PERIOD_US}\n")
-                    (group / "cgroup.procs").write_text(f"{pid}\n")
-                    self._group = group
-                    self.how = f"cgroup v2 cpu.max {quota}/{PERIOD_US} us"
+                how = f"cgroup v2 cpu.max {quota}/{PERIOD_US} us"
+                if self._group_for(root / f"netpose-soak-{pid}", how, (
+                        ("cpu.max", f"{quota} {PERIOD_US}\n"), ("cgroup.procs", f"{pid}\n"))):
                     return self.how
         if (_V1_ROOT / "cpu.cfs_quota_us").is_file():
-            group = _V1_ROOT / f"netpose-soak-{pid}"
-            with contextlib.suppress(OSError):
-                group.mkdir()
-                (group / "cpu.cfs_period_us").write_text(f"{PERIOD_US}\n")
-                (group / "cpu.cfs_quota_us").write_text(f"{quota}\n")
-                (group / "cgroup.procs").write_text(f"{pid}\n")
-                self._group = group
-                self.how = f"cgroup v1 cfs quota {quota}/{PERIOD_US} us"
+            how = f"cgroup v1 cfs quota {quota}/{PERIOD_US} us"
+            if self._group_for(_V1_ROOT / f"netpose-soak-{pid}", how, (
+                    ("cpu.cfs_period_us", f"{PERIOD_US}\n"), ("cpu.cfs_quota_us", f"{quota}\n"),
+                    ("cgroup.procs", f"{pid}\n"))):
                 return self.how
         return self._competitors_for(pid)
+
+    def _group_for(self, group: Path, how: str,
+                   writes: tuple[tuple[str, str], ...]) -> bool:
+        """Make `group` with `writes` (the process last); a group that cannot be made whole
+        is removed again, not left behind."""
+        try:
+            group.mkdir()
+        except OSError:
+            return False
+        try:
+            for name, value in writes:
+                (group / name).write_text(value)
+        except OSError:
+            with contextlib.suppress(OSError):
+                group.rmdir()  # empty: the process was the last write
+            return False
+        self._group = group
+        self.how = how
+        return True
 
     def _competitors_for(self, pid: int) -> str:
         cpu = sorted(os.sched_getaffinity(0))[-1]
@@ -65,8 +76,8 @@ class CpuLimit:
         count = max(1, round(1.0 / self.share) - 1)
         for _ in range(count):
             proc = subprocess.Popen([sys.executable, "-c", _BUSY])
+            self._competitors.append(proc)  # owned before anything else can fail
             os.sched_setaffinity(proc.pid, {cpu})
-            self._competitors.append(proc)
         self.how = f"pinned to CPU {cpu} with {count} busy competitor(s) (no cgroup here)"
         return self.how
 
