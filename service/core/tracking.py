@@ -278,6 +278,7 @@ class NetTracker:
         self._misses = 0
         # A rejected frame put the net nearer than the prediction: no coasting is reported.
         self._withdrawn = False
+        self._nearer = False  # the last frame was rejected as nearer than the prediction
         self.accepted_total = 0
         self.rejected_total = 0
         self.resets_total = 0
@@ -300,7 +301,7 @@ class NetTracker:
         # (`budget.search_hz`, as slow as one frame in two seconds) must not stretch a new one.
         self._frames.clear()
         self._misses = 0
-        self._withdrawn = False
+        self._withdrawn = self._nearer = False
 
     # -- state, for recordings that start mid-dive ------------------------------------------
     def snapshot(self) -> dict[str, Any]:
@@ -311,6 +312,7 @@ class NetTracker:
             "rejects": self._rejects, "t_last": self._t_last, "t_accepted": self._t_accepted,
             "facing_sign": self._facing_sign, "intervals": self._frames.values(),
             "t_frame": self._frames.last, "misses": self._misses, "withdrawn": self._withdrawn,
+            "nearer": self._nearer,
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -328,6 +330,7 @@ class NetTracker:
         self._frames.restore(state.get("intervals", ()), state.get("t_frame"))
         self._misses = int(state.get("misses", 0))
         self._withdrawn = bool(state.get("withdrawn", False))
+        self._nearer = bool(state.get("nearer", False))
 
     # -- the filter ------------------------------------------------------------------------
     def _start(self, m: Measurement, t: float) -> None:
@@ -351,7 +354,7 @@ class NetTracker:
         self._hits = 1
         self._rejects = 0
         self._misses = 0
-        self._withdrawn = False
+        self._withdrawn = self._nearer = False
         self._t_accepted = t
         self._facing_sign = m.facing_sign
 
@@ -453,7 +456,7 @@ class NetTracker:
                     self._hits += 1
                     self._facing_sign = m.facing_sign
                     self._misses = 0
-                    self._withdrawn = False
+                    self._withdrawn = self._nearer = False
                     if self._hits >= s.acquire_count:
                         self._confirmed = True
                     outcome = Outcome.ACCEPTED
@@ -462,12 +465,17 @@ class NetTracker:
                     self._rejects += 1
                     self.rejected_total += 1
                     outcome = Outcome.REJECTED
-                    # A frame that puts the net clearly nearer than the prediction says the
-                    # prediction may be too far, the way that drives a vehicle into the net:
-                    # it is not given again until a frame confirms it. (Farther errs safe.)
+                    # Frames that put the net nearer than the prediction say the prediction may
+                    # be too far, the way that drives a vehicle into the net: after two in a row
+                    # it is not given again until a frame confirms it (farther errs safe). A net
+                    # that came nearer does that from the frame after; one wild frame of a still
+                    # net does not (a single one, even far beyond the gate, cut the distance
+                    # for a second every twenty seconds with heavy-tailed noise).
                     innovation = float(z[0, 0] - self._kf.x[_D, 0])
-                    if innovation < -math.sqrt(float(self._kf.P[_D, _D]) + R[0, 0]):
+                    nearer = innovation < -math.sqrt(float(self._kf.P[_D, _D]) + R[0, 0])
+                    if nearer and self._nearer:
                         self._withdrawn = True
+                    self._nearer = nearer
                     if not self._confirmed or self._rejects >= s.max_consecutive_rejects:
                         # The world moved beyond the model: start again from what is seen now,
                         # and earn trust again before telling the autopilot anything. A track
