@@ -168,6 +168,8 @@ def test_a_recorded_source_that_is_not_there_is_a_camera_url_error(
     assert info.value.key == "camera.url" and "no such file" in info.value.problem
     if url.startswith("/dev/"):
         assert "/dev/videoN" in info.value.problem
+    if url.startswith("rtsp//"):
+        assert "scheme://host" in info.value.problem
 
 
 def test_a_recorded_source_is_found_beside_the_configuration(tmp_path: Path) -> None:
@@ -183,6 +185,14 @@ def test_a_recorded_source_is_found_beside_the_configuration(tmp_path: Path) -> 
     (folder / "stills").mkdir()
     globbed = build_source(load_daemon_config(str(config), ["camera.url='images:stills/*.png'"]))
     assert globbed.recorded
+    # A bare folder is told from a file beside the configuration too, not in the working
+    # directory (it became file:/.../stills, then "no such file" for ever).
+    bare = build_source(load_daemon_config(str(config), ["camera.url=stills"]))
+    assert type(bare).__name__ == "ImageFolderSource", type(bare)
+    (folder / "dives" / "a").mkdir(parents=True)
+    deep = build_source(load_daemon_config(str(config),
+                                           ["camera.url='images:dives/*/frames/*.png'"]))
+    assert deep.recorded
 
 
 def test_a_bare_camera_index_is_a_camera() -> None:

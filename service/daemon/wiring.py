@@ -25,7 +25,7 @@ from drivers.recorder import Recorder, RecordingSetup
 from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
 from drivers.sources import SourceOptions, create_source
-from drivers.sources.url import is_network_url, parse_source_url
+from drivers.sources.url import OWN_SCHEMES, is_network_url, parse_source_url
 from drivers.telemetry import TelemetrySettings, make_publisher
 from drivers.web import WebSettings
 from service.config import Config, load_config
@@ -93,17 +93,27 @@ def _source_url(config: Config) -> str:
     text = config.camera.url.strip()
     if text.startswith("sdp:") or is_network_url(text):
         return text
+    scheme, colon, _ = text.partition(":")
+    if not (colon and scheme in OWN_SCHEMES):
+        # A bare path: what it is (a file, a folder of stills, a recording) is looked up where
+        # it is, beside the configuration, not in the service's working directory.
+        bare, question, query = text.partition("?")
+        if not (bare.isdigit() or bare.startswith("/dev/")):
+            text = f"{config.file_path(bare)}{question}{query}"
     parsed = parse_source_url(text)
     if parsed.scheme not in ("file", "images", "recording"):
         return text
     path = config.file_path(parsed.path)
-    # images: takes a glob too (frames/*.png): its folder must be there.
-    there = path.parent if any(c in path.name for c in "*?[") else path
+    # images: takes a glob too (frames/*.png, dives/*/frames/*.png): the folder before the
+    # first wildcard must be there.
+    parts = path.parts
+    wild = next((i for i, part in enumerate(parts) if any(c in part for c in "*?[")), None)
+    there = path if wild is None else Path(*parts[:wild])
     if not there.exists():
         hint = ""
         if parsed.path.startswith("/dev/"):
             hint = " (a camera is /dev/videoN, or /dev/v4l/by-id/... which keeps its name)"
-        elif re.match(r"^[A-Za-z][A-Za-z0-9+.-]*//", parsed.path):
+        elif re.match(r"^[A-Za-z][A-Za-z0-9+.-]*//", config.camera.url.strip()):
             hint = " (a network stream is scheme://host..., with the colon)"
         raise ConfigError("camera.url", f"no such file or folder: {path}{hint}")
     query = text.partition("?")[2]
