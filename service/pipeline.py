@@ -246,7 +246,7 @@ class Pipeline:
         if self._inspector is None or measured.index is None:
             return measured
         if measured.budget > INSPECT_MAX_BUDGET:
-            damage = DamageReport(False, f"skipped: budget level {measured.budget}")
+            damage = DamageReport(False, f"skipped: budget level {measured.budget}", skipped=True)
         else:
             # Only while the track is valid: holes are measured on a plane the filter believes.
             try:

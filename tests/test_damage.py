@@ -9,6 +9,7 @@ tests/test_damage_bench.py).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -33,6 +34,7 @@ from service.core.estimator import NetEstimator
 from service.core.mesh import MeshGeometry
 from service.core.plane_frame import plane_axes
 from service.core.results import NetEstimate
+from service.core.tracking import FilterSettings, NetTracker
 
 CAMERA = bench_camera(960, 540)
 MESH = MeshGeometry(bar_length_m=0.02)
@@ -572,3 +574,32 @@ def test_inspection_memory_starts_over_before_its_counter_overflows() -> None:
     window = planner.choose(view, cells, 100, np.zeros((0, 2)))
     assert (window.n1, window.n2) == (5, 4)
     assert planner._count == 1
+
+
+def test_what_a_recording_keeps_of_each_frames_search() -> None:
+    """A recording keeps whether each frame was searched for holes so that a replay searches
+    the same ones. A frame whose search failed was kept as "not searched": a replay skipped
+    the very frame that failed on the vehicle. A frame with no valid track was kept as "not
+    searched" too, and a replay with another filter had to skip it. Searched or tried: True;
+    left for the time budget: False; not a frame to search: None."""
+    from service.pipeline import Pipeline
+
+    inspector = NetInspector(CAMERA, MESH, DamageSettings())
+    image = np.zeros((540, 960), np.uint8)
+    seen = NetEstimate(detected=True, confidence=0.9, normal=(0.0, 0.0, -1.0), distance_m=1.0,
+                       range_m=1.0, sigma_distance_m=0.01, sigma_normal_deg=1.0)
+    assert inspector.step(image, seen, 0.0, 0, False, 30.0).searched is None
+    assert inspector.step(image, seen, 0.1, 1, True, 30.0, due=False).searched is False
+    assert inspector.step(image, seen, 0.2, 2, True, 30.0, due=True).searched is True
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise IndexError("a bug")
+
+    inspector.detector.inspect = broken  # type: ignore[method-assign, assignment]
+    pipeline = Pipeline(NetEstimator(CAMERA, MESH), NetTracker(FilterSettings()),
+                        inspector=inspector)
+    measured = pipeline.measure(image, 0.3, 3)  # a blank frame: made to look tracked
+    measured = dataclasses.replace(measured, estimate=seen,
+                                   track=dataclasses.replace(measured.track, valid=True))
+    report = pipeline.inspect(image, measured, due=True).damage
+    assert report is not None and report.failed and report.searched is True

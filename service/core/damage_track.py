@@ -333,6 +333,17 @@ class DamageReport:
     tracks: tuple[TrackView, ...] = ()  # candidates being followed (confirmed or not)
     inspect_ms: float = 0.0
     failed: bool = False  # the inspection raised (a bug): `reason` says what
+    skipped: bool = False  # a frame it could have searched, left for the time budget
+
+    @property
+    def searched(self) -> bool | None:
+        """What a recording keeps for a replay: True when the frame was searched (or the search
+        was tried and failed: a replay must meet that frame too), False when the time budget
+        skipped it, None when it was not a frame to search (no valid track, inspection off):
+        a replay judges that itself."""
+        if self.inspected or self.failed:
+            return True
+        return False if self.skipped else None
 
 
 class NetInspector:
@@ -378,7 +389,7 @@ class NetInspector:
                 due = self._credit_ms >= 0.0
         if not due:
             self.skipped_frames += 1
-            return DamageReport(False, "skipped: inspection budget",
+            return DamageReport(False, "skipped: inspection budget", skipped=True,
                                 tracks=tuple(self.tracker.tracks))
         t0 = self._timer()
         scan = self.detector.inspect(image, estimate, revisit=self.tracker.open_places(t))

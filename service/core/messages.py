@@ -158,8 +158,8 @@ class EstimateMessage(Message):
         "false: the frame was read but not given to the estimator (no net in view for a while:"
         " a paced search, `budget.search_hz`)", True)
     inspected: bool | None = doc(
-        "net inspection searched this frame for holes (false: it did not, for its time "
-        "budget or without a valid track); null with inspection off", None)
+        "net inspection searched this frame for holes (or tried: it failed); false: its time "
+        "budget skipped it; null: not a frame to search (no valid track, inspection off)", None)
     filtered: FilteredView | None = doc("the tracking filter's view (null without a filter)", None)
     latency_ms: EstimateLatency = doc("per-stage latency", EstimateLatency())
     truth: TruthView | None = doc("ground truth of a rendered frame, else null", None)

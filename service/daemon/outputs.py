@@ -100,7 +100,7 @@ def estimate_message(
         filtered=filtered_view(result.track, sent or result.reading), latency_ms=latency,
         truth=truth_view(frame.truth), budget_level=result.budget,
         measured=not result.unmeasured,
-        inspected=None if result.damage is None else result.damage.inspected,
+        inspected=None if result.damage is None else result.damage.searched,
     )
 
 

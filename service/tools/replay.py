@@ -417,7 +417,7 @@ def csv_row(result: FrameResult) -> list[str]:
         result.normal_error_deg(),
         result.filtered_distance_error_m(),
         result.frame.source_file,
-        None if result.result.damage is None else result.result.damage.inspected,
+        None if result.result.damage is None else result.result.damage.searched,
     ]
     return [_cell(v) for v in values]
 
