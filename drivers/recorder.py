@@ -334,7 +334,9 @@ class Recorder(Closeable):
         folder = self._new_folder()
         try:
             (folder / FRAMES_DIR).mkdir(parents=True)
-            save_camera(setup.camera, folder / CAMERA_FILE)
+            # Not flushed to the card (nor is anything of a recording): this runs on the
+            # frame loop when a reload rolls the recording over.
+            save_camera(setup.camera, folder / CAMERA_FILE, durable=False)
             (folder / TUNING_FILE).write_text(setup.tuning_toml, encoding="utf-8")
             session = _Session(folder, self._max_bytes, self._stopped_by_itself)
         except OSError as exc:
@@ -470,4 +472,4 @@ class Recorder(Closeable):
             "image": "8-bit grey PNG, the estimator's input",
         }
         write_atomically(session.folder / MANIFEST,
-                         (json.dumps(manifest, indent=1) + "\n").encode("utf-8"))
+                         (json.dumps(manifest, indent=1) + "\n").encode("utf-8"), durable=False)

@@ -1257,3 +1257,25 @@ def test_a_card_that_stalls_does_not_hold_the_stop_past_systemds_budget(
     listed = {r["name"]: r for r in recorder.recordings()}
     assert listed[status.name]["finished"] is False
 
+
+
+def test_the_recorder_does_not_wait_for_the_card_on_the_frame_loop(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reload rolls the recording over on the frame loop (its files and manifest), and the
+    stop writes the last manifest inside its bounded wait: flushing each to the card (fsync)
+    blocked the loop for seconds on a slow card (4 s with 1 s per flush). A recording's
+    frames are not flushed either: its files are written, not forced out."""
+    import os
+
+    flushed: list[int] = []
+    monkeypatch.setattr(os, "fsync", lambda fd: flushed.append(fd))
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(demo_config(), steps(frames[:6]), observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    recorder.observe_reload(frozenset({"filter"}))  # the roll-over, as the loop does it
+    recorder.stop()
+    assert flushed == []

@@ -399,7 +399,9 @@ def check_invertible(camera: CameraModel, path: Path) -> None:
         raise CalibrationError(f"{path}: {exc}") from None
 
 
-def save_camera(camera: CameraModel, path: str | Path) -> None:
-    """Write a calibration in the ROS camera_info YAML layout."""
+def save_camera(camera: CameraModel, path: str | Path, *, durable: bool = True) -> None:
+    """Write a calibration in the ROS camera_info YAML layout (`durable`: on the card when
+    this returns; a recording's copy need not be)."""
     write_atomically(path, yaml.safe_dump(camera.to_ros_dict(), sort_keys=False,
-                                          default_flow_style=None).encode("utf-8"))
+                                          default_flow_style=None).encode("utf-8"),
+                     durable=durable)
