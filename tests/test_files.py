@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import stat
+import threading
 from pathlib import Path
 
 import pytest
@@ -63,3 +64,47 @@ def test_a_new_file_is_created_and_a_scratch_file_need_not_be_durable(
     synced = _fsynced(monkeypatch)
     write_atomically(tmp_path / "preview.png", b"png", durable=False)
     assert (tmp_path / "preview.png").read_bytes() == b"png" and synced == []
+
+
+def test_a_linked_configuration_is_written_where_the_link_points(tmp_path: Path) -> None:
+    """/etc/netpose/netpose.toml may be a link to a file kept elsewhere: the link was replaced
+    by a plain file, and the file it named kept the old settings."""
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "netpose.toml").write_text("old\n")
+    link = tmp_path / "netpose.toml"
+    link.symlink_to(kept / "netpose.toml")
+    write_atomically(link, b"new\n")
+    assert link.is_symlink() and (kept / "netpose.toml").read_text() == "new\n"
+
+
+def test_a_failed_write_says_why_and_two_writers_do_not_share_a_scratch_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scratch file beside the target had one fixed name, so two writers of one file
+    wrote into each other's; and a cleanup that failed too (a read-only folder) replaced the
+    write's own error with its own."""
+    names: list[str] = []
+    real_replace = os.replace
+
+    def spy(src: str | Path, dst: str | Path) -> None:
+        names.append(Path(src).name)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", spy)
+    write_atomically(tmp_path / "a.toml", b"1")
+    other = threading.Thread(target=write_atomically, args=(tmp_path / "a.toml", b"2"))
+    other.start()
+    other.join()
+    assert len(set(names)) == 2, names  # this thread's scratch file and the other's
+
+    def refuse(*_args: object) -> None:
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(os, "replace", refuse)
+    def cannot_clean(*_args: object, **_kwargs: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(Path, "unlink", cannot_clean)
+    with pytest.raises(OSError, match="Read-only"):
+        write_atomically(tmp_path / "a.toml", b"3")

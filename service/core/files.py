@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -25,8 +26,12 @@ def write_atomically(path: str | Path, data: bytes, *,
     from it leaves the target as it was. An existing target's permissions are kept. `durable`
     False skips the flushes, for files that only a viewer reads (a preview image).
     """
-    target = Path(path)
-    temporary = target.with_name(f".{target.name}.new")
+    # A link (a configuration kept elsewhere) is followed: the file it names is the one
+    # replaced, and the link stays.
+    target = Path(path).resolve() if Path(path).is_symlink() else Path(path)
+    # One scratch file per writer (process and thread): two writers of one file must not
+    # write into each other's.
+    temporary = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.new")
     try:
         with open(temporary, "wb") as out:
             out.write(data)
@@ -39,7 +44,10 @@ def write_atomically(path: str | Path, data: bytes, *,
             shutil.copymode(target, temporary)
         os.replace(temporary, target)
     finally:
-        temporary.unlink(missing_ok=True)
+        # Gone after the rename; after a failure, a cleanup that fails too (a read-only
+        # folder) must not hide why the write failed.
+        with contextlib.suppress(OSError):
+            temporary.unlink(missing_ok=True)
     if durable:
         _sync_folder(target.parent)
 
