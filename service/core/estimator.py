@@ -1553,9 +1553,13 @@ class NetEstimator:
             # Every proof passed: it is the net, at a range known only roughly. Said so (for
             # the pilot), never given as a distance.
             seen = confidence >= s.min_confidence
+            pulled = ((_CHANGE_SHARE * left_r * range_m) ** 2 > 0.5 * sigma_r**2
+                      or (_CHANGE_SHARE * left_n) ** 2 > 0.5 * sigma_n**2)
             why = ("the passes do not settle on one plane" if not settled else
                    f"the net on the optical axis is {off_axis:.0%} off the plane of the ROIs "
                    "around it" if off_axis > 0.0 else
+                   f"ROIs that show the net but not this plane pull it {left_n:.0f} deg and "
+                   f"{left_r:.0%} away: the net is not one plane here" if pulled else
                    "the ROIs that see the net do not span the view")
             return NetEstimate(
                 detected=False, confidence=min(confidence, 0.2), rois=rois,
