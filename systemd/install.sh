@@ -185,9 +185,10 @@ elif [ "$check_status" -ne 78 ]; then
     # that does not import, a venv left half-written by a power cut). The service would not
     # exit 78 but crash and be restarted every few seconds, so the fix is the installation.
     echo "netpose: installed and enabled, but the new version does not run (exit $check_status," >&2
-    echo "         the lines above); $CONF_DIR/netpose.toml was not judged. The service would" >&2
-    echo "         crash and be restarted every few seconds: stop it (systemctl stop netpose)," >&2
-    echo "         then repair the venv, e.g. rm -rf $PREFIX/venv and run this script again." >&2
+    echo "         the lines above); $CONF_DIR/netpose.toml was not judged. A running service" >&2
+    echo "         still runs what it loaded; restarted (or at the next boot) it would crash and" >&2
+    echo "         be restarted every few seconds. Repair the venv before that, e.g." >&2
+    echo "         rm -rf $PREFIX/venv and run this script again." >&2
     exit "$check_status"
 else
     # The new code is on disk and enabled, but it will not start on this configuration. A

@@ -20,7 +20,8 @@ Validity (what decides what the autopilot is told):
 A new track starts tentative (state LOST) and becomes TRACKING after `acquire_count`
 measurements that pass the gate, so a single false detection never reaches the autopilot; a
 tentative track that meets a rejection restarts from it. A coasting prediction is not given
-after a rejected frame that put the net nearer than it (it may be too far, the dangerous way).
+after two rejected frames in a row that put the net nearer than it (it may be too far, the
+dangerous way).
 """
 
 from __future__ import annotations
