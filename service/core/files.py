@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,9 +28,9 @@ def write_atomically(path: str | Path, data: bytes, *,
     # A link (a configuration kept elsewhere) is followed: the file it names is the one
     # replaced, and the link stays.
     target = Path(path).resolve() if Path(path).is_symlink() else Path(path)
-    # One scratch file per writer (process and thread): two writers of one file must not
-    # write into each other's.
-    temporary = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.new")
+    # One scratch file per write: two writers of one file (processes, threads) must not write
+    # into each other's.
+    temporary = target.with_name(f".{target.name}.{os.getpid()}.{os.urandom(4).hex()}.new")
     try:
         with open(temporary, "wb") as out:
             out.write(data)
