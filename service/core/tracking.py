@@ -277,9 +277,10 @@ class NetTracker:
         self._frames = FrameIntervals(_INTERVAL_WINDOW, _MIN_INTERVALS)
         # Processed frames since the last accepted measurement.
         self._misses = 0
-        # A rejected frame put the net nearer than the prediction: no coasting is reported.
+        # Two rejected frames in a row put the net nearer than the prediction: no coasting is
+        # reported until a frame is accepted.
         self._withdrawn = False
-        self._nearer = False  # the last frame was rejected as nearer than the prediction
+        self._nearer = False  # the last rejected frame put the net nearer than the prediction
         self.accepted_total = 0
         self.rejected_total = 0
         self.resets_total = 0
