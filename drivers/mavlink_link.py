@@ -226,6 +226,13 @@ def _release_on_close(conn: Any, lock_fd: int) -> None:
     conn.close = close_and_release
 
 
+def baud_hint(received_bytes: int, baud: int, key: str, missing: str = "MAVLink") -> str:
+    """Why a serial port's bytes hold no `missing`: the rate (`key` names the setting) or the
+    port."""
+    return (f"{received_bytes} bytes arrived, none of them {missing}: is {key} ({baud}) the "
+            "autopilot's SERIALn_BAUD, and is this its port?")
+
+
 def _hint(message: str) -> str:
     """What to do about a failure whose cause is not in its message."""
     if "Operation not permitted" in message:
@@ -496,7 +503,9 @@ class MavlinkLink(AutopilotLink):
         last_capture_sent = -math.inf
         period = self.settings.period_s
         opened = now
-        garbled_said = False
+        # Whether bytes that are no MAVLink are still to be looked for: a serial link only,
+        # until it decodes a message or has said so once.
+        garbled_check = self.settings.is_serial
         decoded = 0  # MAVLink messages read on this connection (from anyone)
         while not self._stop.is_set():
             now = self._clock()
@@ -523,8 +532,8 @@ class MavlinkLink(AutopilotLink):
                 self._send_texts(conn)
                 next_plane = _advance(next_plane, period, now)
             self._check_autopilot_timeout(now)
-            if not garbled_said and self.settings.is_serial:
-                garbled_said = self._check_garbled(conn, now - opened, decoded)
+            if garbled_check:
+                garbled_check = not (decoded or self._check_garbled(conn, now - opened))
             wait = min(next_heartbeat, next_distance, next_plane, next_clock_ask) - self._clock()
             if wait > 0:
                 self._wait(conn, min(wait, _POLL_LIMIT_S))
@@ -792,17 +801,16 @@ class MavlinkLink(AutopilotLink):
         elif back:
             log.info("MAVLink: autopilot heartbeat back")
 
-    def _check_garbled(self, conn: Any, open_s: float, decoded: int) -> bool:
-        """A serial port that delivers bytes of which none is a MAVLink frame, for longer than
-        the heartbeat timeout, is at another rate than the autopilot's (or is another device):
-        said once per connection, and kept as the link's last error. True once said."""
+    def _check_garbled(self, conn: Any, open_s: float) -> bool:
+        """A serial port that has delivered bytes but no MAVLink message, for longer than the
+        heartbeat timeout, is at another rate than the autopilot's (or is another device): said
+        once per connection, and kept as the link's last error. True once said."""
         mav = getattr(conn, "mav", None)
         received = int(getattr(mav, "total_bytes_received", 0))
-        if open_s < self.settings.heartbeat_timeout_s or received < _GARBLED_BYTES or decoded:
+        if open_s < self.settings.heartbeat_timeout_s or received < _GARBLED_BYTES:
             return False
-        message = (f"{received} bytes in {open_s:.1f} s from {self._url}, none of them MAVLink: "
-                   f"is mavlink.baud ({self.settings.baud}) the autopilot's SERIALn_BAUD, and "
-                   "is this its port?")
+        message = (f"{self._url}, {open_s:.1f} s: "
+                   f"{baud_hint(received, self.settings.baud, 'mavlink.baud')}")
         with self._lock:
             self._last_error = message
         log.warning("MAVLink: %s", message)

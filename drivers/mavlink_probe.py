@@ -18,6 +18,7 @@ from drivers.mavlink_link import (
     MAV_STATE_ACTIVE,
     MAV_TYPE_ONBOARD_CONTROLLER,
     NON_AUTOPILOT_TYPES,
+    baud_hint,
     open_connection,
 )
 from drivers.mavlink_settings import MavlinkSettings, load_signing_key
@@ -142,10 +143,8 @@ def _probe(
         if now > deadline:
             received = int(getattr(conn.mav, "total_bytes_received", 0))
             why = ("is the autopilot powered and the URL right?" if not settings.is_serial
-                   or received == 0 else
-                   f"{received} bytes arrived, none of them an autopilot's heartbeat: is "
-                   f"--baud ({settings.baud}) the autopilot's SERIALn_BAUD, and is this its "
-                   "port?")
+                   or received == 0 else baud_hint(received, settings.baud, "--baud",
+                                                   "an autopilot's heartbeat"))
             raise MavlinkLinkError(
                 f"no autopilot heartbeat on {settings.url} within {timeout_s:g} s ({why})"
             )

@@ -1544,17 +1544,17 @@ class NetEstimator:
         sigma_d = math.hypot(sigma_d, off_axis * d_new)
         sigma_r = math.hypot(sigma_r, off_axis * range_m)
         left_d, left_r, left_n = _left_out_pull(p, self.mesh.cell_area_m2)
+        pull_r, pull_n = _CHANGE_SHARE * left_r * range_m, _CHANGE_SHARE * left_n
         sigma_d = math.hypot(sigma_d, _CHANGE_SHARE * left_d * d_new)
-        sigma_r = math.hypot(sigma_r, _CHANGE_SHARE * left_r * range_m)
-        sigma_n = math.hypot(sigma_n, _CHANGE_SHARE * left_n)
+        sigma_r = math.hypot(sigma_r, pull_r)
+        sigma_n = math.hypot(sigma_n, pull_n)
         too_uncertain = (sigma_r > s.max_sigma_range_fraction * range_m
                          or sigma_n > s.max_sigma_normal_deg)
         if too_uncertain or not settled:
             # Every proof passed: it is the net, at a range known only roughly. Said so (for
             # the pilot), never given as a distance.
             seen = confidence >= s.min_confidence
-            pulled = ((_CHANGE_SHARE * left_r * range_m) ** 2 > 0.5 * sigma_r**2
-                      or (_CHANGE_SHARE * left_n) ** 2 > 0.5 * sigma_n**2)
+            pulled = pull_r**2 > 0.5 * sigma_r**2 or pull_n**2 > 0.5 * sigma_n**2
             why = ("the passes do not settle on one plane" if not settled else
                    f"the net on the optical axis is {off_axis:.0%} off the plane of the ROIs "
                    "around it" if off_axis > 0.0 else
