@@ -163,6 +163,7 @@ class Daemon:
         # (capture stamp, loop clock at arrival) of the newest frame.
         self._last_frame: tuple[float, float] | None = None
         self._closed = False
+        self.stopped_for: str | None = None  # the stop reason the loop ended on (and said)
 
     # -- the loop ----------------------------------------------------------------------------
     def iterate(self) -> PipelineResult:
@@ -247,6 +248,7 @@ class Daemon:
                     self.reload()
                 self.iterate()
             stopping_at = self.clock()
+            self.stopped_for = self.flags.stop_signal
             if self.flags.stop_signal:
                 log.info("%s received: stopping", self.flags.stop_signal)
             self.parts.notifier.stopping()

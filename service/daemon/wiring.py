@@ -363,6 +363,7 @@ def main(
                 running[:] = [daemon]
                 status = daemon.run(duration_s)
                 if not restart.is_set() or flags.signalled.is_set():
+                    _say_late_signal(flags, daemon.stopped_for)
                     return status
                 # A restart asked for by the web page: the same process, every part rebuilt
                 # from the saved configuration (what a reload cannot change live).
@@ -370,12 +371,20 @@ def main(
                 flags.stop.clear()
                 flags.stop_signal = None
                 if flags.signalled.is_set():  # SIGTERM between the check and the clear
+                    _say_late_signal(flags, daemon.stopped_for)
                     return status
                 editor.restarted()
                 config, problem = _load_or_setup(config_path, overrides)
                 log.info("restarting with the saved configuration (%s)", config.digest)
     finally:
         notify.close()
+
+
+def _say_late_signal(flags: SignalFlags, said: str | None) -> None:
+    """A signal that came after the daemon had stopped for the page's restart ends the process
+    instead: said, as the daemon says a signal it stopped for (it said "restart")."""
+    if flags.stop_signal not in (None, RESTART, said):
+        log.info("%s received: stopping", flags.stop_signal)
 
 
 def single_threaded_opencv() -> None:
