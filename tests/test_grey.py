@@ -89,6 +89,29 @@ def test_exif_orientation_does_not_turn_the_frame() -> None:
     assert np.array_equal(tagged, plain)
 
 
+@pytest.mark.parametrize(("bits", "channels"), [(12, 1), (10, 3), (16, 1), (16, 3)])
+def test_a_16_bit_image_keeps_its_grey_levels_whatever_bits_it_uses(
+    bits: int, channels: int
+) -> None:
+    """Machine-vision cameras store 10- or 12-bit pixels in 16-bit PNGs. Cut to 8 bits by the
+    container's depth (OpenCV's default: the top byte) a 12-bit frame keeps 16 grey levels of
+    its 4096 and the net's contrast with them; cut by the bits the pixels use, it keeps 256,
+    exactly the 8-bit frame those pixels were made from here."""
+    import cv2
+
+    colour = _colour_scene(shape=(96, 128))
+    eight = colour if channels == 3 else cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)
+    wide = eight.astype(np.uint16) << (bits - 8)
+    if bits == 16:
+        wide |= eight.astype(np.uint16)  # full range: 255 -> 65535
+    ok, png = cv2.imencode(".png", wide)
+    assert ok
+    grey, bgr = decode_gray(png.tobytes())
+    expected_bgr = eight if channels == 3 else cv2.cvtColor(eight, cv2.COLOR_GRAY2BGR)
+    assert bgr.dtype == np.uint8 and np.array_equal(bgr, expected_bgr)
+    assert np.array_equal(grey, to_gray(expected_bgr))
+
+
 def test_grey_input_passes_through_and_bad_shapes_are_refused() -> None:
     grey = np.arange(64, dtype=np.uint8).reshape(8, 8)
     assert to_gray(grey) is grey

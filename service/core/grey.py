@@ -101,12 +101,27 @@ def decode_gray(data: bytes) -> tuple[GrayImage, ColorImage]:
         raise DamagedImageError(damage)
     # The pixels as the sensor gave them: a JPEG's EXIF orientation would turn the frame, and
     # the calibration describes the sensor's pixels, not the turned ones.
-    color = cv2.imdecode(np.frombuffer(data, np.uint8),
-                         cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    encoded = np.frombuffer(data, np.uint8)
+    flags = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
+    color = cv2.imdecode(encoded, flags | cv2.IMREAD_ANYDEPTH)
+    if color is not None and color.dtype == np.uint16:
+        color = _eight_bits_of(color)
+    elif color is not None and color.dtype != np.uint8:
+        color = cv2.imdecode(encoded, flags)  # float TIFFs and the like: OpenCV's own scaling
     if color is None:
         raise DamagedImageError("cannot decode: not an image, or an unsupported format")
     bgr: ColorImage = np.asarray(color, dtype=np.uint8)
     return to_gray(bgr), bgr
+
+
+def _eight_bits_of(wide: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint8]:
+    """The top eight of the bits a 16-bit image's pixels use. Machine-vision cameras store 10-
+    or 12-bit pixels in 16-bit PNGs: OpenCV's own cut (the container's top byte) would leave a
+    12-bit frame 16 grey levels, and the net's faint contrast with them. The bits are read from
+    the frame's brightest pixel (PNG's sBIT chunk is optional and OpenCV does not expose it):
+    a dim frame gets more gain, which the estimator's contrast normalisation does not see."""
+    shift = max(0, int(wide.max()).bit_length() - 8)
+    return np.asarray(wide >> shift, dtype=np.uint8)
 
 
 def _jpeg_damage(data: bytes) -> str | None:
