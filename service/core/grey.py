@@ -114,7 +114,7 @@ def decode_gray(data: bytes) -> tuple[GrayImage, ColorImage]:
     return to_gray(bgr), bgr
 
 
-def _eight_bits_of(wide: npt.NDArray[np.uint16]) -> npt.NDArray[np.uint8]:
+def _eight_bits_of(wide: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
     """The top eight of the bits a 16-bit image's pixels use. Machine-vision cameras store 10-
     or 12-bit pixels in 16-bit PNGs: OpenCV's own cut (the container's top byte) would leave a
     12-bit frame 16 grey levels, and the net's faint contrast with them. The bits are read from
