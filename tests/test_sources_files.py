@@ -55,6 +55,26 @@ def write_h264_video(path: Path, frames: int = FRAMES) -> Path:
     return path
 
 
+def write_timed_video(path: Path, times_s: list[float], stated_fps: int = 30) -> Path:
+    """Numbered frames presented at `times_s` (a variable rate), in a container that states
+    `stated_fps` (MPEG-4 part 2: in PyAV's own FFmpeg whatever else it was built with)."""
+    from fractions import Fraction
+
+    av = pytest.importorskip("av")
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("mpeg4", rate=stated_fps)
+        stream.width, stream.height, stream.pix_fmt = SIZE[0], SIZE[1], "yuv420p"
+        stream.time_base = stream.codec_context.time_base = Fraction(1, 1000)
+        for n, t in enumerate(times_s):
+            frame = av.VideoFrame.from_ndarray(numbered_pattern(n, *SIZE), format="gray")
+            frame.pts, frame.time_base = round(1000 * t), Fraction(1, 1000)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
 @pytest.fixture(scope="module")
 def videos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("videos")
@@ -533,3 +553,55 @@ def test_a_video_whose_timestamps_jump_plays_on(tmp_path: Path) -> None:
                 last_index = frame.index
     assert numbers and numbers[-1] >= 140, numbers[-5:]  # into the second part, on time
     assert last_index < 200  # numbered on, not 26 hours on
+
+
+# A phone's or a browser's recording (Cockpit records the pilot's video in the browser): its
+# frames come when they come. Stated 30 fps, steps of 100, 300 and 50 ms.
+VARIABLE_TIMES = [0.1 * i for i in range(6)] + [0.5 + 0.3 * i for i in range(1, 5)] + [
+    1.7 + 0.05 * i for i in range(1, 9)]
+
+
+@pytest.mark.parametrize("container", ["mkv", "mp4"])
+def test_a_variable_rate_video_is_numbered_as_it_comes_and_timed_by_its_timestamps(
+    tmp_path: Path, container: str
+) -> None:
+    """Numbered by its stated (or average) rate, a 30-frame, 4.45 s phone recording came out
+    as frames up to 35 with gaps and 5.3 s long, so a frame-numbered truth file met the wrong
+    frames and the filter's steps were wrong. Frames are numbered in order, timed by their
+    timestamps, and none counted as dropped."""
+    path = write_timed_video(tmp_path / f"variable.{container}", VARIABLE_TIMES)
+    with open_source(f"file:{path}") as source:
+        frames = [f for f in iter(lambda: source.read(1.0), None)]
+        stats = source.stats()
+    count = len(VARIABLE_TIMES)
+    assert [f.index for f in frames] == list(range(count))
+    assert [read_pattern_number(f.image) for f in frames] == list(range(count))
+    times = [f.t_monotonic - frames[0].t_monotonic for f in frames]
+    assert times == pytest.approx(VARIABLE_TIMES, abs=1.5e-3)  # the container's 1 ms ticks
+    assert (stats.frames, stats.drops, stats.corrupt) == (count, 0, 0)
+
+
+def test_a_variable_rate_video_loops_on_in_time(tmp_path: Path) -> None:
+    """The next pass starts after the last frame's own time, not after as many stated periods
+    as there were frames (1 s for 18 frames stated at 30 fps, of a 2.1 s recording): time
+    going back at the loop restarted the filter's track."""
+    path = write_timed_video(tmp_path / "variable.mkv", VARIABLE_TIMES)
+    count = len(VARIABLE_TIMES)
+    frames = read_all(f"file:{path}?loop=1", limit=2 * count)
+    assert [f.index for f in frames] == list(range(2 * count))
+    steps = np.diff([f.t_monotonic for f in frames])
+    assert steps.min() > 0.0
+    assert steps[count - 1] == pytest.approx(0.05, abs=0.06)  # about a typical step
+
+
+def test_realtime_pacing_keeps_a_variable_rate_videos_timing(tmp_path: Path) -> None:
+    """Paced in real time, each frame comes when its timestamp says, none skipped for a reader
+    that keeps up."""
+    path = write_timed_video(tmp_path / "variable.mkv", VARIABLE_TIMES)
+    with open_source(f"file:{path}?realtime=1") as source:
+        frames, lateness = [], []
+        while (frame := source.read(1.0)) is not None:
+            lateness.append(time.monotonic() - frame.t_monotonic)
+            frames.append(frame)
+    assert [f.index for f in frames] == list(range(len(VARIABLE_TIMES)))
+    assert min(lateness) >= -1e-3 and max(lateness) < 0.05

@@ -14,7 +14,9 @@ at all, or has no decodable frame, is an error naming the URL.
 from __future__ import annotations
 
 import glob
+import itertools
 import logging
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +41,14 @@ END_AFTER_FAILED_READS = 8
 # restarted: hours, or a wrap), not a stretch the camera missed: those are kept as they were,
 # and longer than the tracker's coasting, so a replay shows the outage it was.
 MAX_TIMESTAMP_GAP_S = 60.0
+# A step between two frames shorter than this share of the stated period cannot happen at that
+# rate: the rate varies (a phone's or a browser's recording, such as Cockpit's).
+VARIABLE_SHORT_STEP = 0.75
+# ... and a typical (median) step this many stated periods long or more says that the stated
+# rate is not the frames' (a container stating its time base, or a maximum rate).
+VARIABLE_TYPICAL_STEP = 1.25
+# Frames whose timestamps are read at open, to tell a varying rate from the start.
+TIMELINE_PROBE_FRAMES = 12
 
 
 def _parse(url: str, scheme: str) -> SourceUrl:
@@ -49,6 +59,79 @@ def _parse(url: str, scheme: str) -> SourceUrl:
     if not parsed.path:
         raise url_error(url, f"{scheme}: needs a path")
     return parsed
+
+
+def rate_varies(steps_s: list[float], period_s: float) -> bool:
+    """Whether steps between consecutive frames (their timestamps' differences, discontinuities
+    left out) show a rate other than the stated constant one."""
+    if any(step < VARIABLE_SHORT_STEP * period_s for step in steps_s):
+        return True
+    return len(steps_s) >= 3 and statistics.median(steps_s) >= VARIABLE_TYPICAL_STEP * period_s
+
+
+class _Timeline:
+    """Numbers and media times of a video's frames, from their presentation timestamps.
+
+    At a constant rate a frame's number is its time over the period: frames the camera or the
+    encoder missed leave gaps in the numbers (a replay shows the outage, and the source counts
+    them as dropped), and its time is its number's. Where the rate varies, or the stated rate is
+    not the frames' (`rate_varies`), frames are numbered as they come (what a frame-numbered
+    truth file counts) and timed by their own timestamps (what the filter's steps need):
+    numbered by the average rate, a 30-frame, 4.45 s phone recording had frames numbered up to
+    35 and a duration of 5.3 s. A jump of the timestamps backwards, or forwards beyond any
+    outage (files joined, an encoder restarted), is played on without the gap, and said.
+    """
+
+    def __init__(self, path: Path, fps: float, steps_s: list[float]) -> None:
+        """`steps_s`: steps between frames already seen (the probe's at open)."""
+        self._path = path
+        self._fps = fps
+        self._steps = steps_s[-32:]
+        self.variable = rate_varies(self._steps, 1.0 / fps)
+        self._origin_ms: float | None = None
+        self._last_s: float | None = None
+
+    @property
+    def steps(self) -> list[float]:
+        return list(self._steps)
+
+    @property
+    def period_s(self) -> float:
+        """The time between frames: the stated one at a constant rate, else the typical step."""
+        if self.variable and self._steps:
+            return statistics.median(self._steps)
+        return 1.0 / self._fps
+
+    def place(self, number: int, media_ms: float) -> tuple[int, float]:
+        """(number, media time) of the frame read after `number` frames (decoded or failed)
+        came before it in this pass, presented at `media_ms`."""
+        period = 1.0 / self._fps
+        if self._origin_ms is None:
+            # Containers such as MPEG-TS start at a non-zero time; the first frame is frame 0.
+            self._origin_ms = media_ms - 1000.0 * number * period
+        t = (media_ms - self._origin_ms) / 1000.0
+        last = self._last_s
+        if last is not None:
+            step = t - last
+            if not -0.5 * period <= step <= max(MAX_TIMESTAMP_GAP_S, 10.0 * period):
+                log.warning("%s: the timestamps jump by %.1f s after %.2f s (files joined, an "
+                            "encoder restarted?): played on without the gap", self._path,
+                            step, last)
+                self._origin_ms = media_ms - 1000.0 * (last + period)
+                t = last + period
+            elif step > 0.0:  # (not a repeated timestamp, nor one the container rounded back)
+                self._steps = [*self._steps[-31:], step]
+                if not self.variable and rate_varies(self._steps, period):
+                    self.variable = True
+                    log.info("%s: its frame rate varies (or is not the stated %.4g fps): "
+                             "frames numbered as they come, timed by their timestamps",
+                             self._path, self._fps)
+            t = max(t, last)
+        self._last_s = t
+        if self.variable:
+            return number, t
+        number = max(number, round(t * self._fps))
+        return number, number * period
 
 
 class VideoFileSource(PacedSource):
@@ -66,7 +149,7 @@ class VideoFileSource(PacedSource):
         self._cap: VideoCaptureLike | None = None
         self._first: MediaFrame | None = None
         self._decoded = 0
-        self._origin_ms: float | None = None
+        self._timeline = _Timeline(self.path, self._fps, [])
 
     @property
     def recorded(self) -> bool:
@@ -74,7 +157,7 @@ class VideoFileSource(PacedSource):
 
     @property
     def frame_period_s(self) -> float:
-        return 1.0 / self._fps
+        return self._timeline.period_s
 
     def _open_capture(self) -> VideoCaptureLike:
         if not self.path.is_file():
@@ -96,6 +179,7 @@ class VideoFileSource(PacedSource):
             self._fps = file_fps
         else:
             log.warning("%s does not state its frame rate; assuming %g fps", self.path, self._fps)
+        self._timeline = _Timeline(self.path, self._fps, self._probe_steps())
         try:
             self._first = self._next_media()
         except EndOfMediaError:
@@ -117,31 +201,30 @@ class VideoFileSource(PacedSource):
             failed += 1
             if failed >= END_AFTER_FAILED_READS:
                 raise EndOfMediaError
-        media_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
-        number = self._decoded + failed
-        if self._origin_ms is None:
-            # Containers such as MPEG-TS start at a non-zero time; the first frame is frame 0.
-            self._origin_ms = media_ms - 1000.0 * number / self._fps
-        if media_ms >= 0.0:
-            # The frame's own presentation time gives its true number, across skipped frames,
-            # unless it jumps further than frames go missing: files joined end to end (an
-            # encoder restarted) start their timestamps afresh, which reads as a jump of hours,
-            # and a paced source would wait that long for the next frame.
-            by_time = round((media_ms - self._origin_ms) / 1000.0 * self._fps)
-            if by_time - number > max(MAX_TIMESTAMP_GAP_S * self._fps, 10):
-                log.warning("%s: the timestamps jump by %.1f s at frame %d (files joined, an "
-                            "encoder restarted?): played on without the gap", self.path,
-                            (by_time - number) / self._fps, number)
-                self._origin_ms = media_ms - 1000.0 * number / self._fps
-            else:
-                number = max(number, by_time)
+        number, media_time_s = self._timeline.place(self._decoded + failed,
+                                                    cap.get(cv2.CAP_PROP_POS_MSEC))
         self._decoded = number + 1
         return MediaFrame(
             image=image,
             number=number,
-            media_time_s=number / self._fps,
+            media_time_s=media_time_s,
             skipped_before=failed,
         )
+
+    def _probe_steps(self) -> list[float]:
+        """Steps between the first frames' timestamps, read with a capture of their own: a
+        varying rate is then known from the first frame, and all are numbered one way."""
+        try:
+            probe = self._open_capture()
+        except SourceError:
+            return []  # the main capture says why
+        times: list[float] = []
+        try:
+            while len(times) < TIMELINE_PROBE_FRAMES and probe.grab():
+                times.append(probe.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+        finally:
+            probe.release()
+        return [b - a for a, b in itertools.pairwise(times) if 0.0 < b - a <= MAX_TIMESTAMP_GAP_S]
 
     def _skip_to(self, number: int) -> int:
         # grab() decodes without converting: the cheapest way past frames in any codec.
@@ -152,15 +235,45 @@ class VideoFileSource(PacedSource):
         while self._first is None and self._cap is not None and self._decoded < number:
             if not self._cap.grab():
                 break  # the end, or a damaged frame: read() sorts out which
-            self._decoded += 1
+            # Placed like a frame read: the timeline learns the rate from consecutive frames.
+            passed, _ = self._timeline.place(self._decoded, self._cap.get(cv2.CAP_PROP_POS_MSEC))
+            self._decoded = passed + 1
             skipped += 1
         return skipped
+
+    def _skip_due(self, media_time_s: float) -> int:
+        """At a varying rate, by the frames' own times: a frame is passed over when the next
+        one is due too (by a typical step after it), found by decoding without converting
+        (grab), and the first one that is not is converted (retrieve) and kept for the read."""
+        if not self._timeline.variable:
+            return super()._skip_due(media_time_s)
+        step = self._timeline.period_s
+        skipped = 0
+        while True:
+            if self._first is not None:
+                if self._first.media_time_s + step > media_time_s:
+                    return skipped
+                self._first = None
+                skipped += 1
+            cap = self._cap
+            if cap is None or not cap.grab():
+                return skipped  # the end, or a damaged frame: read() sorts out which
+            number, t = self._timeline.place(self._decoded, cap.get(cv2.CAP_PROP_POS_MSEC))
+            self._decoded = number + 1
+            if t + step <= media_time_s:
+                skipped += 1
+                continue
+            ok, image = cap.retrieve()
+            self._first = MediaFrame(image=image if ok else None, number=number,
+                                     media_time_s=t)
+            return skipped
 
     def _rewind(self) -> None:
         # Re-opening is the one rewind every container and codec supports.
         self._stop()
         self._decoded = 0
-        self._origin_ms = None
+        # The next pass keeps what this one learnt of the rate.
+        self._timeline = _Timeline(self.path, self._fps, self._timeline.steps)
         try:
             self._cap = self._open_capture()
         except SourceError as exc:

@@ -80,6 +80,7 @@ class PacedSource(FrameSource):
         self._loop_time_s = 0.0  # media time added per completed loop
         self._loop_index = 0  # frame numbers added per completed loop
         self._highest_number = -1  # of the current pass, decodable or not
+        self._pass_end_s = 0.0  # the latest media time of a frame of the current pass
         self._good_since_rewind = 0
         self._pending: tuple[MediaFrame, Frame] | None = None
         self._frames = 0
@@ -104,6 +105,12 @@ class PacedSource(FrameSource):
     def _skip_to(self, number: int) -> int:
         """Pass over frames so that the next one is `number` (or the end); return how many
         frames were passed over. Never goes backwards."""
+
+    def _skip_due(self, media_time_s: float) -> int:
+        """Pass over the frames that another frame has followed by `media_time_s` (this pass's
+        media time now); return how many were passed over. By frame number at a constant rate;
+        a medium whose frames come at their own times overrides it."""
+        return self._skip_to(math.floor(media_time_s / self.frame_period_s))
 
     @abstractmethod
     def _rewind(self) -> None:
@@ -136,6 +143,7 @@ class PacedSource(FrameSource):
             self._loop_index += self._highest_number + 1
             self._loop_time_s = 0.0
             self._highest_number = -1
+            self._pass_end_s = 0.0
             self._good_since_rewind = 0
             self._pending = None
         self._backoff.reset()
@@ -229,10 +237,7 @@ class PacedSource(FrameSource):
     def _frame_due_now(self) -> tuple[MediaFrame, Frame] | None:
         """Jump straight to the frame due now: frames the consumer missed are never decoded or
         rendered (a renderer slower than the frame rate would otherwise never catch up)."""
-        due = math.floor(
-            (time.monotonic() - self._t0_mono - self._loop_time_s) / self.frame_period_s
-        )
-        skipped = self._skip_to(due)
+        skipped = self._skip_due(time.monotonic() - self._t0_mono - self._loop_time_s)
         self._drops += skipped
         # Frames passed over are part of this pass: its length (the next pass's numbers and
         # clock) counts them, and a pass that was only passed over still had frames.
@@ -276,10 +281,14 @@ class PacedSource(FrameSource):
                 if self.loop and self._good_since_rewind > 0:
                     # The next pass continues the numbering and the clock after this one.
                     length = self._highest_number + 1
-                    self._loop_time_s += length * self.frame_period_s
+                    # After the pass's last frame by its own time too (a varying rate's frames
+                    # are not a period apart): the next pass's times never go back.
+                    self._loop_time_s += max(length * self.frame_period_s,
+                                             self._pass_end_s + self.frame_period_s)
                     self._loop_index += length
                     self._good_since_rewind = 0
                     self._highest_number = -1
+                    self._pass_end_s = 0.0
                     self._rewind()
                     continue
                 if self.loop and self._options.wait_at_start:
@@ -297,6 +306,7 @@ class PacedSource(FrameSource):
                 return None
             self._count_corrupt(media.skipped_before)
             self._highest_number = max(self._highest_number, media.number)
+            self._pass_end_s = max(self._pass_end_s, media.media_time_s)
             converted = (
                 None if media.image is None
                 else split_gray_color(media.image, self._options.keep_color)
