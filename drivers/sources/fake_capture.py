@@ -123,6 +123,7 @@ class FakeCapture:
         self._buffers = 4
         self._next_due = time.monotonic()
         self._stamp = 0.0
+        self._grabbed: npt.NDArray[np.uint8] | None = None
         self.set_calls: list[tuple[int, float]] = []
 
     def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
@@ -145,7 +146,12 @@ class FakeCapture:
         return True, image
 
     def grab(self) -> bool:
-        return self.read()[0]
+        ok, self._grabbed = self.read()
+        return ok
+
+    def retrieve(self) -> tuple[bool, npt.NDArray[np.uint8] | None]:
+        image, self._grabbed = self._grabbed, None
+        return image is not None, image
 
     def get(self, prop_id: int) -> float:
         cv2 = self._cv2
