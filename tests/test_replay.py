@@ -214,6 +214,14 @@ def test_summary_reports_detection_errors_gaps_and_speed(replayed: Path) -> None
     gap = summary["lost"]["longest"][0]
     assert (gap["first_frame"], gap["last_frame"], gap["frames"]) == (12, 15, 4)
     assert gap["start_s"] == pytest.approx(1.2) and gap["end_s"] == pytest.approx(1.5)
+    distances = [num(r, "distance_m") for r in rows if r["detected"] == "1"]
+    # The sample standard deviation (n - 1): over a few detections the population one
+    # understated the scatter (by 13 % at n = 4).
+    assert summary["distance_m"]["std"] == pytest.approx(float(np.std(distances, ddof=1)),
+                                                         abs=2e-6)  # written to 6 decimals
+    # The whole file was read: it did not end before its container says it does.
+    assert summary["source"]["ended_early"] is False
+    assert summary["source"]["stated_duration_s"] == pytest.approx(FRAMES / FPS)
     speed = summary["speed"]
     assert speed["estimator_ms"]["count"] == FRAMES and speed["frames_per_s"] > 0
     assert summary["filter"]["valid_frames"] < FRAMES
@@ -628,3 +636,75 @@ def test_an_output_the_replay_cannot_write_is_one_line(
     assert code == 1 and "Traceback" not in err
     assert err.strip().splitlines() == [
         f"netpose: error: {out / 'summary.json'}: a folder where the replay writes a file"]
+
+
+def test_a_video_cut_short_is_said_and_its_summary_says_so(
+    recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A Matroska file cut at 60 % of its bytes (a card that filled, power lost) still says
+    in its header that it lasts 3 s, and decodes to its first 13 frames. It replayed as a short
+    dive: exit 0 and a summary that said nothing. The frames read are replayed and kept, the
+    summary says the file ended early, and so does a warning."""
+    from fractions import Fraction
+
+    import av
+
+    whole = tmp_path / "dive.mkv"
+    with av.open(str(whole), "w") as container:
+        stream = container.add_stream("mpeg4", rate=int(FPS))
+        stream.width, stream.height, stream.pix_fmt = 640, 360, "yuv420p"
+        stream.time_base = stream.codec_context.time_base = Fraction(1, 1000)
+        for n, image in enumerate(recording.frames):
+            frame = av.VideoFrame.from_ndarray(image, format="gray")
+            frame.pts, frame.time_base = round(1000 * n / FPS), Fraction(1, 1000)
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    cut = tmp_path / "cut.mkv"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: int(0.6 * len(data))])
+    out = tmp_path / "out"
+    assert main(["replay", str(cut), "--calibration", str(recording.calibration),
+                 "--mesh-size", str(MESH.bar_length_m), "--out", str(out), "--no-video",
+                 "--progress", "off"]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert 0 < summary["frames"] < FRAMES
+    assert summary["source"]["ended_early"] is True
+    assert summary["source"]["stated_duration_s"] == pytest.approx(FRAMES / FPS, abs=0.15)
+    assert "ended early" in err and f"{FRAMES / FPS:.1f} s" in err
+    assert len(read_csv(out / "estimates.csv")) == summary["frames"]
+
+
+def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
+    recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recording whose writer dropped frames (a slow card) and was never finished (the card
+    filled) replays only what it holds, and the vehicle's filter ran over the frames it lost:
+    a replay past that may differ from what the vehicle decided. The summary carries the
+    recording's own word (frames dropped, finished or not, why it stopped), with a warning."""
+    folder = tmp_path / "netpose-rov-20260101T000000Z"
+    (folder / "frames").mkdir(parents=True)
+    save_camera(CAMERA, folder / "camera.yaml")
+    rows = []
+    for n, image in enumerate(recording.frames[:8]):
+        name = f"frames/{n:08d}.png"
+        cv2.imwrite(str(folder / name), image)
+        rows.append(json.dumps({"frame": name, "index": n, "t_mono": 100.0 + n / FPS,
+                                "t_unix": 1.7e9 + n / FPS}))
+    (folder / "frames.jsonl").write_text("\n".join(rows) + "\n")
+    (folder / "recording.json").write_text(json.dumps({
+        "format": "netpose-recording", "version": 1, "camera": "camera.yaml",
+        "mesh": {"bar_length_m": MESH.bar_length_m, "opening_angle_deg": 90.0},
+        "frames": 8, "dropped": 3, "finished": False,
+        "stopped_because": "writing failed: No space left on device"}))
+    out = tmp_path / "out"
+    assert main(["replay", str(folder), "--out", str(out), "--no-video",
+                 "--progress", "off"]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 8
+    assert summary["recording"] == {"dropped": 3, "finished": False,
+                                    "stopped_because": "writing failed: No space left on device"}
+    assert "dropped 3 frames" in err and "No space left on device" in err

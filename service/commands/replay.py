@@ -165,15 +165,44 @@ def _frame_count(source: FrameSource) -> int | None:
     files = getattr(source, "files", None)
     if isinstance(files, list):
         return len(files)
+    count, _ = _container_says(source)
+    return None if count is None else int(count)
+
+
+def _container_says(source: FrameSource) -> tuple[float | None, float | None]:
+    """A video file's frame count and duration (s) as its container states them (Matroska
+    and MPEG-TS: estimated from the duration and the rate); None where it does not say."""
     path = getattr(source, "path", None)
-    if isinstance(path, Path) and path.is_file():
-        cap = cv2.VideoCapture(str(path))
-        try:
-            count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else -1.0
-        finally:
-            cap.release()
-        return int(count) if math.isfinite(count) and count > 0 else None
-    return None
+    if not (isinstance(path, Path) and path.is_file()):
+        return None, None
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            return None, None
+        count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+    finally:
+        cap.release()
+    if not (math.isfinite(count) and count > 0):
+        return None, None
+    return count, count / fps if math.isfinite(fps) and fps > 0 else None
+
+
+def _ended_early(source: FrameSource, summary: dict[str, Any], every: int
+                 ) -> tuple[float | None, bool]:
+    """The duration the file states, and whether the frames read (every `every`-th) ended well
+    before it (a file cut short: a card that filled, power lost, a copy interrupted): by more
+    than two of the replay's steps and 5 % of it. A variable rate's stated count is an
+    estimate; its duration is not."""
+    _, stated = _container_says(source)
+    duration = summary.get("duration_s")
+    if stated is None or not isinstance(duration, float | int):
+        return stated, False
+    period = getattr(source, "frame_period_s", None)  # a file's (paced sources)
+    if not isinstance(period, float) or period <= 0.0:
+        return stated, False
+    step = every * period
+    return stated, duration + step < 0.95 * stated - 2.0 * step
 
 
 def replay_frames(
@@ -378,6 +407,7 @@ def _recording_defaults(args: argparse.Namespace) -> None:
             mesh = manifest["mesh"]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise NetposeError(f"{folder}: recording.json is damaged ({exc})") from None
+        args.recording = _recording_word(folder, manifest)
         if args.calibration is None:
             args.calibration = folder / str(manifest.get("camera", "camera.yaml"))
         if args.mesh_size is None:
@@ -405,6 +435,28 @@ def _recording_defaults(args: argparse.Namespace) -> None:
             raise ConfigError(option, "required (unless INPUT is a netpose recording)")
     if args.opening_angle is None:
         args.opening_angle = 90.0
+
+
+def _recording_word(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    """What the recording says of itself (frames its writer dropped, finished or not, why it
+    stopped), said when a replay of it may differ from what the vehicle decided: the
+    vehicle's filter ran over frames the recording does not hold."""
+    dropped = manifest.get("dropped")
+    word = {"dropped": dropped if isinstance(dropped, int) else None,
+            "finished": manifest.get("finished") is True,
+            "stopped_because": str(manifest.get("stopped_because") or "") or None}
+    problems = []
+    if word["dropped"]:
+        problems.append(f"its writer dropped {word['dropped']} frames")
+    if not word["finished"]:
+        problems.append("it was never finished (the daemon stopped before it did)")
+    if word["stopped_because"]:
+        problems.append(f"it stopped because {word['stopped_because']}")
+    if problems:
+        print(f"netpose replay: warning: {folder.name}: {'; '.join(problems)}: the vehicle's "
+              "filter ran over frames this replay does not have, so it may differ from what "
+              "the vehicle decided after them", file=sys.stderr)
+    return word
 
 
 @dataclass(frozen=True)
@@ -641,6 +693,18 @@ def _finish(
         "damage_holes": outcome.holes,
         **stats.summary(),
     }
+    recording = getattr(args, "recording", None)
+    if recording is not None:
+        summary["recording"] = recording
+    stated, early = _ended_early(source, summary, args.every)
+    # Only a replay that read to the end can tell (not one stopped, nor one of --max-frames).
+    early = early and not outcome.interrupted and (
+        args.max_frames is None or outcome.frames_read < args.max_frames)
+    summary["source"].update(stated_duration_s=stated, ended_early=early)
+    if early:
+        print(f"netpose replay: warning: {redact_text(url)} ended early: its frames stop at "
+              f"{summary.get('duration_s', 0.0):.1f} s of the {stated:.1f} s its container "
+              "states (cut short?); the outputs cover the frames read", file=sys.stderr)
     summary["outputs"] = [*outcome.outputs, "summary.json"]
     write_json(out_dir / "summary.json", summary)
     detection = summary.get("detection_rate")

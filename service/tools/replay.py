@@ -455,7 +455,9 @@ def _stats(values: Sequence[float]) -> dict[str, float | int | None]:
         "count": int(data.size),
         "mean": float(data.mean()),
         "median": float(np.median(data)),
-        "std": float(data.std()),
+        # The sample's (n - 1): over a few detections the population one understates the
+        # scatter a researcher reads from it.
+        "std": float(data.std(ddof=1)) if data.size > 1 else None,
         "min": float(data.min()),
         "max": float(data.max()),
         "p5": float(np.percentile(data, 5)),
