@@ -415,6 +415,29 @@ def test_changes_without_the_token_are_refused(daemon: WebDaemon) -> None:
     assert daemon.request("GET", "/api/settings")[0] == 200
 
 
+def test_the_page_changes_only_the_settings_it_offers(daemon: WebDaemon) -> None:
+    """The page is open to the vehicle's network, its token off by default. It saved any key
+    outside [web]: one request set a rendered camera and `mavlink.allow_simulated`, and the
+    service sent rendered distances to the autopilot (268 in 20 s); others loosened the
+    filter's gates live, or named /dev/zero as a key file to read. Only what the form shows
+    is changed from the page; the rest is the file's."""
+    before = daemon.config.read_bytes()
+    for changes in ({"mavlink.allow_simulated": True},
+                    {"camera.url": "synthetic:?trajectory=approach",
+                     "mavlink.allow_simulated": True},
+                    {"filter.min_confidence": 0.0}, {"filter.gate_sigma": 1e6},
+                    {"mavlink.max_age_s": 2.0}, {"mavlink.signing_key_file": "/dev/zero"},
+                    {"telemetry.config_file": "/etc/hostname"}):
+        status, reply = daemon.request("POST", "/api/settings", {"changes": changes},
+                                       token=True)
+        assert status == 400, (changes, reply)
+        assert "is not one of the settings the page changes" in reply["error"]
+    assert daemon.config.read_bytes() == before
+    offered = {f["key"] for g in daemon.request("GET", "/api/settings")[1]["groups"]
+               for f in g["fields"]}
+    assert "mavlink.allow_simulated" not in offered and "mesh.bar_length_m" in offered
+
+
 def test_requests_from_another_origin_are_refused(daemon: WebDaemon) -> None:
     before = daemon.config.read_bytes()
     status, reply = daemon.request("POST", "/api/settings",
@@ -578,15 +601,15 @@ def test_a_bad_setting_names_the_key_and_changes_nothing(daemon: WebDaemon) -> N
     cases = {
         "mesh.bar_length_m": ("wide", "configuration error: mesh.bar_length_m: must be a number"),
         "mavlink.url": ("serial", "configuration error: mavlink.url: 'serial' is not"),
-        "mesh.colour": ("red", "configuration error: mesh.colour: unknown key"),
+        "mesh.colour": ("red", "configuration error: mesh.colour: is not one of the "
+                               "settings the page changes"),
         "web.token": ("", "configuration error: web.token: [web] is changed in the "
                           "configuration file only"),
         # Valid as settings, refused by the parts a restart builds from them: saved, they
         # would stop the service on the restart the page then offers.
         "camera.url": ("synthetic:?foo=1", "configuration error: camera.url: "),
-        "mavlink.signing_key_file": (str(daemon.folder / "absent.key"),
-                                     "configuration error: mavlink.signing_key_file: cannot "
-                                     "read"),
+        "camera.calibration": (str(daemon.folder / "absent.yaml"),
+                               "configuration error: camera.calibration: "),
     }
     for key, (value, error) in cases.items():
         status, reply = daemon.request("POST", "/api/settings", {"changes": {key: value}},

@@ -47,6 +47,10 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Telemetry (Zenoh)", ("telemetry.mode", "telemetry.connect", "telemetry.listen",
                            "telemetry.vehicle")),
 )
+# Only these are changed from the page (it is open to the vehicle's network; the token is off
+# by default): not what lets simulated distances reach the autopilot, the filter's gates, or
+# keys that name files to read.
+OFFERED = frozenset(key for _, keys in GROUPS for key in keys)
 # Changed only in the file: the page's own access and address.
 LOCKED_SECTIONS = frozenset({"web"})
 RELOAD_TIMEOUT_S = 15.0
@@ -173,6 +177,9 @@ class SettingsEditor:
             if section in LOCKED_SECTIONS:
                 raise ConfigError(key, f"[{section}] is changed in the configuration file "
                                   f"only ({self.path})")
+            if key not in OFFERED and "hold" not in section:
+                raise ConfigError(key, "is not one of the settings the page changes: change "
+                                  f"it in the configuration file ({self.path})")
             if key in self._overridden:
                 raise ConfigError(key, "is set with --set on the command line, which wins over "
                                   "the file: change it there")
@@ -241,6 +248,7 @@ class SettingsEditor:
         self._request_restart()
 
     # -- internals -------------------------------------------------------------------------
+
     def _editable(self) -> tuple[bool, str]:
         if self.path is None:
             return False, "no configuration file: start with --config FILE to change settings"
