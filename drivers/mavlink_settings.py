@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.core.errors import ConfigError
+from service.core.files import read_small
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,8 @@ _BAUD_SUFFIX = re.compile(r"[:,](\d{4,7})$")
 # The lowest minimum distance: "too close" goes out at the minimum, and at 0 cm an autopilot
 # whose own RNGFNDn_MIN is 0 reads it as a Good reading of 0.00 m (its test is strict).
 MIN_MIN_DISTANCE_M = 0.01
+# A key file is 32 bytes, or 64 hex characters and a line end: room for a comment, not more.
+_MAX_KEY_FILE_BYTES = 4096
 
 
 def _is_serial_url(url: str) -> bool:
@@ -171,7 +174,7 @@ def load_signing_key(path: str) -> bytes:
     """
     key = "mavlink.signing_key_file"
     try:
-        data = Path(path).read_bytes()
+        data = read_small(path, _MAX_KEY_FILE_BYTES)
         mode = Path(path).stat().st_mode
     except OSError as exc:
         raise ConfigError(key, f"cannot read {path}: {exc.strerror or exc}") from exc

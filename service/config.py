@@ -34,6 +34,7 @@ from service.core.budget import BudgetSettings
 from service.core.damage import DamageSettings
 from service.core.errors import ConfigError
 from service.core.estimator import EstimatorSettings
+from service.core.files import read_small
 from service.core.mesh import MeshGeometry
 from service.core.redact import redact_config
 from service.core.tracking import FilterSettings
@@ -41,6 +42,8 @@ from service.core.tracking import FilterSettings
 T = TypeVar("T")
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+# A configuration is a few kilobytes; a larger "file" is something else named by mistake.
+MAX_CONFIG_BYTES = 1 << 20
 BUILTIN_CALIBRATION = "builtin"
 
 
@@ -200,7 +203,7 @@ def parse_override(text: str) -> tuple[str, str, Any]:
 def read_toml(path: Path) -> dict[str, Any]:
     try:
         # utf-8-sig: a file saved by an editor that writes a byte-order mark reads the same.
-        text = path.read_text(encoding="utf-8-sig")
+        text = read_small(path, MAX_CONFIG_BYTES).decode("utf-8-sig")
     except FileNotFoundError:
         raise ConfigError(str(path), "configuration file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -388,5 +391,7 @@ def load_config(
     if check_files:
         calibration = config.calibration_path()
         if calibration is not None and not calibration.is_file():
-            raise ConfigError("camera.calibration", f"file not found: {calibration}")
+            raise ConfigError("camera.calibration", f"file not found: {calibration}"
+                              if not calibration.exists() else
+                              f"{calibration} is not a regular file")
     return config

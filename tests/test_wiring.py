@@ -289,6 +289,35 @@ def test_a_bad_calibration_file_is_a_configuration_error_naming_the_key(
     assert info.value.key == "camera.calibration" and "image_height" in info.value.problem
 
 
+@pytest.mark.timeout(20)
+@pytest.mark.parametrize("key", ["camera.calibration", "mavlink.signing_key_file", "config"])
+@pytest.mark.parametrize("kind", ["device", "fifo", "large"])
+def test_a_file_key_naming_a_device_or_a_fifo_is_refused_without_reading_it(
+        tmp_path: Path, key: str, kind: str) -> None:
+    """Files named by settings are read whole. /dev/zero took the daemon from 131 MB to
+    951 MB (then the OOM killer), a FIFO blocked the settings page and the service's stop
+    for good: neither is opened, and a file far larger than its kind is refused."""
+    import os
+
+    if kind == "device":
+        path = Path("/dev/zero")
+    elif kind == "fifo":
+        path = tmp_path / "fifo"
+        os.mkfifo(path)
+    else:
+        path = tmp_path / "large"
+        path.write_bytes(b"#" * (2 << 20))
+    if key == "config":
+        with pytest.raises(ConfigError) as info:
+            check_config(str(path), [])
+        assert info.value.key == str(path)
+    else:
+        with pytest.raises(ConfigError) as info:
+            check_config(str(DEMO), [f"{key}={path}"])
+        assert info.value.key == key
+    assert "regular file" in str(info.value) or "larger than" in str(info.value)
+
+
 def test_secrets_in_the_camera_url_reach_no_log_status_or_state(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -19,7 +19,7 @@ import numpy.typing as npt
 import yaml
 
 from service.core.errors import CalibrationError
-from service.core.files import write_atomically
+from service.core.files import read_small, write_atomically
 
 FloatArray = npt.NDArray[np.float64]
 # How far a frame may be from the calibrated size scaled and still count as that size
@@ -39,6 +39,9 @@ _MAX_SIDE_PX = 32768
 _FOCAL_RANGE = (0.05, 100.0)
 # Where a file's lens model is checked to invert (a grid over the frame, edges included).
 _CHECK_GRID = (17, 9)
+# A calibration is a few kilobytes (an OpenCV file with comments, tens): a larger "file" is
+# something else named by mistake, or a device.
+_MAX_CALIBRATION_BYTES = 1 << 20
 _INVERSION_TOLERANCE_PX = 1e-3
 _INVERSION_TARGET_PX = 1e-6
 
@@ -362,7 +365,7 @@ def load_camera(path: str | Path) -> CameraModel:
     """Read a calibration file (ROS camera_info YAML, or OpenCV FileStorage YAML/XML)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = read_small(p, _MAX_CALIBRATION_BYTES).decode("utf-8")
     except FileNotFoundError:
         raise CalibrationError(f"{p}: calibration file not found") from None
     except (OSError, UnicodeDecodeError) as exc:

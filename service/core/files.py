@@ -1,4 +1,5 @@
-"""Writing a file that must survive a power cut, whole or not at all.
+"""Files the service reads and writes: small regular files read whole, and writes that must
+survive a power cut, whole or not at all.
 
 A vehicle's power is cut at the end of every dive, often within seconds of a change made from
 the web page. A file written in place can be left half written; one renamed over the old can
@@ -13,8 +14,26 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import stat
 from collections.abc import Callable
 from pathlib import Path
+
+
+def read_small(path: str | Path, max_bytes: int) -> bytes:
+    """The bytes of a regular file of at most `max_bytes`; OSError otherwise.
+
+    Files named by settings (a calibration, a key) are read whole: a device named instead
+    (/dev/zero) would fill the memory, and a FIFO or a tty would block the reader for good
+    (with it the settings page, and the service's stop). Neither is opened at all."""
+    p = Path(path)
+    mode = p.stat().st_mode  # follows a link, as open() would
+    if not stat.S_ISREG(mode):
+        raise OSError(f"{p} is not a regular file")
+    with open(p, "rb") as fh:
+        data = fh.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise OSError(f"{p} is larger than {max_bytes} bytes: not a file of this kind")
+    return data
 
 
 def write_atomically(path: str | Path, data: bytes, *,
