@@ -473,9 +473,32 @@ def test_a_rebound_name_cannot_change_settings(daemon: WebDaemon) -> None:
     status, reply = daemon.request(
         "POST", "/api/settings", {"changes": {"service.autopilot_distance": "perpendicular"}},
         token=True, headers={"Host": f"evil.example:{port}",
-                             "Origin": f"http://evil.example:{port}"})
+                             "Origin": f"http://evil.example:{port}",
+                             "X-Netpose-Change": "1"})  # a script that asked: not even then
     assert status == 403 and "web.allowed_origins" in reply["error"], (status, reply)
     assert daemon.config.read_bytes() == before
+
+
+def test_a_page_on_another_port_of_the_vehicle_cannot_change_settings(daemon: WebDaemon) -> None:
+    """Behind BlueOS's proxy the Host has no port, so the Origin check compares host names
+    only: any page served from the vehicle's name on another port (another extension, a tool)
+    passed it, and a "simple" POST (JSON labelled text/plain: no preflight) changed the
+    settings. A browser's change must carry a header that another page cannot send without a
+    preflight, which this server never grants; the page's own requests carry it."""
+    before = daemon.config.read_bytes()
+    headers = {"Host": "blueos.local", "Origin": "http://blueos.local:6040",
+               "Content-Type": "text/plain"}
+    body = json.dumps({"changes": {"mesh.opening_angle_deg": 80.0}}).encode()
+    status, reply = daemon.request("POST", "/api/settings", body, token=True, headers=headers)
+    assert status == 403 and "X-Netpose-Change" in reply["error"], reply
+    assert daemon.request("POST", "/api/restart", b"", token=True, headers=headers)[0] == 403
+    assert daemon.config.read_bytes() == before
+    # The page's own request, as app.js sends it, is taken.
+    status, reply = daemon.request(
+        "POST", "/api/settings", {"changes": {"mesh.opening_angle_deg": 80.0}}, token=True,
+        headers={"Host": "blueos.local", "Origin": "http://blueos.local",
+                 "X-Netpose-Change": "1"})
+    assert status == 200 and reply["saved"], reply
 
 
 def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:

@@ -38,7 +38,13 @@ from aiohttp import BodyPartReader, WSCloseCode, WSMsgType, web
 
 from drivers.recorder import ObservedFrame, Recorder, RecorderError
 from drivers.web.live import ClientSlots, LiveFeed, PlotHistory
-from drivers.web.security import TOKEN_HEADER, host_trusted, origin_allowed, token_ok
+from drivers.web.security import (
+    CHANGE_HEADER,
+    TOKEN_HEADER,
+    host_trusted,
+    origin_allowed,
+    token_ok,
+)
 from drivers.web.settings import WebSettings
 from service import __version__
 from service.core.camera import CameraModel, load_camera
@@ -275,6 +281,9 @@ class WebPage(Generic[R]):
         if (changes or upgrade) and not origin_allowed(
                 origin, request.host, self.settings.allowed_origins):
             return _error(403, f"request from another origin ({origin}) refused")
+        if changes and origin is not None and CHANGE_HEADER not in request.headers:
+            return _error(403, f"a change from a browser needs the {CHANGE_HEADER} header, as "
+                          "the page's own requests have (security.py)")
         # Changes only: the live WebSocket reads, and reading is open (GET / answers anyway).
         if (changes and origin is not None
                 and not host_trusted(request.host, self.settings.allowed_origins)):

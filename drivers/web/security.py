@@ -12,6 +12,12 @@
   the topside browser visits could resolve its own name to the vehicle (DNS rebinding) and be
   "the page's own origin"; with no token set (BlueOS's default) it could then rewrite the
   settings. Reading, the live WebSocket included, stays open by any name.
+- A browser's change (one that sends `Origin`) must carry the `X-Netpose-Change` header, as
+  the page's own requests do. A page of another site can send a "simple" cross-origin POST
+  (a form, or JSON labelled text/plain) with no preflight, and behind BlueOS's proxy the Origin
+  check above compares host names only, so any page served from the vehicle's name on another
+  port passed it. A custom header makes the browser ask first (a CORS preflight), which this
+  server never grants.
 - With `web.token` set, every change also needs the token in the `X-Netpose-Token` header.
 - Request bodies are bounded (`web.max_upload_kb`).
 
@@ -28,6 +34,7 @@ from collections.abc import Iterable
 from urllib.parse import urlsplit
 
 TOKEN_HEADER = "X-Netpose-Token"
+CHANGE_HEADER = "X-Netpose-Change"
 # Name suffixes no public DNS answers for (mDNS, RFC 8375, ICANN's .internal, and the ones home
 # routers hand out): a website cannot be served under them, so nor rebound to one.
 PRIVATE_SUFFIXES = (".local", ".home.arpa", ".internal", ".lan", ".home", ".localdomain")

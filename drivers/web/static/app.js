@@ -362,7 +362,8 @@ setInterval(() => {
 
 // -- requests that change something --------------------------------------------------------
 async function send(url, body) {
-  const headers = {};
+  // A page of another site cannot send this header without asking first (security.py).
+  const headers = { "X-Netpose-Change": "1" };
   const token = $("token") ? $("token").value || sessionStorage.getItem("netpose-token") : null;
   if (token) { headers["X-Netpose-Token"] = token; sessionStorage.setItem("netpose-token", token); }
   if (body !== undefined && !(body instanceof FormData)) { headers["Content-Type"] = "application/json"; body = JSON.stringify(body); }
