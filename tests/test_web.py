@@ -858,6 +858,36 @@ def test_a_reload_in_set_up_mode_names_what_is_still_wrong_in_the_log(tmp_path: 
         assert d.stop() == 0, d.log()
 
 
+def test_restart_in_set_up_mode_comes_back_in_set_up_mode(tmp_path: Path) -> None:
+    """The page's Restart in set-up mode ended the process with status 0: under systemd's
+    Restart=on-failure the service then stayed down, with no page to finish the set-up on.
+    It sets up again from the saved file, in the same process."""
+    d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml"}}).start()
+    try:
+        assert d.proc is not None and "set-up mode" in d.log()
+        status, _ = d.request("POST", "/api/restart", {}, token=True)
+        assert status == 200
+        deadline = time.monotonic() + 30.0
+        while "restarting with the saved configuration" not in d.log():
+            assert d.proc.poll() is None, d.log()
+            assert time.monotonic() < deadline, d.log()
+            time.sleep(0.2)
+        while True:  # the page comes back, still setting up
+            assert d.proc.poll() is None, d.log()
+            assert time.monotonic() < deadline, d.log()
+            try:
+                status, settings = d.request("GET", "/api/settings", timeout_s=2.0)
+            except OSError:
+                time.sleep(0.3)
+                continue
+            if status == 200:
+                break
+        assert settings["problem"].startswith("configuration error: "), settings
+        assert d.log().count("set-up mode, nothing is sent") == 2
+    finally:
+        assert d.stop() == 0, d.log()
+
+
 def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Path) -> None:
     autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     autopilot.bind(("127.0.0.1", 0))

@@ -353,6 +353,19 @@ def main(
                                         overrides, deadline)
                     finally:
                         editor.setting_up.clear()
+                    if ready is None and restart.is_set() and not flags.signalled.is_set():
+                        # The page's Restart in set-up mode: set-up again from the saved file
+                        # (an exit, status 0, left the service down under systemd's
+                        # Restart=on-failure, with no page to finish the set-up on).
+                        restart.clear()
+                        flags.stop.clear()
+                        flags.stop_signal = None
+                        if not flags.signalled.is_set():
+                            editor.restarted()
+                            config, problem = _load_or_setup(config_path, overrides)
+                            log.info("restarting with the saved configuration (%s)",
+                                     config.digest)
+                            continue
                     if ready is None:
                         return 0
                     config, problem = ready, None
