@@ -157,6 +157,33 @@ def test_the_settings_page_never_shows_a_camera_password(tmp_path: Path) -> None
     assert url in config.read_text()
 
 
+def test_a_save_while_the_daemon_restarts_is_saved_and_does_not_hold_up_the_restart(
+    tmp_path: Path,
+) -> None:
+    """A save that came as the page's Restart was under way waited 15 s for a reload the
+    stopping daemon never did, and held the restart (and the autopilot's distance) that long;
+    then it answered with an error for a change it had saved. It is saved, said to apply as
+    the service restarts, at once."""
+    import threading
+
+    from service.daemon.settings_editor import SettingsEditor
+    from service.daemon.wiring import load_daemon_config
+
+    save_camera(builtin_camera(1280, 720), tmp_path / "camera.yaml")
+    config = tmp_path / "netpose.toml"
+    config.write_text('[camera]\nurl = "synthetic:"\ncalibration = "camera.yaml"\n'
+                      '[mesh]\nbar_length_m = 0.025\n')
+    stopping = threading.Event()
+    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), lambda: None,
+                            stopping.set, stopping=stopping.is_set)
+    editor.restart()  # nothing reloads from now on: the daemon is on its way down
+    started = time.monotonic()
+    outcome = editor.apply({"mesh.bar_length_m": 0.03})
+    assert time.monotonic() - started < 2.0
+    assert outcome["saved"] and "restarts" in outcome["message"], outcome
+    assert "bar_length_m = 0.03" in config.read_text()
+
+
 def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
     """A started page (no daemon behind it) over one finished recording of 32 MB: more than
     the loopback socket's buffers and the page's queue hold. (page, port, recording name)."""

@@ -20,6 +20,7 @@ import hashlib
 import logging
 import os
 import threading
+import time
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -54,6 +55,8 @@ OFFERED = frozenset(key for _, keys in GROUPS for key in keys)
 # Changed only in the file: the page's own access and address.
 LOCKED_SECTIONS = frozenset({"web"})
 RELOAD_TIMEOUT_S = 15.0
+# How often a wait for the daemon's reload looks whether it is stopping instead.
+_STOP_POLL_S = 0.1
 
 Loader = Callable[[Path], Config]
 
@@ -99,9 +102,12 @@ class SettingsEditor:
     def __init__(self, path: Path | None, overrides: tuple[str, ...], load: Loader,
                  request_reload: Callable[[], None],
                  request_restart: Callable[[], None],
-                 load_incomplete: Loader | None = None) -> None:
+                 load_incomplete: Loader | None = None,
+                 stopping: Callable[[], bool] = lambda: False) -> None:
         """`load` checks a file as `netpose run` does; `load_incomplete` as set-up mode may save
-        it (what set-up is there to finish may still be missing), used while `setting_up`."""
+        it (what set-up is there to finish may still be missing), used while `setting_up`.
+        `stopping` says that the daemon is stopping (a signal, a restart): it reloads nothing
+        then, and a saved change is not waited for."""
         self.path = path
         self._overridden = {text.partition("=")[0].strip() for text in overrides}
         self._load = load
@@ -109,6 +115,7 @@ class SettingsEditor:
         self.setting_up = threading.Event()
         self._request_reload = request_reload
         self._request_restart = request_restart
+        self._stopping = stopping
         self._lock = threading.Lock()  # one change at a time
         self._outcomes = threading.Condition()
         self._reloads = 0
@@ -214,6 +221,12 @@ class SettingsEditor:
             log.info("configuration changed from the web page: %s",
                      ", ".join(sorted(changes)))
             outcome = self._reload()
+        if outcome is None:
+            # A restart (or a stop) came while the change was saved: the restarted daemon
+            # starts from the file, so the change applies then. Waiting for a reload that a
+            # stopping daemon never does held its page, and with it the restart, 15 s.
+            return {"saved": True, "message": "saved; applies as the service restarts",
+                    "changed": [], "restart_needed": [], "digest": ""}
         if not outcome.ok:
             # Validated a moment ago: only a file changed under us gets here.
             raise ConfigError("configuration", f"saved, but the reload failed: {outcome.error}")
@@ -268,13 +281,21 @@ class SettingsEditor:
         except CalibrationError as exc:
             raise ConfigError("camera.calibration", str(exc)) from None
 
-    def _reload(self) -> ReloadOutcome:
+    def _reload(self) -> ReloadOutcome | None:
+        """The daemon's reload of the saved file; None when it is stopping (or restarting)
+        instead, which it may start doing while this waits."""
+        deadline = time.monotonic() + RELOAD_TIMEOUT_S
         with self._outcomes:
             seen = self._reloads
             self._request_reload()
-            if not self._outcomes.wait_for(lambda: self._reloads > seen, RELOAD_TIMEOUT_S):
-                raise ConfigError("configuration", "saved, but the daemon did not reload "
-                                  f"within {RELOAD_TIMEOUT_S:.0f} s")
+            while self._reloads <= seen:
+                if self._stopping():
+                    return None
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    raise ConfigError("configuration", "saved, but the daemon did not reload "
+                                      f"within {RELOAD_TIMEOUT_S:.0f} s")
+                self._outcomes.wait(min(left, _STOP_POLL_S))
             assert self._last_outcome is not None
             return self._last_outcome
 

@@ -332,7 +332,8 @@ def main(
                 config.path, overrides, lambda path: checked_config(str(path), overrides),
                 flags.reload.set, request_restart,
                 load_incomplete=lambda path: checked_config(str(path), overrides,
-                                                            incomplete_ok=True))
+                                                            incomplete_ok=True),
+                stopping=flags.stop.is_set)
             running: list[Daemon] = []
             started = time.monotonic()
             controls = WebControls(editor, lambda: running[-1].config if running else config,
