@@ -665,6 +665,11 @@ def test_a_bad_setting_names_the_key_and_changes_nothing(daemon: WebDaemon) -> N
         status, reply = daemon.request("POST", "/api/settings", {"changes": {key: value}},
                                        token=True)
         assert status == 400 and reply["error"].startswith(error), reply
+    # Text that is no text: JSON's lone surrogates (a 500 and a traceback in the log before).
+    for changes in ({"service.\ud800": 1}, {"camera.url": "rtsp://\udcff"}):
+        status, reply = daemon.request("POST", "/api/settings", {"changes": changes},
+                                       token=True)
+        assert status == 400 and "not valid text" in reply["error"], reply
     # Two changes, one bad: neither is applied.
     status, reply = daemon.request("POST", "/api/settings", {"changes": {
         "mesh.opening_angle_deg": 80.0, "mesh.bar_length_m": -1}}, token=True)

@@ -178,6 +178,12 @@ class SettingsEditor:
             raise ConfigError("configuration", reason)
         assert self.path is not None
         for key, value in changes.items():
+            for text in (key, value) if isinstance(value, str) else (key,):
+                try:
+                    text.encode("utf-8")
+                except UnicodeEncodeError:  # a lone surrogate (JSON's \ud800): no file text
+                    raise ConfigError(ascii(key), "is not valid text (a lone surrogate)"
+                                      ) from None
             section, dot, name = key.partition(".")
             if not dot or not section or not name or "." in name:
                 raise ConfigError(key, "must look like section.key")
