@@ -58,6 +58,9 @@ SEND_TIMEOUT_S = 10.0  # a page that takes no data for this long is disconnected
 CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml")
 PENDING_CALIBRATIONS = 4
 MAX_HOLES = 20  # confirmed holes listed on the page (newest first)
+# Live pages at once: each takes about 1.6 Mbit/s (4 frames/s of ~50 KB), so 16 take a third
+# of a 80 Mbit/s tether that also carries the video and MAVLink. 200 took 789 MB in 20 s.
+MAX_LIVE_CLIENTS = 16
 # A recording download whose client takes nothing for this long is ended (its tar thread is
 # one of the two that also serve settings and calibrations).
 DOWNLOAD_STALL_S = 60.0
@@ -343,6 +346,9 @@ class WebPage(Generic[R]):
 
     # -- live data -----------------------------------------------------------------------------
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        if len(self._sockets) >= MAX_LIVE_CLIENTS:
+            return _error(503, f"{MAX_LIVE_CLIENTS} pages are already open on this vehicle: "
+                          "close one (the live view's bandwidth is shared with the video)")
         ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=4096)
         await ws.prepare(request)
         client = ClientSlots()
