@@ -448,8 +448,7 @@ class MavlinkLink(AutopilotLink):
             finally:
                 with contextlib.suppress(Exception):
                     conn.close()
-                with self._lock:
-                    self._transport_up = False
+                self._transport_down()
 
     def _note_failure(self, exc: Exception, attempts: int) -> None:
         message = f"{type(exc).__name__}: {exc}"
@@ -458,10 +457,10 @@ class MavlinkLink(AutopilotLink):
             self._last_error = message
             first = not self._backoff.in_outage
             was_up = self._transport_up
-            self._transport_up = False
             # Without a transport there is no autopilot either; the warning below says why, so
             # the heartbeat timeout must not log a second time.
             self._autopilot_alive = False
+        self._transport_down()
         if first:
             # Once per outage and reason; the retries that follow are only at DEBUG level.
             self._outage_reason = message
@@ -481,6 +480,18 @@ class MavlinkLink(AutopilotLink):
                         _hint(message))
         else:
             log.debug("MAVLink link %s attempt %d failed: %s", self._url, attempts, message)
+
+    def _transport_down(self) -> None:
+        """No transport: nothing goes out, and the status (the page, the monitor) says so in
+        the same breath (it went on saying "sending distance", shown as "to the autopilot")."""
+        with self._lock:
+            self._transport_up = False
+            stopped = [what for what in ("distance", "net_plane")
+                       if getattr(self, f"_sending_{what}")]
+            for what in stopped:
+                setattr(self, f"_sending_{what}", False)
+        for what in stopped:
+            self._note_sending(what, False, self._clock(), "link down")
 
     def _note_up(self, attempts: int) -> None:
         with self._lock:

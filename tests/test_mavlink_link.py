@@ -373,8 +373,11 @@ def test_tcp_link_survives_router_restart(caplog: pytest.LogCaptureFixture) -> N
         with link, feeding(link):
             first.wait_for("DISTANCE_SENSOR", count=3)
             wait_status(link, "state", "connected")
+            assert link.status().sending_distance
             first.close()  # router gone: connection closed, then refused
             wait_status(link, "transport", "down")
+            # Nothing goes out: the page and the monitor showed "1.42 m, to the autopilot".
+            assert link.status().sending_distance is False
             deadline = time.monotonic() + 5.0
             while link.status().errors < 4 and time.monotonic() < deadline:
                 time.sleep(0.02)

@@ -143,6 +143,35 @@ def test_estimates_that_stopped_are_not_shown_as_a_live_distance() -> None:
     assert "no estimate for 10.0 s" in summary and "d 1.50" not in summary
 
 
+def test_what_the_autopilot_gets_is_said_with_the_link_and_the_filters_state() -> None:
+    """With the link to the autopilot lost the monitor printed "autopilot 1.62 m along the
+    camera axis" beside "ap lost", a coasting prediction read as "valid True" like a tracked
+    distance, and the one-line summary had only the raw estimate, even while nothing was
+    sent. The screen and the summary say the filter's state and what reaches the autopilot."""
+    state = MonitorState(stale_after_s=2.0, window_s=5.0)
+    coasting = estimate_json(1)
+    coasting["filtered"]["state"] = "coasting"
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(coasting), 100.0)
+    sending = dataclasses.replace(status_message(), autopilot=AutopilotHealth(
+        state="connected", sending_distance=True))
+    state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(sending)), 100.0)
+    screen = "\n".join(state.render(100.0))
+    assert "filtered  coasting  valid True" in screen
+    assert "autopilot 1.53 m along the camera axis\n" in screen + "\n"
+    assert "[coasting] ap: 1.53 m along the camera axis" in state.summary(100.0)
+    for link, said in (("lost", "NOT reaching it: autopilot link lost"),
+                       ("waiting", "NOT reaching one: no autopilot heard")):
+        status = dataclasses.replace(status_message(), autopilot=AutopilotHealth(
+            state=link, sending_distance=True))
+        state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(status)), 100.1)
+        assert f"autopilot 1.53 m along the camera axis, {said}" in "\n".join(
+            state.render(100.1))
+        assert said in state.summary(100.1)
+    stale = dataclasses.replace(status_message(), autopilot=AutopilotHealth(state="connected"))
+    state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(stale)), 100.2)
+    assert "camera axis, NOT being sent now" in "\n".join(state.render(100.2))
+
+
 def test_uncertainty_and_closing_speed_read_as_what_they_are() -> None:
     """A sigma of 1.7 mm read "+/-0.00 m", and the filter's closing speed (positive toward the
     net) stood beside the distance as "rate", which reads as d's own rate: the wrong sign."""

@@ -238,6 +238,14 @@ def test_the_header_shows_the_distance_the_autopilot_gets(browser: Any, tmp_path
             point = page.evaluate("window.netpose.points[window.netpose.points.length - 1]")
             assert point[6] == kind and point[3] == pytest.approx(expected_m, abs=0.03)
             assert page.text_content("#plot-kind") == label
+        # The autopilot goes quiet (its link lost, the router restarting): what is sent
+        # reaches nothing, and the header no longer says "to the autopilot".
+        observer.close()
+        for view in (page, widget):
+            view.wait_for_function(
+                "document.getElementById('distance-kind').textContent === "
+                "'autopilot link lost: nothing reaches it'", timeout=30_000)
+            assert "unsent" in view.get_attribute("#distance", "class")
         assert not errors, errors
     finally:
         assert daemon.stop() == 0, daemon.log()

@@ -238,6 +238,11 @@ class MonitorState:
         silence = self.estimate_silence_s(view, now_mono)
         parts.append(_estimate_text(view.estimate) if silence is None
                      else f"no estimate for {silence:.1f} s")
+        filtered = (view.estimate or {}).get("filtered") if silence is None else None
+        if filtered:
+            # The raw estimate is not what the autopilot has: say what it was handed.
+            parts.append(f"[{filtered.get('state') or '-'}] ap: "
+                         + _autopilot_text(filtered, view.status))
         parts.append(f"status {self.rate_hz(view.name, STATUS_SUFFIX, now_mono):.1f}Hz")
         parts.append(_status_text(view.status))
         if view.holes:
@@ -273,13 +278,13 @@ class MonitorState:
             filtered = estimate.get("filtered") or {}
             if filtered:
                 lines.append(
-                    f"  filtered  valid {filtered.get('valid')}"
+                    f"  filtered  {filtered.get('state') or '-'}  valid {filtered.get('valid')}"
                     f"  d {_fmt(filtered.get('distance_m'))}"
                     f" +/- {_fmt(filtered.get('sigma_distance_m'), 3)} m"
                     f"  closing {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
                     " (+ toward the net)"
                 )
-                lines.append("  autopilot " + _autopilot_text(filtered))
+                lines.append("  autopilot " + _autopilot_text(filtered, view.status))
             latency = estimate.get("latency_ms") or {}
             if latency:
                 lines.append(
@@ -337,9 +342,26 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
     )
 
 
-def _autopilot_text(filtered: Mapping[str, Any]) -> str:
+def _autopilot_text(filtered: Mapping[str, Any],
+                    status: Mapping[str, Any] | None = None) -> str:
     """What the autopilot was handed with this frame: `d` above is the perpendicular distance,
-    and the autopilot may get the one along the camera's axis (service.autopilot_distance)."""
+    and the autopilot may get the one along the camera's axis (service.autopilot_distance).
+    With the link to the autopilot down, or none heard, what is handed over reaches nothing,
+    and that is said with it (the daemon's latest status)."""
+    told = _handed_text(filtered)
+    link = (status or {}).get("autopilot") or {}
+    if told == "nothing sent" or not link:
+        return told
+    if link.get("state") == "lost":
+        return f"{told}, NOT reaching it: autopilot link lost"
+    if link.get("state") == "waiting":
+        return f"{told}, NOT reaching one: no autopilot heard"
+    if link.get("sending_distance") is False:
+        return f"{told}, NOT being sent now"
+    return told
+
+
+def _handed_text(filtered: Mapping[str, Any]) -> str:
     told = filtered.get("autopilot")
     if told == "good":
         along = filtered.get("autopilot_along")

@@ -154,6 +154,7 @@ function judge() {
   const h = {
     connected: page.connected, estimateAge, frameAge, statusAge, source,
     sending: status ? status.autopilot.sending_distance : null,
+    autopilot: status ? status.autopilot.state : null,
     estimateStale: estimateAge === null || estimateAge > staleAfter,
     statusStale: !status,
     sourceDown: source !== null && source !== "streaming",
@@ -221,10 +222,15 @@ function renderHeader(h) {
   setText("state", f.state, "badge " + f.state);
   const handed = f.autopilot === "good" ? fmt(f.autopilot_distance_m) + " m"
     : f.autopilot === "too_close" ? "too close" : "–";
-  const sent = f.autopilot !== "none" && h.sending !== false;
+  // Sent is not received: with the link to the autopilot down (a router restarting, a wrong
+  // port), the number must not read as what the autopilot has.
+  const unheard = h.autopilot === "lost" ? "autopilot link lost: nothing reaches it"
+    : h.autopilot === "waiting" ? "no autopilot heard: nothing reaches one" : "";
+  const sent = f.autopilot !== "none" && h.sending !== false && !unheard;
   setText("distance", handed, "big" + (sent ? "" : " unsent"));
   let kind;
   if (f.autopilot === "none") kind = "nothing sent to the autopilot";
+  else if (unheard) kind = unheard;
   else if (h.sending === false) kind = `${along ? along.short + " – " : ""}not being sent to the autopilot`;
   else kind = f.autopilot === "too_close" ? "to the autopilot: below its minimum" : `to the autopilot, ${along ? along.short : ""}`;
   setText("distance-kind", kind);
