@@ -100,6 +100,11 @@ MAV_SEVERITY_NOTICE = 5
 # STATUSTEXT.text is 50 characters; texts queued while the link is down wait, up to this many.
 STATUSTEXT_LENGTH = 50
 _MAX_QUEUED_TEXTS = 16
+# ... and for at most this long: a pilot's text is about now ("net too close to measure, back
+# off"); one that reached the GCS 20 s late, after a link outage, was a wrong instruction.
+# A hole's text too: it says where the hole is from where the vehicle was (its message on Zenoh
+# and the log keep it).
+TEXT_MAX_WAIT_S = 5.0
 # Heartbeat types that are never the autopilot even if they claim an autopilot field.
 NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30})  # GCS, onboard, gimbal, ADS-B, camera
 
@@ -323,7 +328,7 @@ class MavlinkLink(AutopilotLink):
         self._sent: SendTimes = dict.fromkeys(
             ("HEARTBEAT", "DISTANCE_SENSOR", "DEBUG_VECT", "STATUSTEXT", "TIMESYNC"), 0
         )
-        self._texts: collections.deque[tuple[int, str]] = collections.deque(
+        self._texts: collections.deque[tuple[float, int, str]] = collections.deque(
             maxlen=_MAX_QUEUED_TEXTS)
         self._received = 0
         self._errors = 0
@@ -362,8 +367,9 @@ class MavlinkLink(AutopilotLink):
             self._plane = plane
 
     def notify_pilot(self, text: str, severity: int = MAV_SEVERITY_WARNING) -> None:
+        queued = self._clock()
         with self._lock:
-            self._texts.append((severity, text[:STATUSTEXT_LENGTH]))
+            self._texts.append((queued, severity, text[:STATUSTEXT_LENGTH]))
 
     def start(self) -> None:
         if self._thread is not None:
@@ -611,7 +617,11 @@ class MavlinkLink(AutopilotLink):
             with self._lock:
                 if not self._texts:
                     return
-                severity, text = self._texts.popleft()
+                queued, severity, text = self._texts.popleft()
+            if self._clock() - queued > TEXT_MAX_WAIT_S:
+                log.info("MAVLink: a text for the pilot waited %.0f s for the link and is no "
+                         "longer news, not sent: %s", self._clock() - queued, text)
+                continue
             self._send(conn, "STATUSTEXT",
                        functools.partial(conn.mav.statustext_send, severity,
                                          text.encode("utf-8")))

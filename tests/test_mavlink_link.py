@@ -874,6 +874,30 @@ def test_a_pilot_notice_queued_as_the_service_stops_still_goes_out() -> None:
     assert texts[0].msg.text == "netpose: hole 1 ~6x4 cm ahead at 1.1 m"
 
 
+def test_a_pilot_text_that_waited_out_a_link_outage_is_not_sent_late(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Texts queued while the router was away went out in one burst when it came back: "net
+    too close to measure, back off" reached the ground station 20 s late, an instruction about
+    a moment long gone. A text that waited longer than TEXT_MAX_WAIT_S is dropped (and said in
+    the log); one queued just before the link came back goes out. (The limit is shortened
+    here so that the test waits less.)"""
+    from drivers import mavlink_link
+
+    monkeypatch.setattr(mavlink_link, "TEXT_MAX_WAIT_S", 0.5)
+    port = free_port(socket.SOCK_STREAM)
+    link = MavlinkLink(settings(f"tcp:127.0.0.1:{port}"))
+    with link:
+        link.notify_pilot("netpose: net too close to measure, back off")
+        time.sleep(0.8)  # the router is away longer than the text is news
+        link.notify_pilot("netpose: net ~1.9 m, too little in view")
+        with FakeAutopilot(TcpServerTransport(port)) as autopilot:
+            texts = autopilot.wait_for("STATUSTEXT", count=1, timeout=5.0)
+            time.sleep(0.3)
+            texts = autopilot.received("STATUSTEXT")
+    assert [t.msg.text for t in texts] == ["netpose: net ~1.9 m, too little in view"]
+
+
 def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
     """So the net-hold applet stops on the first frame without the net, not at its timeout."""
     with FakeAutopilot(UdpServerTransport()) as autopilot:
