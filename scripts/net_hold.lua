@@ -116,11 +116,13 @@ local function bad_param()
   for _, p in ipairs(PARAMS) do
     local v = P[p[1]]:get()
     if type(v) ~= "number" or not (v >= p[3] and v <= p[4]) then
-      return string.format("NETH_%s %s outside %g..%g", p[1], tostring(v), p[3], p[4])
+      -- Short: the pilot's text holds 50 characters ("NetHold: refused: " takes 18).
+      local shown = type(v) == "number" and string.format("%g", v) or tostring(v)
+      return string.format("%s=%s, not %g..%g", p[1], shown, p[3], p[4])
     end
   end
   if get("DIST_MAX") <= get("DIST_MIN") then
-    return "NETH_DIST_MAX not above NETH_DIST_MIN"
+    return "DIST_MAX not above DIST_MIN"
   end
   return nil
 end
@@ -336,7 +338,7 @@ local function on_plane(msg, now)
     -- Stamped after it arrived: the clocks disagree (netpose's estimate of this autopilot's
     -- boot, another sender). Its age would not grow; thrust stops until a plane that can be
     -- timed comes. Not kept, so it cannot freeze the planes after it either.
-    doubt_why = "net plane from the future (clock?)"
+    doubt_why = "net plane ahead of clock"
     no_net_at(now)
     return
   end
@@ -396,7 +398,8 @@ local function on_plane(msg, now)
         -- Thrust was stopped all the while (the doubt, a gap before it): the vehicle only
         -- coasted, however long the wait for the frames to agree.
         if beyond_movement(jump.d, plane.d, since(jump.arrival, now)) then
-          level_changed = string.format("net distance jumped (%.2f -> %.2f m)", jump.d, plane.d)
+          level_changed = string.format("net distance jumped %.2f->%.2f m", jump.d,
+                                        plane.d)
         end
         jump = nil
       end
@@ -526,27 +529,27 @@ engage = function()
   end
   local bad = bad_param()
   if bad ~= nil then
-    say(SEV_WARNING, "not engaged: " .. bad)
+    say(SEV_WARNING, "refused: " .. bad)
     return false
   end
   if not arming:is_armed() then
-    say(SEV_WARNING, "not engaged: disarmed")
+    say(SEV_WARNING, "refused: disarmed")
     return false
   end
   if since(last_pilot, now) > PILOT_TIMEOUT_S then
-    say(SEV_WARNING, "not engaged: no pilot input (joystick) from the ground station")
+    say(SEV_WARNING, "refused: no joystick input from the GCS")
     return false
   end
   if plane_age(now) > get("TIMEOUT") or no_net_t ~= nil then
-    say(SEV_WARNING, "not engaged: no net in view")
+    say(SEV_WARNING, "refused: no net in view")
     return false
   end
   if plane.d > get("DIST_MAX") or plane.d < get("DIST_MIN") then
-    say(SEV_WARNING, string.format("not engaged: net at %.2f m", plane.d))
+    say(SEV_WARNING, string.format("refused: net at %.2f m", plane.d))
     return false
   end
   if doubt > 0 then
-    say(SEV_WARNING, "not engaged: " .. (doubt_why or "net distance not steady"))
+    say(SEV_WARNING, "refused: " .. (doubt_why or "net distance not steady"))
     return false
   end
   engaged, paused, yaw_rate_cmd = true, false, 0
@@ -775,7 +778,9 @@ local function protected_update()
       neutral()
     end
     gcs:send_named_float("NH_ON", 0)
-    gcs:send_text(3, "NetHold: internal error, OFF: " .. tostring(err))
+    -- Two texts: each holds 50 characters, and the error's start (file and line) matters most.
+    gcs:send_text(3, "NetHold: internal error, OFF")
+    gcs:send_text(3, "NetHold: " .. string.sub(tostring(err), 1, 41))
   end
   return protected_update, UPDATE_MS
 end

@@ -69,7 +69,12 @@ function mavlink:send_chan(chan, msgid, payload)
   table.insert(stub.sent, {chan, msgid, payload}) return true
 end
 gcs = {}
-function gcs:send_text(sev, text) table.insert(stub.texts, {stub.now_ms, sev, text}) end
+-- ArduPilot cuts a STATUSTEXT at 50 characters (GCS::send_text): a longer text loses its end
+-- on the pilot's screen, so every text the applet sends must fit.
+function gcs:send_text(sev, text)
+  assert(#text <= 50, "STATUSTEXT over 50 characters: " .. text)
+  table.insert(stub.texts, {stub.now_ms, sev, text})
+end
 function gcs:send_named_float(name, v) stub.named[name] = v end
 sub = {}
 function sub:get_and_clear_button_count(i)
