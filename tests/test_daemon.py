@@ -34,6 +34,7 @@ from service.core.camera import save_camera
 from service.core.readings import RangeStatus
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.wiring import load_daemon_config
+from service.signals import RESTART
 from tests.daemon_harness import (
     REPO,
     RecordingObserver,
@@ -87,6 +88,31 @@ def test_dead_camera_withdraws_the_distance_within_the_coasting_time(
     assert sum("frame source down" in m for m in messages) == 1
     assert sum("net lost" in m for m in messages) == 1
     assert h.notifier.messages[0].startswith("READY=1")
+    # The pilot hears it: to a ground station the rangefinder only fell silent, as in open
+    # water (and its indicator may keep the last number).
+    assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"]
+
+
+def test_the_pilot_hears_the_camera_come_back_and_netpose_stop(frames: list[Frame]) -> None:
+    """The camera's return is said once its loss was; netpose stopping (a signal, the page's
+    Restart, an update) is said before the link closes, not left as a silent rangefinder."""
+    cfg = demo_config("camera.stale_after_s=0.5")
+    script = [*steps(frames[:10]), *[Step(wait_s=0.2)] * 5, *steps(frames[10:20], 103.0),
+              *[Step(wait_s=0.2)] * 5, *steps(frames[20:30], 106.0)]
+    h = make_harness(cfg, script)
+    h.run_script()
+    texts = [t for _, t in h.link.texts]
+    # The second loss comes within 30 s of the first: not said again (nor its return).
+    assert texts == ["netpose: camera lost: no distance", "netpose: camera back"]
+    h.daemon.flags.request_stop("SIGTERM")
+    h.daemon.run()
+    assert [t for _, t in h.link.texts][-1] == "netpose: stopping: no distance"
+    restarting = make_harness(cfg, steps(frames[:3]))
+    restarting.run_script()
+    restarting.daemon.flags.request_stop(RESTART)
+    restarting.daemon.run()
+    assert [t for _, t in restarting.link.texts] == [
+        "netpose: restarting: no distance for a moment"]
 
 
 def test_frames_stamped_ahead_of_the_clock_still_coast_out_in_real_time(

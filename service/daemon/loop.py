@@ -43,6 +43,7 @@ from service.daemon.ports import (
     TelemetrySink,
 )
 from service.daemon.search_pace import SearchPacer
+from service.daemon.service_notices import ServiceNotices
 from service.daemon.stats import LoopStats
 from service.daemon.status import ReportContext, StatusReporter
 from service.daemon.view_notices import ViewNotices
@@ -156,6 +157,7 @@ class Daemon:
             wall_clock=wall_clock, states=states,
         )
         self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg, states=states)
+        self.service_notices = ServiceNotices(parts.link)
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
         self.last_index: int | None = None  # the source's number of the last frame processed
@@ -187,6 +189,7 @@ class Daemon:
                 result = self.pipeline.skip(frame.t_monotonic, frame.index, self.search.why())
                 self.budget.skipped(frame.t_monotonic, frame.index)
             self.last_index = frame.index
+        self.service_notices.camera(self.source_watch.up, now)
         sent = self.outputs.to_autopilot(result)
         if frame is not None and not result.unmeasured:
             # After the distance has gone: an inspected frame's distance waited for the hole
@@ -252,6 +255,7 @@ class Daemon:
             if self.flags.stop_signal:
                 log.info("%s received: stopping", self.flags.stop_signal)
             self.parts.notifier.stopping()
+            self.service_notices.stopping(self.flags.stop_signal)
             self.reporter.summary(stopping_at, final=True)
             self.close()
             log.info("stopped cleanly (outputs and source closed in %.2f s)",
