@@ -230,6 +230,23 @@ def test_the_pilots_text_says_where_the_hole_is_for_the_cameras_mounting() -> No
         assert all(len(t) <= 50 for t in link.texts)
 
 
+@pytest.mark.parametrize("facing", ["ahead", "below", "in view", "behind"])
+def test_a_pilots_hole_text_fits_without_losing_its_range_or_its_count(facing: str) -> None:
+    """Cut at 50 characters, a camera looking down lost the range and the count of holes held
+    back: "net: hole ~12x10 cm below, view bottom-right at 1." The text is built to fit: the
+    place is said shorter, or not at all, before the size, the range or the count go. Worst
+    cases: three-digit sizes, a corner of the view, ten held back."""
+    hole = dataclasses.replace(_hole(1), width_m=1.23, height_m=1.17, range_m=12.34,
+                               point_m=(0.5, 0.5, 1.0))  # bottom-right of the view
+    for more in (0, 2, 10):
+        text = hole.pilot_text(facing, more=more)
+        assert len(text) <= 50, text
+        assert text.startswith("net: hole ~123x117 cm") and "at 12.3 m" in text, text
+        assert text.endswith(f" (+{more})" if more else " m"), text
+    assert hole.pilot_text("below") == "net: hole ~123x117 cm below BR at 12.3 m"
+    assert _hole(1).pilot_text("below") == "net: hole ~5x4 cm below, view right at 1.0 m"
+
+
 def test_the_daemon_tells_the_pilot_in_the_configured_cameras_terms() -> None:
     clock = FakeClock(100.0)
     config = demo_config("mavlink.orientation=25")

@@ -45,6 +45,8 @@ Vec3 = tuple[float, float, float]
 
 # How fast the net may move across the view between two inspected frames before its velocity
 # is known (m/s): an ROV inspecting a net moves at a few tenths of a metre per second.
+# MAVLink 1's STATUSTEXT: ground stations show at most this many characters.
+STATUSTEXT_LENGTH = 50
 MAX_SPEED_MPS = 0.6
 # Once the velocity is known, how much it may change (m/s).
 SPEED_UNCERTAINTY_MPS = 0.2
@@ -96,12 +98,30 @@ class ConfirmedHole:
         part = "-".join(w for w in (vertical, horizontal) if w)
         return f"{facing}, view {part}" if part else facing
 
-    def pilot_text(self, facing: str = "ahead") -> str:
+    def pilot_text(self, facing: str = "ahead", more: int = 0) -> str:
         """The STATUSTEXT (at most 50 characters): "net: hole ~6x4 cm ahead-left at 1.1 m"
-        (`facing`: where the camera looks, as for `bearing_as`)."""
+        (`facing`: where the camera looks, as for `bearing_as`), with " (+2)" when `more`
+        holes were held back by the rate limit. Built to fit, not cut: cut, a camera looking
+        down lost the range and the count ("net: hole ~12x10 cm below, view bottom-right at
+        1."). The place is said shorter ("below BR"), or not at all, before anything else."""
         w = max(1, round(self.width_m * 100))
         h = max(1, round(self.height_m * 100))
-        return f"net: hole ~{w}x{h} cm {self.bearing_as(facing)} at {self.range_m:.1f} m"[:50]
+        head = f"net: hole ~{w}x{h} cm"
+        tail = f"at {self.range_m:.1f} m" + (f" (+{more})" if more else "")
+        text = ""
+        for where in (self.bearing_as(facing), self._bearing_short(facing), ""):
+            text = " ".join(part for part in (head, where, tail) if part)
+            if len(text) <= STATUSTEXT_LENGTH:
+                return text
+        return text[:STATUSTEXT_LENGTH]
+
+    def _bearing_short(self, facing: str) -> str:
+        """`bearing_as` in two letters for the view's part: "below BR", "ahead-left high"."""
+        words = self.bearing_as(facing)
+        if ", view " not in words:
+            return words
+        where, part = words.split(", view ")
+        return f"{where} " + "".join(w[0].upper() for w in part.split("-"))
 
 
 @dataclass

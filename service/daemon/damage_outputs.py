@@ -22,7 +22,7 @@ RECENT_TEXTS = 32  # the last pilot texts, kept to be read back (tests, a debugg
 
 log = logging.getLogger("netpose.daemon")
 
-MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_NOTICE = 5
 # Where the camera looks, as the pilot's text says it, by its MAV_SENSOR_ORIENTATION
 # (mavlink.orientation): 0 forward, yaw 90/180/270, pitch 90 (up) and 270 (down). Others
 # (diagonal mounts) are said as "in view".
@@ -104,14 +104,14 @@ class PilotNotices:
         assert self._pending is not None
         hole, _ = self._pending
         self._pending = None
-        text = hole.pilot_text(self.facing)
-        if self._held_back:
-            text = f"{text} (+{self._held_back})"[:50]
+        text = hole.pilot_text(self.facing, more=self._held_back)
         self._held_back = 0
         self._last_sent = now
         self.sent.append(text)
         self.sent_total += 1
-        self._link.notify_pilot(text, MAV_SEVERITY_WARNING)
+        # NOTICE, not WARNING: a finding of the inspection, not a danger to the vehicle (ground
+        # stations sound warnings).
+        self._link.notify_pilot(text, MAV_SEVERITY_NOTICE)
 
 
 class DamageOutputs:
