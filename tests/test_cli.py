@@ -106,6 +106,40 @@ def test_estimate_reads_the_images_of_a_folder_in_name_order(tmp_path: Path) -> 
     assert empty.returncode == 1 and "a folder without images" in empty.stdout
 
 
+def test_estimate_json_says_too_close_and_keeps_its_keys_in_order(tmp_path: Path) -> None:
+    """`--json` had no `too_close`: a reader could tell "the net too close to measure" from
+    "no net" only by parsing the reason; and the keys of `timings_ms` came in the order the
+    stages ran, which differed between frames."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from drivers.synthetic_net import NetPose, NetRenderer, SceneStyle
+    from service.benchmarks.scenes import bench_camera
+    from service.core.camera import save_camera
+    from service.core.mesh import MeshGeometry
+
+    camera = bench_camera(640, 360)
+    save_camera(camera, tmp_path / "camera.yaml")
+    renderer = NetRenderer(camera, MeshGeometry(0.025))
+    # Up close a net is out of focus (as in tests/test_integrity.py: "too close" below 0.2 m).
+    style = SceneStyle(focus_m=1.5, aperture_m=0.003)
+    for name, range_m in (("a_near.png", 0.16), ("b_far.png", 0.6)):
+        image, _ = renderer.render(NetPose(range_m, 15.0, 30.0, 10.0), np.random.default_rng(1),
+                                   style)
+        cv2.imwrite(str(tmp_path / name), image)
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
+         "--mesh-size", "0.025", "--json", str(tmp_path / "a_near.png"),
+         str(tmp_path / "b_far.png")], capture_output=True, text=True, timeout=120)
+    near, far = (json.loads(line) for line in done.stdout.splitlines())
+    assert near["too_close"] is True and not near["detected"], near
+    assert far["too_close"] is False and far["detected"] and far["level"] in (0, 1, 2), far
+    for message in (near, far):
+        assert list(message["timings_ms"]) == sorted(message["timings_ms"])
+
+
 _FIRST_NUMPY_IMPORT = """
 import json, os, sys
 seen = {}

@@ -137,6 +137,11 @@ class NetEstimate:
             "net_seen": self.net_seen,
             "approx_range_m": rounded(self.approx_range_m, 4),
             "approx_sigma_range_m": rounded(self.approx_sigma_range_m, 4),
+            "too_close": self.too_close,
+            "level": self.level,
+            "measured_opening_deg": rounded(self.measured_opening_deg, 2),
             "budget_level": self.budget_level,
-            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            # Sorted: the same frame gives the same keys in the same order (the values are
+            # times, which vary from run to run).
+            "timings_ms": {k: round(v, 3) for k, v in sorted(self.timings_ms.items())},
         }
