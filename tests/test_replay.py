@@ -708,3 +708,20 @@ def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
     assert summary["recording"] == {"dropped": 3, "finished": False,
                                     "stopped_because": "writing failed: No space left on device"}
     assert "dropped 3 frames" in err and "No space left on device" in err
+
+
+def test_two_replays_without_timing_are_byte_identical(
+    recording: Recording, tmp_path: Path
+) -> None:
+    """A researcher shows a result reproduced (or an archived run unchanged) with sha256sum:
+    every column but `process_ms` (a time) was the same, so the files never were. With
+    --no-timing they are, to the byte."""
+    outs = [tmp_path / "one", tmp_path / "two"]
+    for out in outs:
+        assert main(replay_args(recording, out, "--filter", "--truth", str(recording.truth_csv),
+                                "--no-video", "--no-timing", "--progress", "off")) == 0
+    for name in ("estimates.csv", "summary.json", "damage.csv"):
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+    rows = read_csv(outs[0] / "estimates.csv")
+    assert all(r["process_ms"] == "" for r in rows) and len(rows) == FRAMES
+    assert "speed" not in json.loads((outs[0] / "summary.json").read_text())

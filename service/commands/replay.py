@@ -121,6 +121,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--video-width", type=int, default=DEFAULT_VIDEO_WIDTH, metavar="PX",
                    help=f"annotated video at most this wide (default {DEFAULT_VIDEO_WIDTH})")
     p.add_argument("--no-video", action="store_true", help="do not write the annotated video")
+    p.add_argument("--no-timing", action="store_true",
+                   help="leave out what is measured in time (process_ms, the summary's speed): "
+                        "two replays of the same input then give byte-identical CSV and summary")
     p.add_argument("--no-damage", action="store_true",
                    help="do not inspect the net for holes (no damage.csv, damage.png, marks)")
     p.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
@@ -534,7 +537,7 @@ def _replay(
                         raise NetposeError(
                             f"--out {out_dir}: cannot create it ({exc.strerror or exc})") from None
                     _remove_stale_outputs(out_dir)
-                    csv_file = EstimatesCsv(out_dir / "estimates.csv")
+                    csv_file = EstimatesCsv(out_dir / "estimates.csv", timing=not args.no_timing)
                     video = None if annotator is None else AnnotatedVideo(out_dir, fps)
                     if pipeline.inspector is not None:
                         damage_csv = DamageCsv(out_dir)
@@ -693,6 +696,8 @@ def _finish(
         "damage_holes": outcome.holes,
         **stats.summary(),
     }
+    if args.no_timing:
+        summary.pop("speed", None)
     recording = getattr(args, "recording", None)
     if recording is not None:
         summary["recording"] = recording

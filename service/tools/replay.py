@@ -370,8 +370,9 @@ def _cell(value: object) -> str:
     return str(value)
 
 
-def csv_row(result: FrameResult) -> list[str]:
-    """The CSV_COLUMNS cells of one frame."""
+def csv_row(result: FrameResult, timing: bool = True) -> list[str]:
+    """The CSV_COLUMNS cells of one frame (`timing` False: `process_ms` left empty, the one
+    cell that differs from run to run)."""
     e, k, t = result.estimate, result.track, result.truth
     normal = e.normal if e is not None and e.normal is not None else (None, None, None)
     # The filter's values only where it gives them (filter_valid): a tentative track's are
@@ -396,7 +397,7 @@ def csv_row(result: FrameResult) -> list[str]:
         None if e is None else e.rois_used,
         None if e is None else e.level,
         result.result.why_no_estimate if e is None else e.reason,
-        round(result.process_ms, 3),
+        round(result.process_ms, 3) if timing else None,
         e is not None and e.net_seen,
         None if e is None else e.approx_range_m,
         None if e is None else e.approx_sigma_range_m,
@@ -425,8 +426,9 @@ def csv_row(result: FrameResult) -> list[str]:
 class EstimatesCsv:
     """estimates.csv, written and flushed row by row: valid after an interruption."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, timing: bool = True) -> None:
         self.path = Path(path)
+        self._timing = timing
         self._fh: TextIO | None = self.path.open("w", newline="", encoding="utf-8")
         self._writer = csv.writer(self._fh)
         self._writer.writerow(CSV_COLUMNS)
@@ -436,7 +438,7 @@ class EstimatesCsv:
     def write(self, result: FrameResult) -> None:
         if self._fh is None:
             raise NetposeError(f"{self.path}: already closed")
-        self._writer.writerow(csv_row(result))
+        self._writer.writerow(csv_row(result, self._timing))
         self._fh.flush()
         self.rows += 1
 
