@@ -112,7 +112,9 @@ class RealEstimators:
 
 def run_frames(frames: list[RealFrame], tracking: bool = False) -> Iterator[RealResult]:
     """Estimate every frame on its own (cold); with `tracking`, sequence frames get the previous
-    detection as prior, as the daemon does."""
+    frame's detection as prior: the estimator's tracked path alone, without the daemon's
+    filter, search pacing or frame times (`netpose replay` runs the daemon's pipeline, and may
+    say "no net" on a frame after a miss that this searches whole)."""
     estimator_for = RealEstimators()
     prior: NetEstimate | None = None
     previous_folder: Path | None = None
