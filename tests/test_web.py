@@ -579,6 +579,23 @@ def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:
     before = daemon.config.read_bytes()
     status, reply = _upload(daemon, "camera.yaml", b"x" * (65 * 1024))  # max_upload_kb: 64
     assert status == 413 and "64 KB" in reply["error"]
+    # Sent chunked (no length to refuse it by), 1 MB in a field before the file: the parts the
+    # page skips count too (a 5 MB one went through a 256 KB limit).
+    import http.client
+
+    boundary = "netposeboundary"
+    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"junk\"\r\n\r\n".encode()
+            + b"x" * (1 << 20) + f"\r\n--{boundary}\r\nContent-Disposition: form-data; "
+            f"name=\"file\"; filename=\"camera.yaml\"\r\n\r\nimage_width: 640\r\n"
+            f"--{boundary}--\r\n".encode())
+    conn = http.client.HTTPConnection(daemon.base.split("//")[1], timeout=30)
+    conn.request("POST", "/api/calibration", body=iter([body[i:i + 65536] for i in range(
+        0, len(body), 65536)]), encode_chunked=True, headers={
+            "Content-Type": f"multipart/form-data; boundary={boundary}",
+            "X-Netpose-Token": daemon.token})
+    response = conn.getresponse()
+    assert response.status == 413 and "64 KB" in json.loads(response.read())["error"]
+    conn.close()
     assert daemon.config.read_bytes() == before
     assert not list(daemon.folder.glob("calibration-*"))
 

@@ -517,9 +517,22 @@ class WebPage(Generic[R]):
     async def _post_calibration(self, request: web.Request) -> web.Response:
         if not request.content_type.startswith("multipart/"):
             return _error(400, "upload the calibration file as multipart/form-data (field file)")
+        # Counted here: aiohttp 3.8 (Debian bookworm's, the BlueOS image's) bounds a body by
+        # client_max_size only when it states its length, and a chunked upload of 1.5 GB went
+        # to memory and disk (4.7 GB RSS, a daemon that no longer stopped). The parts skipped
+        # count as well (a 5 MB one passed a 256 KB limit).
+        limit = self.settings.max_upload_kb * 1024
+        too_large = _error(413, f"upload refused: more than {self.settings.max_upload_kb} KB "
+                           "(web.max_upload_kb)")
+        size = 0
         reader = await request.multipart()
         part = await reader.next()
         while part is not None and getattr(part, "name", None) != "file":
+            if isinstance(part, BodyPartReader):
+                while chunk := await part.read_chunk(64 * 1024):
+                    size += len(chunk)
+                    if size > limit:
+                        return too_large
             part = await reader.next()
         if not isinstance(part, BodyPartReader) or not part.filename:
             return _error(400, "no file in the upload (form field 'file')")
@@ -527,17 +540,11 @@ class WebPage(Generic[R]):
         if suffix not in CALIBRATION_SUFFIXES:
             return _error(400, f"{part.filename}: a calibration is a ROS camera_info YAML or an "
                           "OpenCV FileStorage file (.yaml, .yml or .xml)")
-        # Counted here: aiohttp 3.8 (Debian bookworm's, the BlueOS image's) bounds a body by
-        # client_max_size only when it states its length, and a chunked upload of 1.5 GB went
-        # to memory and disk (4.7 GB RSS, a daemon that no longer stopped).
-        limit = self.settings.max_upload_kb * 1024
         chunks: list[bytes] = []
-        size = 0
         while chunk := await part.read_chunk(64 * 1024):
             size += len(chunk)
             if size > limit:
-                return _error(413, f"upload refused: more than {self.settings.max_upload_kb} KB "
-                              "(web.max_upload_kb)")
+                return too_large
             chunks.append(bytes(chunk))
         data = b"".join(chunks)
         ident = uuid.uuid4().hex[:12]
