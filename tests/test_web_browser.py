@@ -103,6 +103,16 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     assert rows == ["Service", "Source", "Autopilot link", "Telemetry", "Frame rate", "CPU",
                     "Latency"]
     assert "streaming" in page.text_content("#health tr[data-row='Source']")
+    # CPU and latency are judged, not always green: a loop that lowered its work (budget level
+    # 2) and a p99 past half the freshness limit show as warnings.
+    dots = page.evaluate("""() => {
+        const s = JSON.parse(JSON.stringify(window.netpose.status));
+        s.estimator.budget_level = 2;
+        s.latency_ms.capture_to_link_p99 = 1000 * s.autopilot.freshness_s;
+        onStatus(s);
+        const dot = (row) => document.querySelector(`#health tr[data-row='${row}'] .dot`).className;
+        return [dot("CPU"), dot("Latency")]; }""")
+    assert dots == ["dot warn", "dot warn"], dots
     page.wait_for_timeout(5000)
     rate = page.evaluate("""() => { const t = window.netpose.frameTimes;
                                     return 1000 * (t.length - 1) / (t[t.length - 1] - t[0]); }""")

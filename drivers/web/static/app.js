@@ -337,11 +337,14 @@ function onStatus(s) {
   const rows = [
     ["Service", s.state, `${s.version}, up ${fmt(s.uptime_s, 0)} s`, ""],
     ["Source", fs.state, `${fmt(fs.fps, 1)} frames/s, ${fs.dropped} skipped, ${fs.corrupt} damaged`, fs.error],
-    ["Autopilot link", ap.state, `${ap.url} · heartbeat ${fmt(ap.heartbeat_age_s, 1)} s ago · ${ap.sending_distance ? "sending distance" : "not sending"}`, ap.last_error],
+    ["Autopilot link", ap.state, `${ap.url} · ${ap.heartbeat_age_s === null || ap.heartbeat_age_s === undefined ? "no heartbeat yet" : `heartbeat ${fmt(ap.heartbeat_age_s, 1)} s ago`} · ${ap.sending_distance ? "sending distance" : "not sending"}`, ap.last_error],
     ["Telemetry", tm ? tm.state : "disabled", tm ? `${tm.key_root} · ${tm.links ?? 0} links` : "", tm ? tm.last_error : ""],
     ["Frame rate", es.fps ? "ok" : "warn", `${fmt(es.fps, 1)} frames/s measured${es.searching_hz ? ` (no net in view: searching at ${fmt(es.searching_hz, 0)} frames/s)` : ""}, net in ${fmt(100 * (es.detected_fraction ?? 0), 0)} %`, es.last_error],
-    ["CPU", "ok", `${fmt(s.cpu.process_percent, 0)} % of a core · load ${fmt(s.cpu.load_1m)} · ${fmt(s.cpu.rss_mb, 0)} MB`, ""],
-    ["Latency", "ok", `capture → autopilot ${fmt(lat.capture_to_link_p50, 0)} ms median, ${fmt(lat.capture_to_link_p99, 0)} ms p99 · estimator ${fmt(es.latency_ms_mean, 0)} ms`, ""],
+    // Judged, not always green: a loop that had to lower its work per frame (budget level 2
+    // and more) is short of CPU; a p99 past half the link's freshness limit eats the margin
+    // before the autopilot's distance goes stale.
+    ["CPU", (es.budget_level ?? 0) >= 2 ? "warn" : "ok", `${fmt(s.cpu.process_percent, 0)} % of a core · load ${fmt(s.cpu.load_1m)} · ${fmt(s.cpu.rss_mb, 0)} MB · work level ${es.budget_level ?? 0}`, ""],
+    ["Latency", typeof lat.capture_to_link_p99 === "number" && typeof ap.freshness_s === "number" && lat.capture_to_link_p99 > 500 * ap.freshness_s ? "warn" : "ok", `capture → MAVLink link ${fmt(lat.capture_to_link_p50, 0)} ms median, ${fmt(lat.capture_to_link_p99, 0)} ms p99 · estimator ${fmt(es.latency_ms_mean, 0)} ms`, ""],
   ];
   body.replaceChildren(...rows.map(([name, state, text, error]) => {
     const tr = document.createElement("tr");
