@@ -231,6 +231,66 @@ def test_live_pages_are_capped_and_a_closed_one_makes_room(tmp_path: Path) -> No
     assert refused == 503 and taken
 
 
+def test_clients_that_never_finish_a_request_cannot_take_every_file_descriptor(
+    tmp_path: Path,
+) -> None:
+    """About 1,100 connections that sent half a header and nothing more took the process's
+    1,024 descriptors: the page went dark, a reload could not open the configuration, and
+    the camera and the MAVLink link would not have reopened either. Past MAX_CONNECTIONS a
+    connection is closed as it is accepted; once the others go, the page answers again."""
+    import numpy as np
+
+    from drivers.net import free_port
+    from drivers.web.page import MAX_CONNECTIONS, WebPage
+    from service.daemon.settings_editor import SettingsEditor
+    from service.daemon.wiring import load_daemon_config
+
+    config = tmp_path / "netpose.toml"
+    config.write_text("[mesh]\nbar_length_m = 0.025\n")
+    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), lambda: None,
+                            lambda: None)
+    port = free_port()
+    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
+                         lambda f, r: np.zeros((8, 8, 3), np.uint8), editor)
+
+    def descriptors() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    page.start()
+    slow: list[socket.socket] = []
+    try:
+        before = descriptors()
+        for _ in range(MAX_CONNECTIONS + 40):
+            s = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+            s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nX-a: ")
+            slow.append(s)
+        # The server accepts (or refuses) them all as its thread gets to them.
+        deadline = time.monotonic() + 10.0
+        while (served := descriptors() - before - len(slow)) > MAX_CONNECTIONS + 2:
+            assert time.monotonic() < deadline, served
+            time.sleep(0.1)
+        time.sleep(0.5)  # and no more come
+        served = descriptors() - before - len(slow)
+        assert served <= MAX_CONNECTIONS + 2, served
+        for s in slow:
+            s.close()
+        slow = []
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/register_service",
+                                            timeout=5) as reply:
+                    assert reply.status == 200
+                    break
+            except OSError:
+                assert time.monotonic() < deadline
+                time.sleep(0.2)
+    finally:
+        for s in slow:
+            s.close()
+        page.close()
+
+
 def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
     """A started page (no daemon behind it) over one finished recording of 32 MB: more than
     the loopback socket's buffers and the page's queue hold. (page, port, recording name)."""
