@@ -650,6 +650,50 @@ def test_a_net_seen_too_uncertain_for_a_distance_is_explained_to_the_pilot(
     assert len(warnings) == 1 and "net seen, but its plane is too uncertain" in warnings[0]
 
 
+def test_distance_back_is_said_only_once_the_episode_is_over() -> None:
+    """One good frame in a flicker at the limit said "distance back" in the middle of a
+    "too close" that then went on for 20 s, and the pilot's last word was the wrong one.
+    "distance back" waits for the episode's end, confirmed as its start was."""
+    from types import SimpleNamespace
+
+    from service.daemon.view_notices import ViewNotices
+
+    link = RecordingAutopilotLink()
+    notices = ViewNotices(link, 90.0)
+
+    def frame(status: RangeStatus) -> Any:
+        return SimpleNamespace(has_frame=True, reading=SimpleNamespace(status=status),
+                               estimate=None)
+
+    t = 0.0
+    for status in [RangeStatus.TOO_CLOSE] * 3 + [RangeStatus.GOOD] + [
+            RangeStatus.TOO_CLOSE] * 200:
+        notices.update(frame(status), t)
+        t += 0.1
+    assert [text for _, text in link.texts] == ["netpose: net too close to measure, back off"]
+    for _ in range(5):  # backed off: measured again, three frames in a row
+        notices.update(frame(RangeStatus.GOOD), t)
+        t += 0.1
+    assert [text for _, text in link.texts][-1] == "netpose: distance back"
+
+
+def test_what_still_holds_is_said_again_when_the_link_comes_back(frames: list[Frame]) -> None:
+    """The link drops a text that waited more than 5 s for it; a camera lost during a longer
+    outage of the link was then never said while it lasted. When the link connects again,
+    what was said and still holds is said again."""
+    cfg = demo_config("camera.stale_after_s=0.5")
+    h = make_harness(cfg, [*steps(frames[:5]), *[Step(wait_s=0.2)] * 10])
+    h.run_script()
+    assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"]
+    h.link.closed = True  # the link is down (status "waiting" for the recording link)
+    h.clock.now += 1.0
+    h.daemon.iterate()
+    h.link.closed = False  # ... and back, the camera still lost
+    h.clock.now += 1.0
+    h.daemon.iterate()
+    assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"] * 2
+
+
 def test_a_view_that_flickers_between_seen_and_nothing_logs_once_a_second(
     caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -51,6 +51,9 @@ from service.pipeline import Pipeline, PipelineResult
 from service.signals import SignalFlags
 
 log = logging.getLogger("netpose.daemon")
+
+# How often the loop looks whether the autopilot's link came back (_note_link).
+_LINK_CHECK_S = 0.25
 # What a reload cannot change in the running parts: these need a restart (the page's Restart,
 # or systemctl restart), and the reload says so.
 RESTART_SECTIONS = frozenset({"camera", "mavlink", "telemetry", "web"})
@@ -158,6 +161,8 @@ class Daemon:
         )
         self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg, states=states)
         self.service_notices = ServiceNotices(parts.link)
+        self._link_connected = False  # as last looked at (_note_link)
+        self._link_checked_at = -float("inf")
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
         self.last_index: int | None = None  # the source's number of the last frame processed
@@ -206,9 +211,24 @@ class Daemon:
             self.outputs.damage.notices.tick(now)
         self.track_log.update(result.track, now)
         self.view_notices.update(result, now)
+        self._note_link(now, result)
         self.last = result.track
         self.reporter.tick(now, self.last)
         return result
+
+    def _note_link(self, now: float, result: PipelineResult) -> None:
+        """When the link to the autopilot (and the ground station behind it) connects, or comes
+        back, what the pilot was told and still holds is said again: a text that waited out
+        the outage was dropped by the link as old news, and the pilot must hear the state of
+        now (the camera still lost, the net still too close). Looked at a few times a second."""
+        if now - self._link_checked_at < _LINK_CHECK_S:
+            return
+        self._link_checked_at = now
+        connected = self.parts.link.status().state == "connected"
+        if connected and not self._link_connected:
+            self.service_notices.repeat()
+            self.view_notices.repeat(result if result.has_frame else None)
+        self._link_connected = connected
 
     def _tick_time(self, now: float) -> float:
         """The time of a pass without a frame, in the frames' time base.

@@ -49,6 +49,13 @@ class ServiceNotices:
             self._say("netpose: camera lost: no distance" if self._had_frames
                       else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)
 
+    def repeat(self) -> None:
+        """The link to the ground station is back: a camera loss that was said and still goes
+        on is said again (its text may have been dropped while the link was down)."""
+        if self._loss_said:
+            self._say("netpose: camera lost: no distance" if self._had_frames
+                      else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)
+
     def stopping(self, reason: str | None) -> None:
         """The daemon stops (a signal, the page's Restart, the end of its run): said before the
         link closes, which sends what is queued as it stops."""

@@ -130,7 +130,10 @@ class ViewNotices:
                 self._say(pilot_text(announced, result, self.configured_opening_deg),
                           MAV_SEVERITY_WARNING)
                 self._back_due = True
-        if self._back_due and result.reading.status is RangeStatus.GOOD:
+        # Only once the episode is over (confirmed, as its start was): one good frame in a
+        # flicker at the limit said "distance back" in the middle of a "too close".
+        if (self._back_due and self._announced is View.NET
+                and result.reading.status is RangeStatus.GOOD):
             self._back_due = False
             self._say("netpose: distance back", MAV_SEVERITY_INFO)
         due, logged, between = self._states.update("view", self._announced, now)
@@ -145,6 +148,14 @@ class ViewNotices:
         log.warning("%s: no distance to the autopilot (%s)%s", _episode(self._announced), reason,
                     not_logged_note(between))
 
+
+    def repeat(self, result: PipelineResult | None) -> None:
+        """The link to the ground station is back: an episode that was said and still goes on
+        is said again (its text may have been dropped while the link was down, and the pilot
+        must hear what is true now), whatever the rate limit."""
+        if self._announced is not View.NET and self._texted and result is not None:
+            self._say(pilot_text(self._announced, result, self.configured_opening_deg),
+                      MAV_SEVERITY_WARNING)
 
     def _say(self, text: str, severity: int) -> None:
         self.sent.append(text)
