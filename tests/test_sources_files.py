@@ -605,3 +605,23 @@ def test_realtime_pacing_keeps_a_variable_rate_videos_timing(tmp_path: Path) -> 
             frames.append(frame)
     assert [f.index for f in frames] == list(range(len(VARIABLE_TIMES)))
     assert min(lateness) >= -1e-3 and max(lateness) < 0.05
+
+
+def test_a_rate_that_starts_varying_late_keeps_time_going_forward(tmp_path: Path) -> None:
+    """Steady at the stated 30 fps past the look at open (100 frames, 3.3 s), then frames
+    0.8 of a period apart, then one half a period after the last: numbered by the stated rate
+    until then, the times given ran ahead of the timestamps, and when the rate was found to
+    vary they went back 177 ms (which restarts the filter's track). They go on forward."""
+    period = 1.0 / 30.0
+    times = [i * period for i in range(100)]
+    for _ in range(10):
+        times.append(times[-1] + 0.8 * period)
+    for _ in range(5):
+        times.append(times[-1] + 0.5 * period)
+    path = write_timed_video(tmp_path / "late.mkv", times)
+    frames = read_all(f"file:{path}")
+    assert [read_pattern_number(f.image) for f in frames] == list(range(len(times)))
+    stamps = [f.t_monotonic for f in frames]
+    assert min(np.diff(stamps)) > 0.0
+    # At most the frames the stated rate numbered ahead (8 of them at 0.2 of a period).
+    assert stamps[-1] - stamps[0] == pytest.approx(times[-1], abs=0.1)

@@ -47,8 +47,11 @@ VARIABLE_SHORT_STEP = 0.75
 # ... and a typical (median) step this many stated periods long or more says that the stated
 # rate is not the frames' (a container stating its time base, or a maximum rate).
 VARIABLE_TYPICAL_STEP = 1.25
-# Frames whose timestamps are read at open, to tell a varying rate from the start.
-TIMELINE_PROBE_FRAMES = 12
+# Frames whose timestamps are read at open, to tell a varying rate from the start: up to this
+# many, or this much of the video (a phone recording steady for its first half second was
+# numbered two ways).
+TIMELINE_PROBE_FRAMES = 90
+TIMELINE_PROBE_S = 3.0
 
 
 def _parse(url: str, scheme: str) -> SourceUrl:
@@ -89,7 +92,9 @@ class _Timeline:
         self._steps = steps_s[-32:]
         self.variable = rate_varies(self._steps, 1.0 / fps)
         self._origin_ms: float | None = None
-        self._last_s: float | None = None
+        self._last_s: float | None = None  # the last frame's time by its timestamp
+        self._given_s: float | None = None  # ... and the time given for it
+        self._shift = 0.0  # added to the timestamps' times since the rate was found to vary
 
     @property
     def steps(self) -> list[float]:
@@ -104,7 +109,7 @@ class _Timeline:
 
     def place(self, number: int, media_ms: float) -> tuple[int, float]:
         """(number, media time) of the frame read after `number` frames (decoded or failed)
-        came before it in this pass, presented at `media_ms`."""
+        came before it in this pass, presented at `media_ms`. The times given never go back."""
         period = 1.0 / self._fps
         if self._origin_ms is None:
             # Containers such as MPEG-TS start at a non-zero time; the first frame is frame 0.
@@ -126,12 +131,23 @@ class _Timeline:
                     log.info("%s: its frame rate varies (or is not the stated %.4g fps): "
                              "frames numbered as they come, timed by their timestamps",
                              self._path, self._fps)
+                    # Numbered by the stated rate, the times given may have run ahead of the
+                    # timestamps (a frame sooner than a period still took the next number):
+                    # from here on they go on from the last one given, never back (a step back
+                    # restarts the filter's track).
+                    if self._given_s is not None:
+                        self._shift = max(0.0, self._given_s + step - t)
             t = max(t, last)
         self._last_s = t
         if self.variable:
-            return number, t
-        number = max(number, round(t * self._fps))
-        return number, number * period
+            given = t + self._shift
+        else:
+            number = max(number, round(t * self._fps))
+            given = number * period
+        if self._given_s is not None:
+            given = max(given, self._given_s)
+        self._given_s = given
+        return number, given
 
 
 class VideoFileSource(PacedSource):
@@ -220,7 +236,9 @@ class VideoFileSource(PacedSource):
             return []  # the main capture says why
         times: list[float] = []
         try:
-            while len(times) < TIMELINE_PROBE_FRAMES and probe.grab():
+            while (len(times) < TIMELINE_PROBE_FRAMES
+                   and (len(times) < 2 or times[-1] - times[0] < TIMELINE_PROBE_S)
+                   and probe.grab()):
                 times.append(probe.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
         finally:
             probe.release()
