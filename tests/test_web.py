@@ -656,6 +656,13 @@ def test_oversized_upload_is_refused(daemon: WebDaemon) -> None:
     response = conn.getresponse()
     assert response.status == 413 and "64 KB" in json.loads(response.read())["error"]
     conn.close()
+    # A nested multipart part would be read through uncounted: refused.
+    nested = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"junk\"\r\n"
+              "Content-Type: multipart/mixed; boundary=inner\r\n\r\n--inner\r\n\r\nx\r\n"
+              f"--inner--\r\n--{boundary}--\r\n").encode()
+    status, reply = daemon.request("POST", "/api/calibration", nested, token=True, headers={
+        "Content-Type": f"multipart/form-data; boundary={boundary}"})
+    assert status == 400 and "nested multipart" in reply["error"], reply
     assert daemon.config.read_bytes() == before
     assert not list(daemon.folder.glob("calibration-*"))
 
@@ -790,7 +797,8 @@ def test_a_bad_setting_names_the_key_and_changes_nothing(daemon: WebDaemon) -> N
                                        token=True)
         assert status == 400 and reply["error"].startswith(error), reply
     # Text that is no text: JSON's lone surrogates (a 500 and a traceback in the log before).
-    for changes in ({"service.\ud800": 1}, {"camera.url": "rtsp://\udcff"}):
+    for changes in ({"service.\ud800": 1}, {"camera.url": "rtsp://\udcff"},
+                    {"telemetry.connect": ["tcp/\ud800:7447"]}):
         status, reply = daemon.request("POST", "/api/settings", {"changes": changes},
                                        token=True)
         assert status == 400 and "not valid text" in reply["error"], reply

@@ -540,11 +540,14 @@ class WebPage(Generic[R]):
         reader = await request.multipart()
         part = await reader.next()
         while part is not None and getattr(part, "name", None) != "file":
-            if isinstance(part, BodyPartReader):
-                while chunk := await part.read_chunk(64 * 1024):
-                    size += len(chunk)
-                    if size > limit:
-                        return too_large
+            if not isinstance(part, BodyPartReader):
+                # A nested multipart would be read through uncounted: no calibration has one.
+                return _error(400, "a nested multipart part in the upload: send the "
+                              "calibration file alone (form field 'file')")
+            while chunk := await part.read_chunk(64 * 1024):
+                size += len(chunk)
+                if size > limit:
+                    return too_large
             part = await reader.next()
         if not isinstance(part, BodyPartReader) or not part.filename:
             return _error(400, "no file in the upload (form field 'file')")

@@ -26,10 +26,14 @@ def read_small(path: str | Path, max_bytes: int) -> bytes:
     (/dev/zero) would fill the memory, and a FIFO or a tty would block the reader for good
     (with it the settings page, and the service's stop). Neither is opened at all."""
     p = Path(path)
-    mode = p.stat().st_mode  # follows a link, as open() would
-    if not stat.S_ISREG(mode):
+    if not stat.S_ISREG(p.stat().st_mode):  # follows a link, as open() would
         raise OSError(f"{p} is not a regular file")
-    with open(p, "rb") as fh:
+    # Opened without waiting (a FIFO put there since the look above would block open()) and
+    # judged again by what was opened.
+    fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)
+    with open(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(f"{p} is not a regular file")
         data = fh.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise OSError(f"{p} is larger than {max_bytes} bytes: not a file of this kind")

@@ -178,7 +178,8 @@ class SettingsEditor:
             raise ConfigError("configuration", reason)
         assert self.path is not None
         for key, value in changes.items():
-            for text in (key, value) if isinstance(value, str) else (key,):
+            values = value if isinstance(value, list | tuple) else [value]
+            for text in [key, *(v for v in values if isinstance(v, str))]:
                 try:
                     text.encode("utf-8")
                 except UnicodeEncodeError:  # a lone surrogate (JSON's \ud800): no file text
