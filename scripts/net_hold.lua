@@ -117,8 +117,8 @@ local function bad_param()
     local v = P[p[1]]:get()
     if type(v) ~= "number" or not (v >= p[3] and v <= p[4]) then
       -- Short: the pilot's text holds 50 characters ("NetHold: refused: " takes 18).
-      local shown = type(v) == "number" and string.format("%g", v) or tostring(v)
-      return string.format("%s=%s, not %g..%g", p[1], shown, p[3], p[4])
+      local shown = type(v) == "number" and string.format("%.3g", v) or tostring(v)
+      return string.format("%s=%s (%g..%g)", p[1], shown, p[3], p[4])
     end
   end
   if get("DIST_MAX") <= get("DIST_MIN") then

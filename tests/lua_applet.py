@@ -28,7 +28,7 @@ ALT_HOLD = 2
 STUBS = r"""
 -- ArduSub 4.7's own parameters the applet reads (its identity and the ground station's).
 stub = {now_ms = 0, params = {MAV_SYSID = 1, MAV_GCS_SYSID = 255}, overrides = {}, history = {},
-        texts = {}, named = {},
+        texts = {}, too_long = {}, named = {},
         rx = {}, sent = {}, blocked = {}, buttons = {0, 0, 0, 0}, armed = true, mode = 2,
         roll = 0, pitch = 0, yaw = 0, logs = 0, rx_ids = {}}
 function millis()
@@ -71,8 +71,10 @@ end
 gcs = {}
 -- ArduPilot cuts a STATUSTEXT at 50 characters (GCS::send_text): a longer text loses its end
 -- on the pilot's screen, so every text the applet sends must fit.
+-- (Kept, not raised: the applet runs its update under pcall, which would turn an error here
+-- into its own "internal error" text. The Python side checks after every update.)
 function gcs:send_text(sev, text)
-  assert(#text <= 50, "STATUSTEXT over 50 characters: " .. text)
+  if #text > 50 then table.insert(stub.too_long, text) end
   table.insert(stub.texts, {stub.now_ms, sev, text})
 end
 function gcs:send_named_float(name, v) stub.named[name] = v end
@@ -152,6 +154,8 @@ class Applet:
             fn, delay = self._fn()
             self._fn = fn
             self.next_run_ms += float(delay)
+            too_long = [str(t) for t in self.stub.too_long.values()]
+            assert not too_long, f"STATUSTEXT over 50 characters: {too_long}"
         self.stub.now_ms = t_s * 1000.0
 
     def clock_s(self, t_s: float) -> float:

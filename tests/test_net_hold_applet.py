@@ -463,6 +463,8 @@ def test_the_ground_stations_id_is_read_live() -> None:
     ("FWD_DZ_RAMP", 0.0),     # 0/0 in the dead-band step
     ("KP", float("nan")),
     ("DIST_MIN", 0.0),        # no hard minimum
+    ("FWD_DZ_RAMP", -1.23456789e7),  # the longest name and value: the text still fits 50
+    ("DIST_MIN", 1.23456789e6),
 ])
 def test_a_parameter_out_of_its_range_refuses_to_engage_and_hands_back(
         name: str, value: float) -> None:
@@ -627,7 +629,7 @@ def test_a_hard_minimum_the_set_point_cannot_stay_above_is_refused() -> None:
     run_closed_loop(applet, NetVehicle(distance_m=5.0), 1.0, t0=0.0)
     applet.press(1)
     applet.run_until(applet.now + 0.05)
-    assert not applet.engaged and "DIST_MIN=4, not" in applet.texts()[-1][1]
+    assert not applet.engaged and "DIST_MIN=4 (0.3..2.9)" in applet.texts()[-1][1]
 
 
 def test_anyone_may_switch_net_hold_off() -> None:
