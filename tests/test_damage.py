@@ -384,6 +384,24 @@ def test_a_hole_that_left_the_view_is_a_new_hole_when_it_comes_back() -> None:
     assert [h.hole_id for h in reports] == [1, 2]
 
 
+def test_after_the_inspection_stopped_for_long_a_new_hole_is_not_taken_for_an_old_one() -> None:
+    """A confirmed hole, then the net lost for 10 s (nothing inspected), then a pass that
+    shows another hole 0.35 m from the first's last place: the confirmed track, kept on its
+    old place and speed with its gate grown to half a metre, took the new hole for itself, and
+    the farm never heard of it (found 5 times in a replay). After a gap in the inspections
+    longer than a track lives, every hole is new: this one is reported."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    first, second = (-0.2, 0.0), (0.15, 0.05)
+    tracker = HoleTracker(CAMERA, settings)
+    reports = []
+    for k in range(4):
+        reports += tracker.update(_still_scan(first, True, 959.0), 0.1 * k, k)
+    for k in range(4):  # 10 s later: only the second hole in view
+        reports += tracker.update(_still_scan(second, True, 959.0), 10.0 + 0.1 * k, 100 + k)
+    assert [h.hole_id for h in reports] == [1, 2]
+    assert reports[1].plane_xy_m == pytest.approx(second)
+
+
 def test_a_retuned_inspection_keeps_its_holes_and_their_numbers() -> None:
     """A reload of [damage] (the page's Save, a SIGHUP) built a new inspector: every hole in
     view was confirmed and reported again, numbered from 1 again, although `hole_id` is the

@@ -140,10 +140,13 @@ class _Track:
     def looks(self) -> int:
         return len(self.record)
 
-    def predicted(self, t: float) -> npt.NDArray[np.float64]:
+    def predicted(self, t: float, longest_s: float = math.inf) -> npt.NDArray[np.float64]:
+        """Where the hole is now by its last place and speed, carried at most `longest_s`:
+        a speed measured over a second or two says nothing of where it went over ten."""
         if self.velocity is None:
             return self.position
-        return np.asarray(self.position + self.velocity * (t - self.t_last), dtype=np.float64)
+        dt = min(t - self.t_last, longest_s)
+        return np.asarray(self.position + self.velocity * dt, dtype=np.float64)
 
     def gate(self, t: float, base: float, longest_s: float) -> float:
         # A confirmed track can outlive its last sighting (while in view): how far it may
@@ -175,9 +178,11 @@ class HoleTracker:
         self.settings = settings or DamageSettings()
         self._tracks: list[_Track] = []
         self._next_id = 1
+        self._last_update: float | None = None  # the time of the last inspection
 
     def reset(self) -> None:
         self._tracks = []
+        self._last_update = None
 
     @property
     def next_id(self) -> int:
@@ -204,6 +209,13 @@ class HoleTracker:
         """One inspected frame's candidates; returns the holes confirmed by this frame."""
         st = self.settings
         hopeless = st.confirm_looks - st.confirm_hits + 1
+        if self._last_update is not None and t - self._last_update > st.track_timeout_s:
+            # Nothing was inspected for longer than a track lives (the net was lost, the
+            # vehicle searched): where its holes went is not known, and a confirmed track kept
+            # on its old speed took a new hole half a metre away for itself, which was never
+            # reported. A hole seen again after that is reported anew (documented).
+            self._tracks = []
+        self._last_update = t
         self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s
                         or (tr.confirmed and self._still_in_view(scan, tr, t, hopeless))]
         candidates = list(scan.candidates)
@@ -211,7 +223,7 @@ class HoleTracker:
         for ci, cand in enumerate(candidates):
             p = np.array(cand.plane_xy_m)
             for ti, tr in enumerate(self._tracks):
-                dist = float(np.linalg.norm(p - tr.predicted(t)))
+                dist = float(np.linalg.norm(p - tr.predicted(t, st.track_timeout_s)))
                 if dist <= tr.gate(t, st.gate_m, st.track_timeout_s):
                     pairs.append((dist, ci, ti))
         used_c: set[int] = set()
@@ -298,7 +310,7 @@ class HoleTracker:
         net = scan.geometry
         if net is None:
             return None
-        plane_xy = tr.predicted(t)
+        plane_xy = tr.predicted(t, self.settings.track_timeout_s)
         foot = -net.normal * net.distance_m
         point = foot + plane_xy[0] * net.horizontal + plane_xy[1] * net.vertical
         if point[2] <= 1e-6:

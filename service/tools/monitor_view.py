@@ -313,7 +313,7 @@ def _fmt(value: Any, digits: int = 2) -> str:
 
 
 def hole_text(hole: Mapping[str, Any]) -> str:
-    """'hole 3: 6x4 cm, 4 cells, ahead-left at 1.10 m, conf 0.82'."""
+    """'hole 3: 6x4 cm, 4 cells, ahead-left at 1.10 m, conf 0.66'."""
     def cm(value: Any) -> str:
         if isinstance(value, int | float) and math.isfinite(value):
             return str(max(1, round(value * 100)))
