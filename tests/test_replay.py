@@ -229,6 +229,11 @@ def test_summary_reports_detection_errors_gaps_and_speed(replayed: Path) -> None
                                        "damage.csv", *PLOT_FILES}
     # An intact net: no hole found (damage.csv has its header only).
     assert summary["damage_holes"] == 0
+    # ... and how much was looked at: no hole reported is no proof of an intact net.
+    rows_inspected = sum(r["inspected"] == "1" for r in rows)
+    inspection = summary["damage_inspection"]
+    assert inspection["inspected_frames"] == rows_inspected > 0
+    assert inspection["judged_cells"] > 100 * rows_inspected
     assert (replayed / "damage.csv").read_text().count("\n") == 1
     for name in summary["outputs"]:
         assert (replayed / name).is_file(), name

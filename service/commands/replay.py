@@ -364,6 +364,10 @@ class ReplayRun:
     stop_reason: str = ""
     outputs: list[str] = field(default_factory=list)
     holes: int | None = None  # confirmed holes in the net (None: inspection off)
+    # How much of the net was looked at: frames searched for holes and the cells whose bars
+    # were judged in them (with overlaps): no hole reported is no proof of an intact net.
+    inspected_frames: int = 0
+    judged_cells: int = 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -542,6 +546,9 @@ def _replay(
                     if pipeline.inspector is not None:
                         damage_csv = DamageCsv(out_dir)
                 report = result.result.damage
+                if report is not None and report.inspected:
+                    outcome.inspected_frames += 1
+                    outcome.judged_cells += report.scan.inspected_cells if report.scan else 0
                 if damage_csv is not None and report is not None:
                     for hole in report.confirmed:
                         damage_csv.write(hole, result.frame.index, result.frame.time_s,
@@ -694,6 +701,8 @@ def _finish(
         "stop_reason": outcome.stop_reason or None,
         "source": {"corrupt_frames": source_stats.corrupt, "dropped_frames": source_stats.drops},
         "damage_holes": outcome.holes,
+        "damage_inspection": None if outcome.holes is None else {
+            "inspected_frames": outcome.inspected_frames, "judged_cells": outcome.judged_cells},
         **stats.summary(),
     }
     if args.no_timing:
