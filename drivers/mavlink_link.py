@@ -425,6 +425,8 @@ class MavlinkLink(AutopilotLink):
                 freshness_s=self._gate.freshness_s,
                 sending_changes=self._gate.changes,
                 sending_net_plane=self._sending_net_plane,
+                min_distance_m=self.settings.min_distance_m,
+                max_distance_m=self.settings.max_distance_m,
             )
 
     def _state_locked(self) -> str:

@@ -113,6 +113,22 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
         const dot = (row) => document.querySelector(`#health tr[data-row='${row}'] .dot`).className;
         return [dot("CPU"), dot("Latency")]; }""")
     assert dots == ["dot warn", "dot warn"], dots
+    # A distance below the rangefinder's minimum is no distance to the autopilot (it reads
+    # OutOfRangeLow): the header says so, not a plain "0.25 m to the autopilot".
+    below = page.evaluate("""() => {
+        const s = JSON.parse(JSON.stringify(window.netpose.status));
+        s.autopilot.state = "connected"; s.autopilot.sending_distance = true;
+        s.autopilot.min_distance_m = 0.3;
+        onStatus(s);
+        const m = JSON.parse(JSON.stringify(window.netpose.lastEstimate));
+        m.filtered = Object.assign({}, m.filtered, {autopilot: "good", valid: true,
+            autopilot_distance_m: 0.25, autopilot_along: "optical_axis"});
+        m.time_mono = s.time_mono;
+        onEstimate(m);
+        renderHeader(window.netpose.health);
+        return [document.getElementById("distance-kind").textContent,
+                document.getElementById("distance").className]; }""")
+    assert below[0].startswith("below the rangefinder's 0.30 m minimum"), below
     page.wait_for_timeout(5000)
     rate = page.evaluate("""() => { const t = window.netpose.frameTimes;
                                     return 1000 * (t.length - 1) / (t[t.length - 1] - t[0]); }""")

@@ -216,6 +216,11 @@ class AutopilotHealth:
         "age beyond which a reading is not repeated (follows the measured frame interval)", None
     )
     sending_changes: int = doc("times sending started or stopped (total)", 0)
+    min_distance_m: float | None = doc(
+        "the rangefinder's minimum the autopilot is told (DISTANCE_SENSOR.min_distance): it "
+        "reads a distance below it as too close, not as a distance", None)
+    max_distance_m: float | None = doc(
+        "the rangefinder's maximum the autopilot is told (DISTANCE_SENSOR.max_distance)", None)
     sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
                                   "applet) is being sent right now", False)
 

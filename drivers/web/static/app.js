@@ -226,11 +226,20 @@ function renderHeader(h) {
   // port), the number must not read as what the autopilot has.
   const unheard = h.autopilot === "lost" ? "autopilot link lost: nothing reaches it"
     : h.autopilot === "waiting" ? "no autopilot heard: nothing reaches one" : "";
-  const sent = f.autopilot !== "none" && h.sending !== false && !unheard;
+  // Outside the rangefinder's limits the autopilot reads no distance (OutOfRangeLow/High).
+  const limits = page.status ? page.status.autopilot : {};
+  const value = f.autopilot === "good" ? f.autopilot_distance_m : null;
+  const outside = typeof value !== "number" ? ""
+    : typeof limits.min_distance_m === "number" && value < limits.min_distance_m
+      ? `below the rangefinder's ${fmt(limits.min_distance_m)} m minimum: the autopilot reads "too close"`
+    : typeof limits.max_distance_m === "number" && value > limits.max_distance_m
+      ? `beyond the rangefinder's ${fmt(limits.max_distance_m)} m maximum: the autopilot reads no distance` : "";
+  const sent = f.autopilot !== "none" && h.sending !== false && !unheard && !outside;
   setText("distance", handed, "big" + (sent ? "" : " unsent"));
   let kind;
   if (f.autopilot === "none") kind = "nothing sent to the autopilot";
   else if (unheard) kind = unheard;
+  else if (outside) kind = outside;
   else if (h.sending === false) kind = `${along ? along.short + " – " : ""}not being sent to the autopilot`;
   else kind = f.autopilot === "too_close" ? "to the autopilot: below its minimum" : `to the autopilot, ${along ? along.short : ""}`;
   setText("distance-kind", kind);
