@@ -710,6 +710,13 @@ def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
     err = capsys.readouterr().err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 8
+    # Its frames carry the vehicle's own capture times (a hole in damage.csv joins the dive's
+    # log by them), not the replay's clock.
+    from drivers.sources import open_source
+
+    with open_source(f"recording:{folder}") as source:
+        walls = [f.t_wall for f in iter(lambda: source.read(1.0), None)]
+    assert walls == pytest.approx([1.7e9 + n / FPS for n in range(8)], abs=1e-3)
     assert summary["recording"] == {"dropped": 3, "finished": False,
                                     "stopped_because": "writing failed: No space left on device"}
     assert "dropped 3 frames" in err and "No space left on device" in err
@@ -730,3 +737,25 @@ def test_two_replays_without_timing_are_byte_identical(
     rows = read_csv(outs[0] / "estimates.csv")
     assert all(r["process_ms"] == "" for r in rows) and len(rows) == FRAMES
     assert "speed" not in json.loads((outs[0] / "summary.json").read_text())
+
+
+def test_damage_csv_says_when_a_hole_was_seen_by_the_vehicles_clock(tmp_path: Path) -> None:
+    """damage.csv had no wall-clock time (the capture time was passed in and thrown away), so
+    a farm could not join a hole with its dive log. A recording's own capture time is written;
+    a video's or a folder's (the replay's own clock) is left empty."""
+    from service.core.damage_track import ConfirmedHole
+    from service.tools.damage_report import DAMAGE_COLUMNS, DamageCsv
+
+    hole = ConfirmedHole(
+        hole_id=1, t_first=0.0, t_confirmed=0.5, frame_index=5, detections=3, looks=3,
+        width_m=0.05, height_m=0.04, cells=4, missing_bars=4, centre_px=(1.0, 2.0),
+        box_px=(0.0, 0.0, 3.0, 4.0), plane_xy_m=(0.1, 0.2), point_m=(0.1, 0.2, 1.0),
+        range_m=1.03, confidence=0.87)
+    out = DamageCsv(tmp_path)
+    out.write(hole, 5, 0.5, 1_764_300_000.25)
+    out.write(hole, 6, 0.6, None)
+    out.close()
+    with (tmp_path / "damage.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == DAMAGE_COLUMNS
+    assert [r["time_unix"] for r in rows] == ["1764300000.250", ""]

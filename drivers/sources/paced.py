@@ -57,6 +57,7 @@ class MediaFrame:
     measured: bool = True  # False: the recording's vehicle did not measure this frame
     inspected: bool | None = None  # a recording's: the vehicle searched it for holes
     skipped_before: int = 0  # unreadable frames passed over just before this one
+    wall_s: float | None = None  # a recording's own capture time (time.time) for this frame
 
 
 class PacedSource(FrameSource):
@@ -320,7 +321,7 @@ class PacedSource(FrameSource):
                 image=converted[0],
                 index=self._loop_index + media.number,
                 t_monotonic=self._t0_mono + offset,
-                t_wall=self._t0_wall + offset,
+                t_wall=media.wall_s if media.wall_s is not None else self._t0_wall + offset,
                 color=converted[1],
                 truth=media.truth,
                 budget=media.budget,

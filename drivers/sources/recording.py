@@ -62,6 +62,11 @@ class RecordingSource(PacedSource):
         return True
 
     @property
+    def wall_clock_recorded(self) -> bool:
+        """Frames carry the vehicle's own capture time (`Frame.t_wall`), not the replay's."""
+        return True
+
+    @property
     def camera(self) -> CameraModel | None:
         """The recording's own calibration (camera.yaml), readable before open(): the
         service resolves its camera before it opens the source. None without one; a damaged
@@ -140,12 +145,13 @@ class RecordingSource(PacedSource):
     def _next_media(self) -> MediaFrame:
         if self._position >= len(self._entries):
             raise EndOfMediaError
-        name, index, t_mono, _, budget, measured, inspected = self._entries[self._position]
+        name, index, t_mono, t_unix, budget, measured, inspected = self._entries[self._position]
         self._position += 1
         flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
         image: Any = cv2.imread(str(self.path / name), flags)
         return MediaFrame(image=image, number=index, media_time_s=t_mono - self._entries[0][2],
-                          budget=budget, measured=measured, inspected=inspected)
+                          budget=budget, measured=measured, inspected=inspected,
+                          wall_s=t_unix)
 
     def _skip_to(self, number: int) -> int:
         """Skip the frames recorded before `number` frame periods of media time. By time, not

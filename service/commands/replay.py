@@ -249,6 +249,9 @@ def replay_frames(
             measured=frame.measured,
             inspected=frame.inspected,
             source_file=files[frame.index].name if frame.index < len(files) else "",
+            # A recording's own wall-clock capture time (a video's or a folder's would be the
+            # replay's own clock: not given).
+            t_unix=frame.t_wall if getattr(source, "wall_clock_recorded", False) else None,
         )
 
 
@@ -552,7 +555,7 @@ def _replay(
                 if damage_csv is not None and report is not None:
                     for hole in report.confirmed:
                         damage_csv.write(hole, result.frame.index, result.frame.time_s,
-                                         result.frame.t_capture)
+                                         result.frame.t_unix)
                 if video is not None and annotator is not None:
                     video.write(_annotated(annotator, result))
                 csv_file.write(result)

@@ -28,6 +28,9 @@ DAMAGE_COLUMNS = (
     "hole_id", "frame", "time_s", "width_cm", "height_cm", "cells", "missing_bars",
     "image_x_px", "image_y_px", "plane_x_m", "plane_y_m", "range_m", "bearing", "confidence",
     "detections", "looks", "first_seen_s", "crop",
+    # the frame's capture time as the vehicle's clock said it (a recording's), to join a hole
+    # with the dive's log; empty where the input does not keep it (a video, a folder)
+    "time_unix",
 )
 
 
@@ -49,7 +52,8 @@ class DamageCsv:
         self._writer.writerow(DAMAGE_COLUMNS)
         self.holes: list[tuple[ConfirmedHole, int]] = []
 
-    def write(self, hole: ConfirmedHole, frame: int, time_s: float, t0_capture: float) -> None:
+    def write(self, hole: ConfirmedHole, frame: int, time_s: float,
+              time_unix: float | None = None) -> None:
         crop_name = ""
         if hole.crop is not None and hole.crop.size:
             crops = self.out_dir / CROPS_DIR
@@ -63,9 +67,9 @@ class DamageCsv:
             f"{hole.centre_px[0]:.1f}", f"{hole.centre_px[1]:.1f}", f"{hole.plane_xy_m[0]:.3f}",
             f"{hole.plane_xy_m[1]:.3f}", f"{hole.range_m:.3f}", hole.bearing,
             f"{hole.confidence:.2f}", hole.detections, hole.looks, f"{first:.3f}", crop_name,
+            "" if time_unix is None else f"{time_unix:.3f}",
         ])
         self._file.flush()
-        del t0_capture
         self.holes.append((hole, frame))
 
     def close(self) -> None:

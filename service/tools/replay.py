@@ -217,6 +217,7 @@ class ReplayFrame:
     measured: bool = True  # False: the recording's vehicle did not measure it (paced search)
     inspected: bool | None = None  # a recording's: the vehicle searched it for holes
     source_file: str = ""  # the image file it came from (image folders)
+    t_unix: float | None = None  # the capture's wall-clock time, where the input keeps it
 
 
 # -- results ----------------------------------------------------------------------------------
