@@ -34,7 +34,9 @@ class Frame:
 
     `index` counts frames as the source produced them (a file's frame number, a camera's
     capture count): a jump of more than one means frames were dropped or unreadable.
-    `t_monotonic` (time.monotonic) and `t_wall` (time.time) are the same capture instant.
+    `t_monotonic` (time.monotonic) and `t_wall` (time.time) are the same capture instant,
+    except for a netpose recording played back: its `t_wall` is the vehicle's own capture
+    time, days ago perhaps, while `t_monotonic` follows the playback.
     `truth` is the ground truth of a synthetic frame (drivers.synthetic_net.GroundTruth).
     """
 
