@@ -132,6 +132,10 @@ def test_both_holes_are_confirmed_once(ran: PassRun) -> None:
     assert ran.daemon_holes == 2
     assert len(ran.damages) == 2
     assert len({m["hole_id"] for m in ran.damages}) == 2
+    # One run: the same start on both, which with hole_id keys a hole across runs (ids start
+    # at 1 again after a restart).
+    assert len({m["run_started_unix"] for m in ran.damages}) == 1
+    assert all(isinstance(m["run_started_unix"], float) for m in ran.damages)
     found = set()
     for message in ran.damages:
         assert schema_problems(message) == []

@@ -350,6 +350,9 @@ class DamageMessage(Message):
 
     KIND: ClassVar[str] = DAMAGE_SUFFIX
     hole_id: int = doc("number of the hole in this service run")
+    run_started_unix: float | None = doc(
+        "when this run of the service started (wall clock): hole_id starts again at 1 in the "
+        "next one, so (vehicle, run_started_unix, hole_id) is a hole's key across runs", None)
     frame_time_unix: float | None = doc("wall-clock capture time of the confirming frame", None)
     frame_time_mono: float | None = doc("monotonic capture time of the confirming frame", None)
     first_seen_mono: float | None = doc("monotonic capture time of its first detection", None)

@@ -34,7 +34,8 @@ STALE_TEXT_S = 15.0
 
 
 def damage_message(hole: ConfirmedHole, *, vehicle: str, frame: Frame, now_mono: float,
-                   now_unix: float, crop_quality: int = 80) -> DamageMessage:
+                   now_unix: float, crop_quality: int = 80,
+                   run_started_unix: float | None = None) -> DamageMessage:
     """The telemetry message of a confirmed hole (the evidence crop as base64 JPEG)."""
     crop = ""
     if hole.crop is not None and hole.crop.size:
@@ -46,6 +47,7 @@ def damage_message(hole: ConfirmedHole, *, vehicle: str, frame: Frame, now_mono:
     first_mono = frame.t_monotonic - (hole.t_confirmed - hole.t_first)
     return DamageMessage(
         vehicle=vehicle, time_unix=now_unix, time_mono=now_mono, hole_id=hole.hole_id,
+        run_started_unix=run_started_unix,
         frame_time_unix=frame.t_wall, frame_time_mono=frame.t_monotonic,
         first_seen_mono=first_mono, width_m=hole.width_m, height_m=hole.height_m,
         cells=hole.cells, missing_bars=hole.missing_bars, image_x_px=hole.centre_px[0],
@@ -124,6 +126,8 @@ class DamageOutputs:
         self._observers = observers
         self._vehicle = vehicle
         self._wall_clock = wall_clock
+        # Hole numbers start at 1 in each run: this tells a topside store one run from another.
+        self.run_started_unix = wall_clock()
         self.notices = PilotNotices(link, notify_interval_s, orientation)
         self.reported = 0
 
@@ -135,7 +139,8 @@ class DamageOutputs:
                         hole.width_m * 100, hole.height_m * 100, hole.cells, hole.bearing,
                         hole.range_m, hole.confidence, hole.detections, hole.looks)
             message = damage_message(hole, vehicle=self._vehicle, frame=frame, now_mono=now,
-                                     now_unix=self._wall_clock())
+                                     now_unix=self._wall_clock(),
+                                     run_started_unix=self.run_started_unix)
             self._telemetry.publish_damage(message)
             for observer in self._observers:
                 observer.observe_damage(message)
