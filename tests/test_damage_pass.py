@@ -56,6 +56,7 @@ class PassRun:
     damages: list[dict]
     texts: list[str]
     daemon_holes: int
+    inspection: object = None  # the last status's InspectionHealth
 
 
 def _pose(k: int) -> NetPose:
@@ -107,6 +108,8 @@ def ran() -> Iterator[PassRun]:
         outputs = daemon.outputs.damage
         assert outputs is not None
         daemon_holes = outputs.reported
+        last_status = daemon.reporter.last_status
+        inspection = last_status.inspection if last_status is not None else None
         expected = outputs.notices.sent_total
         autopilot.wait_for("STATUSTEXT", count=expected, timeout=10.0,
                            where=lambda r: "hole" in r.msg.text)
@@ -119,7 +122,7 @@ def ran() -> Iterator[PassRun]:
         damages = list(tel.damages)
         tel.close()
     texts = [r.msg.text for r in autopilot.received("STATUSTEXT") if "hole" in r.msg.text]
-    yield PassRun(truths, damages, texts, daemon_holes)
+    yield PassRun(truths, damages, texts, daemon_holes, inspection)
 
 
 def _matching(message: dict, truths: list[HoleTruth]) -> list[int]:
@@ -144,6 +147,17 @@ def test_both_holes_are_confirmed_once(ran: PassRun) -> None:
         assert len(match) == 1, (message["image_x_px"], message["image_y_px"])
         found.add(match[0])
     assert found == {0, 1}
+
+
+def test_the_status_says_how_much_of_the_net_was_looked_at(ran: PassRun) -> None:
+    """No hole reported is no proof of an intact net: the status carries the inspection's
+    coverage (frames searched, cells judged) beside the holes found."""
+    from service.core.messages import InspectionHealth
+
+    assert isinstance(ran.inspection, InspectionHealth)
+    assert ran.inspection.holes == ran.daemon_holes == 2
+    assert 3 <= ran.inspection.inspected_frames <= FRAMES
+    assert ran.inspection.judged_cells > 100 * ran.inspection.inspected_frames
 
 
 def test_their_sizes_are_within_20_percent(ran: PassRun) -> None:

@@ -101,7 +101,8 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     page.wait_for_selector("#health tr[data-row='Source']")
     rows = page.eval_on_selector_all("#health tr", "trs => trs.map(t => t.dataset.row)")
     assert rows == ["Service", "Source", "Autopilot link", "Telemetry", "Frame rate", "CPU",
-                    "Latency"]
+                    "Inspection", "Latency"]
+    assert "frames searched" in page.text_content("#health tr[data-row='Inspection']")
     assert "streaming" in page.text_content("#health tr[data-row='Source']")
     # CPU and latency are judged, not always green: a loop that lowered its work (budget level
     # 2) and a p99 past half the freshness limit show as warnings.

@@ -298,6 +298,16 @@ class StatusLatency:
     capture_to_link_p99: float | None = doc("99th percentile over the last period, ms", None)
 
 
+@dataclass(frozen=True)
+class InspectionHealth:
+    """Net inspection since the service started: how much of the net was looked at. No hole
+    reported is no proof of an intact net (docs/inspection.md, Limits)."""
+
+    inspected_frames: int = doc("frames searched for holes", 0)
+    judged_cells: int = doc("mesh cells whose bars were judged in them (overlaps counted)", 0)
+    holes: int = doc("holes confirmed", 0)
+
+
 @dataclass(frozen=True, kw_only=True)
 class StatusMessage(Message):
     """Health of the service, once per `service.status_interval_s`."""
@@ -316,6 +326,8 @@ class StatusMessage(Message):
     telemetry: TelemetryHealth | None = doc("the publisher's own counters", None)
     filter: FilterHealth = doc("the tracking filter")
     latency_ms: StatusLatency = doc("frame to autopilot latency", StatusLatency())
+    inspection: InspectionHealth | None = doc("net inspection's coverage (null: it is off)",
+                                              None)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -54,6 +54,9 @@ class LoopStats:
         self.detected = 0
         self.errors = 0
         self.paced = 0
+        # Net inspection: frames searched for holes and the cells judged in them.
+        self.inspected = 0
+        self.judged_cells = 0
         self.last_error = ""
         self._last_index: int | None = None
         # (time the result was handed to the outputs, capture -> hand-over in ms)
@@ -72,6 +75,10 @@ class LoopStats:
             return
         self.frames += 1
         self.detected += result.detected
+        damage = result.damage
+        if damage is not None and damage.inspected:
+            self.inspected += 1
+            self.judged_cells += damage.scan.inspected_cells if damage.scan is not None else 0
         if result.error:
             self.errors += 1
             self.last_error = result.error

@@ -21,6 +21,7 @@ from service.core.messages import (
     EstimatorHealth,
     FilterHealth,
     FrameSourceHealth,
+    InspectionHealth,
     StateMessage,
     StatusLatency,
     StatusMessage,
@@ -105,6 +106,7 @@ class StatusReporter:
         self.config_digest = ""
         self._config_redacted: dict[str, Any] = {}
         self.telemetry_enabled = True
+        self.inspecting = False  # net inspection on (damage.enabled)
         self.last_status: StatusMessage | None = None
 
     def set_config(
@@ -114,6 +116,7 @@ class StatusReporter:
         self.config_digest = digest
         self._config_redacted = redact_config(effective)  # once here, not per report
         self.telemetry_enabled = telemetry_enabled
+        self.inspecting = bool(effective.get("damage", {}).get("enabled", False))
 
     def announce(self, now: float) -> None:
         """What the `state` queryable answers before the first status: the configuration,
@@ -226,6 +229,10 @@ class StatusReporter:
             ),
             latency_ms=StatusLatency(capture_to_link_p50=latency.p50_ms,
                                      capture_to_link_p99=latency.p99_ms),
+            inspection=None if ctx.outputs.damage is None or not self.inspecting
+            else InspectionHealth(inspected_frames=ctx.stats.inspected,
+                                  judged_cells=ctx.stats.judged_cells,
+                                  holes=ctx.outputs.damage.reported),
         )
 
     def status_line(

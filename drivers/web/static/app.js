@@ -353,6 +353,7 @@ function onStatus(s) {
     // and more) is short of CPU; a p99 past half the link's freshness limit eats the margin
     // before the autopilot's distance goes stale.
     ["CPU", (es.budget_level ?? 0) >= 2 ? "warn" : "ok", `${fmt(s.cpu.process_percent, 0)} % of a core · load ${fmt(s.cpu.load_1m)} · ${fmt(s.cpu.rss_mb, 0)} MB · work level ${es.budget_level ?? 0}`, ""],
+    ["Inspection", s.inspection ? "ok" : "off", s.inspection ? `${s.inspection.inspected_frames} frames searched, ${s.inspection.judged_cells} cells judged, ${s.inspection.holes} holes (none reported is no proof of an intact net)` : "damage.enabled = false", ""],
     ["Latency", typeof lat.capture_to_link_p99 === "number" && typeof ap.freshness_s === "number" && lat.capture_to_link_p99 > 500 * ap.freshness_s ? "warn" : "ok", `capture → MAVLink link ${fmt(lat.capture_to_link_p50, 0)} ms median, ${fmt(lat.capture_to_link_p99, 0)} ms p99 · estimator ${fmt(es.latency_ms_mean, 0)} ms`, ""],
   ];
   body.replaceChildren(...rows.map(([name, state, text, error]) => {
