@@ -117,6 +117,13 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
         status_message(), estimator=EstimatorHealth(fps=5.0, searching_hz=5.0))
     state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(searching)), t)
     assert "searching 5/s (no net)" in "\n".join(state.render(t))
+    # Net inspection's coverage beside its holes.
+    from service.core.messages import InspectionHealth
+
+    inspecting = dataclasses.replace(status_message(), inspection=InspectionHealth(
+        inspected_frames=120, judged_cells=54000, holes=1))
+    state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(inspecting)), t)
+    assert "inspected 120 frames (54000 cells), 1 holes" in "\n".join(state.render(t))
     # After the window the stream has no rate any more.
     assert state.rate_hz(VEHICLE, "estimate", t + 6.0) == 0.0
 

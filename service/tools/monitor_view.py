@@ -390,6 +390,11 @@ def _status_text(status: Mapping[str, Any] | None) -> str:
     searching = (status.get("estimator") or {}).get("searching_hz")
     if searching:
         text += f" searching {_fmt(searching, 0)}/s (no net)"
+    inspection = status.get("inspection")
+    if isinstance(inspection, Mapping):
+        # How much was looked at, beside the holes: none reported is no proof of an intact net.
+        text += (f" inspected {inspection.get('inspected_frames')} frames"
+                 f" ({inspection.get('judged_cells')} cells), {inspection.get('holes')} holes")
     if telemetry.get("queue_dropped"):
         text += f" tx-dropped {telemetry.get('queue_dropped')}"
     return text
