@@ -64,9 +64,6 @@ MAX_LIVE_CLIENTS = 16
 # Connections at once (pages, their requests, downloads, live views): past it a new one is
 # closed as it is accepted, so no client can take every file descriptor of the process.
 MAX_CONNECTIONS = 64
-# A connection accepted is connected within a pass of the event loop; one that was not after
-# this long never will be (its accept failed), and is not counted any more.
-_PENDING_CONNECTION_S = 5.0
 # A recording download whose client takes nothing for this long is ended (its tar thread is
 # one of the two that also serve settings and calibrations).
 DOWNLOAD_STALL_S = 60.0
@@ -215,9 +212,10 @@ class WebPage(Generic[R]):
         listening = await self._listen()
         if listening is None:
             return  # stopped before the port was ever free
-        runner, server = listening
+        runner, site = listening
         if not self._stop.is_set():
-            sockets = list(server.sockets)
+            server = getattr(site, "_server", None)
+            sockets = getattr(server, "sockets", None) or []
             self.port = sockets[0].getsockname()[1] if sockets else self.settings.port
             log.info("web page on http://%s:%d/%s", self.settings.host, self.port,
                      " (changes need web.token)" if self.settings.token else "")
@@ -226,31 +224,24 @@ class WebPage(Generic[R]):
         for timer in (self._push_timer, self._draw_timer):
             if timer is not None:
                 timer.cancel()
-        server.close()  # no new connections; the runner closes the open ones
         await runner.cleanup()
 
-    async def _listen(self) -> tuple[web.AppRunner, asyncio.Server] | None:
-        """The page's server, listening; while the port is taken, a new try every 5 s (each
-        try with a runner of its own)."""
+    async def _listen(self) -> tuple[web.AppRunner, web.TCPSite] | None:
+        """The page's server, listening; while the port is taken, a new try every 5 s (a site
+        that failed to start stays registered with its runner, so each try has its own)."""
         assert self._stop is not None
         failed_logged = False
-        loop = asyncio.get_running_loop()
         while not self._stop.is_set():
             # (No shutdown_timeout: AppRunner takes it only since aiohttp 3.9, and Debian
             # bookworm's 3.8 would hand it to every connection. Open pages are closed on
             # shutdown.)
             runner = web.AppRunner(self._app(), access_log=None, handle_signals=False)
             await runner.setup()
-            assert runner.server is not None
+            site = _CappedSite(runner, self.settings.host, self.settings.port,
+                               reuse_address=True)
             try:
-                # Listened on here rather than by aiohttp's TCPSite: each connection is counted
-                # (_CappedConnections), so clients that never finish their requests cannot take
-                # every file descriptor of the process, which the camera and the MAVLink link
-                # need too.
-                server = await loop.create_server(
-                    _CappedConnections(runner.server, MAX_CONNECTIONS), self.settings.host,
-                    self.settings.port, reuse_address=True)
-                return runner, server
+                await site.start()
+                return runner, site
             except OSError as exc:
                 await runner.cleanup()
                 if not failed_logged:
@@ -759,37 +750,55 @@ def undistorted_preview(image: npt.NDArray[Any], camera: CameraModel, width: int
     return bytes(data.tobytes())
 
 
+class _CappedSite(web.TCPSite):
+    """aiohttp's TCP site (its stop closes the open connections and runs the shutdown hooks:
+    on aiohttp 3.8 only the site's stop does), listening through `_CappedConnections`, so
+    clients that never finish their requests cannot take every file descriptor of the process,
+    which the camera and the MAVLink link need too."""
+
+    async def start(self) -> None:
+        await web.BaseSite.start(self)  # registers the site with its runner
+        loop = asyncio.get_running_loop()
+        server = self._runner.server
+        assert server is not None
+        capped = _CappedConnections(server, MAX_CONNECTIONS)
+        self._server = await loop.create_server(capped, self._host, self._port,
+                                                reuse_address=self._reuse_address)
+        capped.listening = self._server
+
+
 class _CappedConnections:
     """aiohttp's protocol factory, refusing a connection past `limit` open ones: it is closed as
     it is accepted (its descriptor freed at once) and the page's own stay served.
 
     About 1,100 connections that never finished their headers once took the process's 1,024
-    descriptors: the page went dark, a SIGHUP's reload failed to open the file, and asyncio
-    logged a traceback per accept, 3.7 MB/s."""
+    descriptors: the page went dark, a SIGHUP's reload failed to open the configuration, and
+    asyncio logged a traceback per accept, 3.7 MB/s.
+
+    Open connections are counted by the listening server's transports (asyncio attaches each
+    one as it is made, before its protocol is told, and detaches it when it is gone): aiohttp's
+    own list learns of a connection a loop pass later, and a burst of 100 accepts all saw it
+    empty. Where that count is not there, aiohttp's list is used."""
 
     def __init__(self, server: Any, limit: int) -> None:
         self._server = server
         self._limit = limit
         self._refused = 0
-        # Handlers made but not yet connected (by creation time): asyncio accepts a burst of
-        # connections, making each one's protocol, before any of them is connected, so the
-        # server's own count lags behind (100 accepted at a limit of 64).
-        self._pending: dict[Any, float] = {}
+        self.listening: asyncio.AbstractServer | None = None  # set once it listens
+
+    def open_connections(self) -> int:
+        active = getattr(self.listening, "_active_count", None)
+        return active if isinstance(active, int) else len(self._server.connections)
 
     def __call__(self) -> asyncio.BaseProtocol:
-        now = time.monotonic()
-        live = set(self._server.connections)
-        self._pending = {h: t for h, t in self._pending.items()
-                         if h not in live and now - t < _PENDING_CONNECTION_S}
-        if len(live) + len(self._pending) >= self._limit:
+        open_now = self.open_connections()
+        if open_now >= self._limit:
             self._refused += 1
             if self._refused in (1, 10, 100) or self._refused % 1000 == 0:
                 log.warning("web page: %d connections open, at most %d: refused the newest "
-                            "(%d so far)", len(live) + len(self._pending), self._limit,
-                            self._refused)
+                            "(%d so far)", open_now, self._limit, self._refused)
             return _Refused()
         protocol: asyncio.BaseProtocol = self._server()
-        self._pending[protocol] = now
         return protocol
 
 
