@@ -389,7 +389,10 @@ def test_after_the_inspection_stopped_for_long_a_new_hole_is_not_taken_for_an_ol
     shows another hole 0.35 m from the first's last place: the confirmed track, kept on its
     old place and speed with its gate grown to half a metre, took the new hole for itself, and
     the farm never heard of it (found 5 times in a replay). After a gap in the inspections
-    longer than a track lives, every hole is new: this one is reported."""
+    longer than a track lives, a track is looked for only where it was last seen, with the
+    smallest gate: this hole is reported. The first one, still where it was after a gap of
+    2.5 s (a loop behind its budget, a fish in front), is still the same hole: not reported
+    again."""
     settings = DamageSettings(confirm_hits=2, confirm_looks=3)
     first, second = (-0.2, 0.0), (0.15, 0.05)
     tracker = HoleTracker(CAMERA, settings)
@@ -400,6 +403,13 @@ def test_after_the_inspection_stopped_for_long_a_new_hole_is_not_taken_for_an_ol
         reports += tracker.update(_still_scan(second, True, 959.0), 10.0 + 0.1 * k, 100 + k)
     assert [h.hole_id for h in reports] == [1, 2]
     assert reports[1].plane_xy_m == pytest.approx(second)
+    held = HoleTracker(CAMERA, settings)
+    reports = []
+    for k in range(4):
+        reports += held.update(_still_scan(first, True, 959.0), 0.1 * k, k)
+    for k in range(4):  # 2.5 s without an inspection, then the same hole where it was
+        reports += held.update(_still_scan(first, True, 959.0), 2.8 + 0.1 * k, 30 + k)
+    assert [h.hole_id for h in reports] == [1]
 
 
 def test_a_retuned_inspection_keeps_its_holes_and_their_numbers() -> None:

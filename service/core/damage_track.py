@@ -135,6 +135,10 @@ class _Track:
     # One entry per look (an inspection that judged its place): found there or not.
     record: list[bool] = field(default_factory=list)
     confirmed: bool = False
+    # Nothing was inspected for longer than a track lives since it was last seen: its speed
+    # says nothing of where it went, so it is looked for only where it was, with the smallest
+    # gate, until it is seen again.
+    stale: bool = False
 
     @property
     def looks(self) -> int:
@@ -143,7 +147,7 @@ class _Track:
     def predicted(self, t: float, longest_s: float = math.inf) -> npt.NDArray[np.float64]:
         """Where the hole is now by its last place and speed, carried at most `longest_s`:
         a speed measured over a second or two says nothing of where it went over ten."""
-        if self.velocity is None:
+        if self.velocity is None or self.stale:
             return self.position
         dt = min(t - self.t_last, longest_s)
         return np.asarray(self.position + self.velocity * dt, dtype=np.float64)
@@ -154,7 +158,7 @@ class _Track:
         dt = min(max(t - self.t_last, 0.0), longest_s)
         speed = MAX_SPEED_MPS if self.velocity is None else SPEED_UNCERTAINTY_MPS
         size = max((max(c.width_m, c.height_m) for c in self.hits[-1:]), default=0.0)
-        return base + 0.5 * size + speed * dt
+        return base + 0.5 * size + (0.0 if self.stale else speed * dt)
 
 
 @dataclass(frozen=True)
@@ -195,6 +199,7 @@ class HoleTracker:
         self._next_id = max(self._next_id, next_id)
         if previous is not None:
             self._tracks = list(previous._tracks)
+            self._last_update = previous._last_update
 
     @property
     def tracks(self) -> list[TrackView]:
@@ -210,11 +215,13 @@ class HoleTracker:
         st = self.settings
         hopeless = st.confirm_looks - st.confirm_hits + 1
         if self._last_update is not None and t - self._last_update > st.track_timeout_s:
-            # Nothing was inspected for longer than a track lives (the net was lost, the
-            # vehicle searched): where its holes went is not known, and a confirmed track kept
-            # on its old speed took a new hole half a metre away for itself, which was never
-            # reported. A hole seen again after that is reported anew (documented).
-            self._tracks = []
+            # Nothing was inspected for longer than a track lives (the net lost, a fish in
+            # front, a loop behind its budget): a confirmed track carried on its old speed,
+            # its gate grown to half a metre, took a new hole 0.35 m away for itself, which
+            # was never reported. Each is looked for only where it was last seen, with the
+            # smallest gate, until it is seen again (a hole held in view is still the same).
+            for tr in self._tracks:
+                tr.stale = True
         self._last_update = t
         self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s
                         or (tr.confirmed and self._still_in_view(scan, tr, t, hopeless))]
@@ -278,6 +285,7 @@ class HoleTracker:
             tr.velocity = v if tr.velocity is None else 0.5 * tr.velocity + 0.5 * v
         tr.position = p
         tr.t_last = t
+        tr.stale = False
         tr.hits.append(cand)
         tr.record.append(True)
         if tr.confirmed:

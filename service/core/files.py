@@ -24,7 +24,9 @@ def read_small(path: str | Path, max_bytes: int) -> bytes:
 
     Files named by settings (a calibration, a key) are read whole: a device named instead
     (/dev/zero) would fill the memory, and a FIFO or a tty would block the reader for good
-    (with it the settings page, and the service's stop). Neither is opened at all."""
+    (with it the settings page, and the service's stop). Neither is read: a device is refused
+    before it is opened, and the file opened is judged again without waiting on it (a FIFO
+    put there in between)."""
     p = Path(path)
     if not stat.S_ISREG(p.stat().st_mode):  # follows a link, as open() would
         raise OSError(f"{p} is not a regular file")
