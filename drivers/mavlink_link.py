@@ -330,6 +330,7 @@ class MavlinkLink(AutopilotLink):
         )
         self._texts: collections.deque[tuple[float, int, str]] = collections.deque(
             maxlen=_MAX_QUEUED_TEXTS)
+        self._texts_dropped = 0
         self._received = 0
         self._errors = 0
         self._last_error: str | None = None
@@ -427,6 +428,7 @@ class MavlinkLink(AutopilotLink):
                 sending_net_plane=self._sending_net_plane,
                 min_distance_m=self.settings.min_distance_m,
                 max_distance_m=self.settings.max_distance_m,
+                texts_dropped=self._texts_dropped,
             )
 
     def _state_locked(self) -> str:
@@ -623,6 +625,8 @@ class MavlinkLink(AutopilotLink):
             if self._clock() - queued > TEXT_MAX_WAIT_S:
                 log.info("MAVLink: a text for the pilot waited %.0f s for the link and is no "
                          "longer news, not sent: %s", self._clock() - queued, text)
+                with self._lock:
+                    self._texts_dropped += 1  # the daemon says again what still holds
                 continue
             self._send(conn, "STATUSTEXT",
                        functools.partial(conn.mav.statustext_send, severity,
@@ -871,6 +875,7 @@ class RecordingAutopilotLink(AutopilotLink):
         self.ranges: list[RangeReading] = []
         self.planes: list[NetPlane] = []
         self.texts: list[tuple[int, str]] = []
+        self.texts_dropped = 0  # a test sets it: texts a real link dropped as stale
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -899,6 +904,7 @@ class RecordingAutopilotLink(AutopilotLink):
             state="connected" if self.started and not self.closed else "waiting",
             transport="fake",
             messages_sent=len(self.ranges),
+            texts_dropped=self.texts_dropped,
         )
 
     def close(self) -> None:

@@ -671,24 +671,31 @@ def test_distance_back_is_said_only_once_the_episode_is_over() -> None:
         notices.update(frame(status), t)
         t += 0.1
     assert [text for _, text in link.texts] == ["netpose: net too close to measure, back off"]
+    # The link dropped that text (it waited out an outage): said again, and its end follows.
+    notices.repeat(frame(RangeStatus.TOO_CLOSE))
     for _ in range(5):  # backed off: measured again, three frames in a row
         notices.update(frame(RangeStatus.GOOD), t)
         t += 0.1
-    assert [text for _, text in link.texts][-1] == "netpose: distance back"
+    assert [text for _, text in link.texts] == [
+        "netpose: net too close to measure, back off",
+        "netpose: net too close to measure, back off", "netpose: distance back"]
 
 
 def test_what_still_holds_is_said_again_when_the_link_comes_back(frames: list[Frame]) -> None:
     """The link drops a text that waited more than 5 s for it; a camera lost during a longer
-    outage of the link was then never said while it lasted. When the link connects again,
-    what was said and still holds is said again."""
+    outage of the link was then never said while it lasted. When the link says it dropped
+    texts, what was said and still holds is said again; a link that flaps without dropping
+    any repeats nothing."""
     cfg = demo_config("camera.stale_after_s=0.5")
     h = make_harness(cfg, [*steps(frames[:5]), *[Step(wait_s=0.2)] * 10])
     h.run_script()
     assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"]
-    h.link.closed = True  # the link is down (status "waiting" for the recording link)
-    h.clock.now += 1.0
-    h.daemon.iterate()
-    h.link.closed = False  # ... and back, the camera still lost
+    for _ in range(3):  # the link down and back, nothing dropped
+        h.link.closed = not h.link.closed
+        h.clock.now += 1.0
+        h.daemon.iterate()
+    assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"]
+    h.link.texts_dropped = 1  # the link dropped the text: the camera is still lost
     h.clock.now += 1.0
     h.daemon.iterate()
     assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"] * 2

@@ -895,7 +895,9 @@ def test_a_pilot_text_that_waited_out_a_link_outage_is_not_sent_late(
             texts = autopilot.wait_for("STATUSTEXT", count=1, timeout=5.0)
             time.sleep(0.3)
             texts = autopilot.received("STATUSTEXT")
+            dropped = link.status().texts_dropped
     assert [t.msg.text for t in texts] == ["netpose: net ~1.9 m, too little in view"]
+    assert dropped == 1  # said, so the daemon says again what still holds
 
 
 def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:

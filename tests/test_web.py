@@ -804,7 +804,8 @@ def test_a_bad_setting_names_the_key_and_changes_nothing(daemon: WebDaemon) -> N
         assert status == 400 and reply["error"].startswith(error), reply
     # Text that is no text: JSON's lone surrogates (a 500 and a traceback in the log before).
     for changes in ({"service.\ud800": 1}, {"camera.url": "rtsp://\udcff"},
-                    {"telemetry.connect": ["tcp/\ud800:7447"]}):
+                    {"telemetry.connect": ["tcp/\ud800:7447"]},
+                    {"telemetry.connect": [["tcp/\ud800:7447"]]}):
         status, reply = daemon.request("POST", "/api/settings", {"changes": changes},
                                        token=True)
         assert status == 400 and "not valid text" in reply["error"], reply

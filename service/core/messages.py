@@ -216,6 +216,8 @@ class AutopilotHealth:
         "age beyond which a reading is not repeated (follows the measured frame interval)", None
     )
     sending_changes: int = doc("times sending started or stopped (total)", 0)
+    texts_dropped: int = doc(
+        "pilot texts (STATUSTEXT) dropped after waiting out a link outage (total)", 0)
     min_distance_m: float | None = doc(
         "the rangefinder's minimum the autopilot is told (DISTANCE_SENSOR.min_distance): it "
         "reads a distance below it as too close, not as a distance", None)

@@ -161,7 +161,7 @@ class Daemon:
         )
         self.view_notices = ViewNotices(parts.link, config.mesh.opening_angle_deg, states=states)
         self.service_notices = ServiceNotices(parts.link)
-        self._link_connected = False  # as last looked at (_note_link)
+        self._texts_dropped = 0  # the link's count, as last looked at (_note_link)
         self._link_checked_at = -float("inf")
         self._apply_config_to_reporter()
         self.last: TrackOutput | None = None
@@ -217,18 +217,18 @@ class Daemon:
         return result
 
     def _note_link(self, now: float, result: PipelineResult) -> None:
-        """When the link to the autopilot (and the ground station behind it) connects, or comes
-        back, what the pilot was told and still holds is said again: a text that waited out
-        the outage was dropped by the link as old news, and the pilot must hear the state of
-        now (the camera still lost, the net still too close). Looked at a few times a second."""
+        """When the link dropped pilot texts that waited out an outage (as old news), what the
+        pilot was told and still holds is said again, so the pilot hears the state of now (the
+        camera still lost, the net still too close). Only then: a link that flaps without
+        dropping anything repeats nothing. Looked at a few times a second."""
         if now - self._link_checked_at < _LINK_CHECK_S:
             return
         self._link_checked_at = now
-        connected = self.parts.link.status().state == "connected"
-        if connected and not self._link_connected:
+        dropped = self.parts.link.status().texts_dropped
+        if dropped > self._texts_dropped:
             self.service_notices.repeat()
             self.view_notices.repeat(result if result.has_frame else None)
-        self._link_connected = connected
+        self._texts_dropped = dropped
 
     def _tick_time(self, now: float) -> float:
         """The time of a pass without a frame, in the frames' time base.

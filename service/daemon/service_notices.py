@@ -50,8 +50,8 @@ class ServiceNotices:
                       else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)
 
     def repeat(self) -> None:
-        """The link to the ground station is back: a camera loss that was said and still goes
-        on is said again (its text may have been dropped while the link was down)."""
+        """The link dropped pilot texts that waited out its outage: a camera loss that was said
+        and still goes on is said again."""
         if self._loss_said:
             self._say("netpose: camera lost: no distance" if self._had_frames
                       else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)

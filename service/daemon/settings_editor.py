@@ -96,6 +96,17 @@ def tuning_toml(config: Config) -> str:
     return tomlkit.dumps(doc)
 
 
+def _texts_in(value: Any) -> list[str]:
+    """Every string in a value sent by the page, nested lists and tables included."""
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, list | tuple):
+        return [t for item in value for t in _texts_in(item)]
+    if isinstance(value, dict):
+        return [t for k, v in value.items() for t in (*_texts_in(k), *_texts_in(v))]
+    return []
+
+
 class SettingsEditor:
     """Validate-and-apply for the page; one per `netpose run` (it outlives restarts)."""
 
@@ -178,8 +189,7 @@ class SettingsEditor:
             raise ConfigError("configuration", reason)
         assert self.path is not None
         for key, value in changes.items():
-            values = value if isinstance(value, list | tuple) else [value]
-            for text in [key, *(v for v in values if isinstance(v, str))]:
+            for text in [key, *_texts_in(value)]:
                 try:
                     text.encode("utf-8")
                 except UnicodeEncodeError:  # a lone surrogate (JSON's \ud800): no file text

@@ -150,12 +150,13 @@ class ViewNotices:
 
 
     def repeat(self, result: PipelineResult | None) -> None:
-        """The link to the ground station is back: an episode that was said and still goes on
-        is said again (its text may have been dropped while the link was down, and the pilot
-        must hear what is true now), whatever the rate limit."""
+        """The link dropped pilot texts that waited out its outage: an episode that was said and
+        still goes on is said again (the pilot must hear what is true now), whatever the rate
+        limit."""
         if self._announced is not View.NET and self._texted and result is not None:
             self._say(pilot_text(self._announced, result, self.configured_opening_deg),
                       MAV_SEVERITY_WARNING)
+            self._back_due = True  # its end is said too
 
     def _say(self, text: str, severity: int) -> None:
         self.sent.append(text)
