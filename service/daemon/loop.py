@@ -52,7 +52,7 @@ from service.signals import SignalFlags
 
 log = logging.getLogger("netpose.daemon")
 
-# How often the loop looks whether the autopilot's link came back (_note_link).
+# How often the loop looks whether the link dropped pilot texts (_note_link).
 _LINK_CHECK_S = 0.25
 # What a reload cannot change in the running parts: these need a restart (the page's Restart,
 # or systemctl restart), and the reload says so.

@@ -12,12 +12,10 @@ screen), its return only after its loss was said.
 
 from __future__ import annotations
 
-import logging
+import collections
 
 from service.daemon.ports import AutopilotLink
 from service.signals import RESTART
-
-log = logging.getLogger("netpose.daemon")
 
 MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
@@ -32,7 +30,8 @@ class ServiceNotices:
         self._loss_said = False
         self._last_loss_text_at = -float("inf")
         self._had_frames = False
-        self.sent: list[str] = []  # what was said (tests and a debugger read it)
+        # The last texts said (tests and a debugger read them): a daemon runs for months.
+        self.sent: collections.deque[str] = collections.deque(maxlen=32)
 
     def camera(self, up: bool | None, now: float) -> None:
         """The frame source's state on this pass (SourceWatch.up: None before any frame)."""
