@@ -184,17 +184,13 @@ def test_a_save_while_the_daemon_restarts_is_saved_and_does_not_hold_up_the_rest
     assert "bar_length_m = 0.03" in config.read_text()
 
 
-def test_live_pages_are_capped_and_a_closed_one_makes_room(tmp_path: Path) -> None:
-    """Each live page takes about 1.6 Mbit/s; 200 of them took 789 MB in 20 s, a tether's
-    worth. Past MAX_LIVE_CLIENTS a page is refused (503) with the reason; one closed makes
-    room for the next."""
-    import asyncio
-
-    import aiohttp
+def _bare_page(tmp_path: Path) -> tuple[Any, int]:
+    """A page (not started) with no daemon behind it, over a minimal configuration in
+    tmp_path: (page, port)."""
     import numpy as np
 
     from drivers.net import free_port
-    from drivers.web.page import MAX_LIVE_CLIENTS, WebPage
+    from drivers.web.page import WebPage
     from service.daemon.settings_editor import SettingsEditor
     from service.daemon.wiring import load_daemon_config
 
@@ -205,6 +201,20 @@ def test_live_pages_are_capped_and_a_closed_one_makes_room(tmp_path: Path) -> No
     port = free_port()
     page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
                          lambda f, r: np.zeros((8, 8, 3), np.uint8), editor)
+    return page, port
+
+
+def test_live_pages_are_capped_and_a_closed_one_makes_room(tmp_path: Path) -> None:
+    """Each live page takes about 1.6 Mbit/s; 200 of them took 789 MB in 20 s, a tether's
+    worth. Past MAX_LIVE_CLIENTS a page is refused (503) with the reason; one closed makes
+    room for the next."""
+    import asyncio
+
+    import aiohttp
+
+    from drivers.web.page import MAX_LIVE_CLIENTS
+
+    page, port = _bare_page(tmp_path)
     url = f"ws://127.0.0.1:{port}/ws"
 
     async def crowd() -> tuple[int, str, bool]:
@@ -238,20 +248,9 @@ def test_clients_that_never_finish_a_request_cannot_take_every_file_descriptor(
     1,024 descriptors: the page went dark, a reload could not open the configuration, and
     the camera and the MAVLink link would not have reopened either. Past MAX_CONNECTIONS a
     connection is closed as it is accepted; once the others go, the page answers again."""
-    import numpy as np
+    from drivers.web.page import MAX_CONNECTIONS
 
-    from drivers.net import free_port
-    from drivers.web.page import MAX_CONNECTIONS, WebPage
-    from service.daemon.settings_editor import SettingsEditor
-    from service.daemon.wiring import load_daemon_config
-
-    config = tmp_path / "netpose.toml"
-    config.write_text("[mesh]\nbar_length_m = 0.025\n")
-    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), lambda: None,
-                            lambda: None)
-    port = free_port()
-    page = WebPage[None](WebSettings(enabled=True, host="127.0.0.1", port=port),
-                         lambda f, r: np.zeros((8, 8, 3), np.uint8), editor)
+    page, port = _bare_page(tmp_path)
 
     def descriptors() -> int:
         return len(os.listdir("/proc/self/fd"))

@@ -45,21 +45,23 @@ class ServiceNotices:
                 now - self._last_loss_text_at >= self.interval_s):
             self._loss_said = True
             self._last_loss_text_at = now
-            self._say("netpose: camera lost: no distance" if self._had_frames
-                      else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)
+            self._say(self._loss_text(), MAV_SEVERITY_WARNING)
 
     def repeat(self) -> None:
         """The link dropped pilot texts that waited out its outage: a camera loss that was said
         and still goes on is said again."""
         if self._loss_said:
-            self._say("netpose: camera lost: no distance" if self._had_frames
-                      else "netpose: no camera frames: no distance", MAV_SEVERITY_WARNING)
+            self._say(self._loss_text(), MAV_SEVERITY_WARNING)
 
     def stopping(self, reason: str | None) -> None:
         """The daemon stops (a signal, the page's Restart, the end of its run): said before the
         link closes, which sends what is queued as it stops."""
         self._say("netpose: restarting: no distance for a moment" if reason == RESTART
                   else "netpose: stopping: no distance", MAV_SEVERITY_WARNING)
+
+    def _loss_text(self) -> str:
+        return ("netpose: camera lost: no distance" if self._had_frames
+                else "netpose: no camera frames: no distance")
 
     def _say(self, text: str, severity: int) -> None:
         self.sent.append(text)
