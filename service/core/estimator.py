@@ -1221,30 +1221,33 @@ class NetEstimator:
         """The lattice the first rectified pass should find, from the seed's ROIs: each ROI's
         lattice (cycles per pixel) carried into the rectified view at its place (k . x is
         invariant: k_out = J^T k_pixel), and the one most of them agree on."""
-        mapped: list[tuple[F64, float]] = []
         usable = [m for m in seed_rois if m.valid and m.reciprocal_px is not None]
+        if not usable:
+            return None
         maps = self._rect_maps([m.geometry for m in usable], rotation, distance_m, size,
                                period_out)
-        for m, (_, jm, _, _, _) in zip(usable, maps, strict=True):
-            assert m.reciprocal_px is not None
-            basis = reduce_basis(jm.T @ m.reciprocal_px * size)
-            lengths = np.linalg.norm(basis, axis=0)
-            if lengths.min() < 2.0 or lengths.max() > 0.45 * size:
+        jm_t = np.array([jm for _, jm, _, _, _ in maps]).transpose(0, 2, 1)
+        carried = jm_t @ np.array([m.reciprocal_px for m in usable]) * size
+        bases_kept: list[F64] = []
+        weights: list[float] = []
+        for m, b in zip(usable, carried, strict=True):
+            basis = reduce_basis(b)
+            (a, c), (b1, d) = basis.tolist()
+            short, long = sorted((math.hypot(a, b1), math.hypot(c, d)))
+            if short < 2.0 or long > 0.45 * size:
                 continue
-            mapped.append((basis, max(m.weight, 0.2)))
-        if not mapped:
+            bases_kept.append(basis)
+            weights.append(max(m.weight, 0.2))
+        if not bases_kept:
             return None
-        bases = np.array([b for b, _ in mapped])
+        bases = np.array(bases_kept)
         agree = _agreement(bases, bases, 0.1, 1.3)
-        best: tuple[float, int] | None = None
-        for j in range(len(mapped)):
-            total = sum(w for (_, w), ok in zip(mapped, agree[:, j].tolist(), strict=True)
-                        if ok)
-            if best is None or total > best[0]:
-                best = (total, j)
-        if best is None or int(agree[:, best[1]].sum()) < 2:
+        # Each lattice's support: the weight of the ROIs that agree with it. Rounded, so that a
+        # tie goes to the first, as it did when the sums were added in ROI order.
+        best = int(np.argmax(np.round(np.asarray(weights) @ agree, 9)))
+        if int(agree[:, best].sum()) < 2:
             return None
-        return mapped[best[1]][0]
+        return bases[best]
 
     def _measure_rectified(
         self,
