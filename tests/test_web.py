@@ -296,6 +296,69 @@ def test_clients_that_never_finish_a_request_cannot_take_every_file_descriptor(
         page.close()
 
 
+def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
+    tmp_path: Path,
+) -> None:
+    """Slowloris: MAX_CONNECTIONS connections that send half a header and then nothing held
+    every slot, and the pilot's page was refused for as long as they stayed open (aiohttp has
+    no header timeout). At the cap, the connection that has waited longest without a request
+    in progress is closed for the new one: the page is served while they are all open, and a
+    live view opened before them (a request in progress) is not the one closed."""
+    import asyncio
+
+    import aiohttp
+
+    from drivers.web.page import MAX_CONNECTIONS
+
+    page, port = _bare_page(tmp_path)
+
+    async def crowd() -> tuple[bool, bool, bool]:
+        async with aiohttp.ClientSession() as session:
+            live = await session.ws_connect(f"ws://127.0.0.1:{port}/ws")
+            slow: list[socket.socket] = []
+            try:
+                for _ in range(MAX_CONNECTIONS + 8):
+                    s = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+                    s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nX-a: ")
+                    slow.append(s)
+                await asyncio.sleep(0.5)  # all accepted by the server's thread
+                for _ in range(5):
+                    async with session.get(
+                        f"http://127.0.0.1:{port}/register_service") as reply:
+                        assert reply.status == 200
+                # The oldest half-headers went first (closed, or reset where their unread bytes
+                # were still queued); the newest still wait.
+                try:
+                    oldest_gone = slow[0].recv(1, socket.MSG_PEEK) == b""
+                except ConnectionResetError:
+                    oldest_gone = True
+                slow[-1].setblocking(False)
+                try:
+                    slow[-1].recv(1, socket.MSG_PEEK)
+                    newest_waits = False
+                except BlockingIOError:
+                    newest_waits = True
+                try:  # a closed view reads its close at once; an open one, a push or nothing
+                    message = await live.receive(timeout=0.5)
+                    live_open = message.type not in (aiohttp.WSMsgType.CLOSE,
+                                                      aiohttp.WSMsgType.CLOSED,
+                                                      aiohttp.WSMsgType.ERROR)
+                except TimeoutError:
+                    live_open = True
+                await live.close()
+                return oldest_gone, newest_waits, live_open
+            finally:
+                for s in slow:
+                    s.close()
+
+    page.start()
+    try:
+        oldest_gone, newest_waits, live_open = asyncio.run(crowd())
+    finally:
+        page.close()
+    assert oldest_gone and newest_waits and live_open
+
+
 def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
     """A started page (no daemon behind it) over one finished recording of 32 MB: more than
     the loopback socket's buffers and the page's queue hold. (page, port, recording name)."""

@@ -768,12 +768,18 @@ class _CappedSite(web.TCPSite):
 
 
 class _CappedConnections:
-    """aiohttp's protocol factory, refusing a connection past `limit` open ones: it is closed as
-    it is accepted (its descriptor freed at once) and the page's own stay served.
+    """aiohttp's protocol factory, holding the open connections to `limit`.
 
     About 1,100 connections that never finished their headers once took the process's 1,024
     descriptors: the page went dark, a SIGHUP's reload failed to open the configuration, and
     asyncio logged a traceback per accept, 3.7 MB/s.
+
+    At the limit, the connection that has waited longest without a request in progress (half
+    a header, or an idle keep-alive) is closed to make room: `limit` such connections held
+    every slot otherwise, and aiohttp has no header timeout, so the pilot's page was refused
+    for as long as they stayed open (slowloris). A connection whose request is being answered
+    (a download, a live view) is never closed for it; when every one is busy, the newest is
+    refused instead (closed as it is accepted, its descriptor freed at once).
 
     Open connections are counted by the listening server's transports (asyncio attaches each
     one as it is made, before its protocol is told, and detaches it when it is gone): aiohttp's
@@ -784,6 +790,7 @@ class _CappedConnections:
         self._server = server
         self._limit = limit
         self._refused = 0
+        self._evicted = 0
         self.listening: asyncio.AbstractServer | None = None  # set once it listens
 
     def open_connections(self) -> int:
@@ -792,7 +799,7 @@ class _CappedConnections:
 
     def __call__(self) -> asyncio.BaseProtocol:
         open_now = self.open_connections()
-        if open_now >= self._limit:
+        if open_now >= self._limit and not self._close_longest_waiting():
             self._refused += 1
             if self._refused in (1, 10, 100) or self._refused % 1000 == 0:
                 log.warning("web page: %d connections open, at most %d: refused the newest "
@@ -800,6 +807,28 @@ class _CappedConnections:
             return _Refused()
         protocol: asyncio.BaseProtocol = self._server()
         return protocol
+
+    def _close_longest_waiting(self) -> bool:
+        """Close the oldest connection with no request in progress; False when there is none.
+        aiohttp keeps its connections in the order they were made; a handler whose request
+        is being answered holds it in `_current_request`, and parsed requests not yet begun
+        wait in `_messages` (both private, on aiohttp 3.8 to 3.14: where they are missing,
+        nothing is closed and the newest is refused as before)."""
+        for handler in list(getattr(self._server, "connections", ())):
+            busy = getattr(handler, "_current_request", True)
+            queued = getattr(handler, "_messages", True)
+            transport = getattr(handler, "transport", None)
+            if busy is None and not queued and transport is not None and (
+                not transport.is_closing()  # one closed moments ago, in this burst of accepts
+            ):
+                transport.close()
+                self._evicted += 1
+                if self._evicted in (1, 10, 100) or self._evicted % 1000 == 0:
+                    log.warning("web page: %d connections open, at most %d: closed the one "
+                                "waiting longest without a request (%d so far)",
+                                self.open_connections(), self._limit, self._evicted)
+                return True
+        return False
 
 
 class _Refused(asyncio.Protocol):
