@@ -34,6 +34,7 @@ from drivers.lifecycle import Closeable
 from service.core.backoff import Backoff
 from service.core.errors import ConfigError
 from service.core.messages import (
+    ALIVE_SUFFIX,
     DAMAGE_SUFFIX,
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
@@ -367,6 +368,9 @@ class _Outgoing:
 _STREAMS = (ESTIMATE_SUFFIX, STATUS_SUFFIX, PREVIEW_SUFFIX, DAMAGE_SUFFIX)
 # Confirmed holes kept while no session is open (a pass along a whole pen finds a few).
 DAMAGE_BACKLOG = 256
+# At stop, queued messages still go for this long (the daemon's last status among them).
+FLUSH_S = 0.5
+TOKEN_AFTER_FLUSH_S = 0.1
 
 
 def zenoh_error_text(exc: BaseException) -> str:
@@ -399,6 +403,9 @@ class ZenohPublisher(TelemetryPublisher):
         self._clock = clock
         self._queue: collections.deque[_Outgoing] = collections.deque(maxlen=settings.queue_size)
         self._damage: collections.deque[DamageMessage] = collections.deque()
+        # Every hole of this run (the newest DAMAGE_BACKLOG), sent or waiting: what a `get` on
+        # the damage key answers, for a dashboard that joined late or restarted.
+        self._holes: collections.deque[DamageMessage] = collections.deque(maxlen=DAMAGE_BACKLOG)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # counters and query state, shared with zenoh's threads
@@ -461,6 +468,7 @@ class ZenohPublisher(TelemetryPublisher):
                 self._damage.popleft()
                 self._queue_dropped += 1
             self._damage.append(message)
+            self._holes.append(message)
         self._wake.set()
 
     def set_state(self, message: StateMessage) -> None:
@@ -504,16 +512,20 @@ class ZenohPublisher(TelemetryPublisher):
                 last_error=self._last_error,
             )
 
-    def close(self, timeout: float = 0.3) -> None:
-        """Stop and join the worker. If it is stuck inside a Zenoh open (bounded by Zenoh's
-        open timeout) this waits at most `timeout`; the daemon thread then ends on its own."""
+    def close(self, timeout: float = FLUSH_S + 0.5) -> None:
+        """Stop and join the worker, which first sends what is queued (the daemon's last
+        status among it) for up to FLUSH_S. If it is stuck inside a Zenoh open (bounded by
+        Zenoh's open timeout) or a put, this waits at most `timeout`; the daemon thread then
+        ends on its own."""
         self._stop.set()
         self._wake.set()
         thread = self._thread
         if thread is not None:
             thread.join(timeout)
             if thread.is_alive():
-                log.warning("telemetry worker still opening a Zenoh session; not waiting longer")
+                doing = "opening a Zenoh session" if self._state != "online" else (
+                    "sending or closing (a congested link?)")
+                log.warning("telemetry worker still %s; not waiting longer", doing)
         with self._lock:
             unsent = len(self._damage)
         if unsent:
@@ -532,10 +544,17 @@ class ZenohPublisher(TelemetryPublisher):
             if session is None:
                 return
             declared = self._declare(session)
+            alive = self._declare_alive(session)
             self._preview_publisher = declared[0][PREVIEW_SUFFIX]
             self._online = True
             self._state = "online"
             self._drain_until_stopped(*declared)
+            if alive is not None:
+                # The token's withdrawal travels ahead of data (Zenoh sends declarations
+                # first); a moment lets the flushed messages leave before it, so on an idle
+                # link the topside reads the last status before the token goes.
+                time.sleep(TOKEN_AFTER_FLUSH_S)
+                alive.undeclare()
         except Exception as exc:  # keep the service alive: telemetry is not worth a crash
             log.exception("telemetry worker failed; telemetry is off from now on")
             with self._lock:
@@ -585,7 +604,7 @@ class ZenohPublisher(TelemetryPublisher):
 
     def _declare(
         self, session: zenoh.Session
-    ) -> tuple[dict[str, zenoh.Publisher], zenoh.Queryable[None]]:
+    ) -> tuple[dict[str, zenoh.Publisher], list[zenoh.Queryable[None]]]:
         json_enc = zenoh.Encoding.APPLICATION_JSON
         drop = zenoh.CongestionControl.DROP  # never wait for a slow link
         publishers = {
@@ -612,11 +631,28 @@ class ZenohPublisher(TelemetryPublisher):
                 congestion_control=zenoh.CongestionControl.BLOCK,
             ),
         }
-        queryable = session.declare_queryable(self.settings.key(STATE_SUFFIX), self._answer_query)
-        return publishers, queryable
+        queryables = [
+            session.declare_queryable(self.settings.key(STATE_SUFFIX), self._answer_query),
+            # `<prefix>/<vehicle>/damage/*`: one key per hole, since replies on one key are
+            # consolidated to the last by a default `get`.
+            session.declare_queryable(self.settings.key(DAMAGE_SUFFIX) + "/*",
+                                      self._answer_holes),
+        ]
+        return publishers, queryables
+
+    def _declare_alive(self, session: zenoh.Session) -> zenoh.LivelinessToken | None:
+        """The liveliness token `<prefix>/<vehicle>/alive`, held while the session is up.
+        Zenoh withdraws it when the session closes or its link is lost (a crash, a cut
+        tether): a topside that sees it go without a `stopping` status knows which it was."""
+        try:
+            return session.liveliness().declare_token(self.settings.key(ALIVE_SUFFIX))
+        except zenoh.ZError as exc:
+            log.warning("telemetry: no liveliness token (%s); topside sees only the data",
+                        zenoh_error_text(exc))
+            return None
 
     def _drain_until_stopped(
-        self, publishers: dict[str, zenoh.Publisher], queryable: zenoh.Queryable[None]
+        self, publishers: dict[str, zenoh.Publisher], queryables: list[zenoh.Queryable[None]]
     ) -> None:
         failures_logged: set[str] = set()
         while not self._stop.is_set():
@@ -631,7 +667,13 @@ class ZenohPublisher(TelemetryPublisher):
                 self._put(publishers, _Outgoing(DAMAGE_SUFFIX, message), failures_logged)
             while self._queue and not self._stop.is_set():
                 self._put(publishers, self._queue.popleft(), failures_logged)
-        queryable.undeclare()
+        # Stopping: what is queued still goes (the daemon's last status is among it), for a
+        # bounded time; holes that wait for a subscriber are said in the log at close.
+        flush_until = self._clock() + FLUSH_S
+        while self._queue and self._clock() < flush_until:
+            self._put(publishers, self._queue.popleft(), failures_logged)
+        for queryable in queryables:
+            queryable.undeclare()
         for publisher in publishers.values():
             publisher.undeclare()
 
@@ -656,6 +698,23 @@ class ZenohPublisher(TelemetryPublisher):
             return
         with self._lock:
             self._sent[item.suffix] += 1
+
+    def _answer_holes(self, query: zenoh.Query) -> None:
+        """Runs on a Zenoh thread: one reply per hole of this run that the query's key
+        matches, on `<prefix>/<vehicle>/damage/<hole_id>`, oldest first (each as it was
+        published, crop included). Never raises into Zenoh."""
+        with self._lock:
+            self._queries += 1
+            holes = list(self._holes)
+        try:
+            for message in holes:
+                key = f"{self.settings.key(DAMAGE_SUFFIX)}/{message.hole_id}"
+                if query.key_expr.intersects(zenoh.KeyExpr(key)):
+                    query.reply(key, encode(message), encoding=zenoh.Encoding.APPLICATION_JSON)
+        except Exception as exc:
+            log.warning("telemetry: cannot answer query %s: %s", query.selector, exc)
+            with self._lock:
+                self._errors += 1
 
     def _answer_query(self, query: zenoh.Query) -> None:
         """Runs on a Zenoh thread: reply with the latest state, never raise into Zenoh."""

@@ -48,6 +48,16 @@ class TelemetrySubscriber:
 
         self._subscriber = self._session.declare_subscriber(f"{key_prefix}/{vehicle}/**",
                                                             on_sample)
+        # The daemon's liveliness token: ("PUT" | "DELETE", key, monotonic arrival).
+        self.liveliness: list[tuple[str, str, float]] = []
+
+        def on_token(sample: Any) -> None:
+            with self._lock:
+                self.liveliness.append((str(sample.kind).rsplit(".", 1)[-1],
+                                        str(sample.key_expr), time.monotonic()))
+
+        self._tokens = self._session.liveliness().declare_subscriber(
+            f"{key_prefix}/{vehicle}/**", on_token, history=True)
 
     def snapshot(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
         with self._lock:
@@ -63,6 +73,11 @@ class TelemetrySubscriber:
             "telemetry.scouting=false",
         ]
 
+    def tokens(self) -> list[tuple[str, str, float]]:
+        with self._lock:
+            return list(self.liveliness)
+
     def close(self) -> None:
+        self._tokens.undeclare()
         self._subscriber.undeclare()
         self._session.close()

@@ -290,6 +290,25 @@ def test_status_says_since_when_the_camera_streams(frames: list[Frame]) -> None:
     assert down and all(s.frame_source.up_since_mono is None for s in down)
 
 
+def test_status_says_starting_until_the_first_frame_and_stopping_last(
+        frames: list[Frame]) -> None:
+    """A topside could not tell a clean stop from a crash or a cut tether: the first status
+    already said "running" before any frame, and none said "stopping" (documented, never
+    sent). Now the statuses before the first frame say "starting", and the last one, sent as
+    the daemon stops, says "stopping"."""
+    cfg = demo_config("service.status_interval_s=0.5")
+    h = make_harness(cfg, [*[Step(wait_s=0.3)] * 4, *steps(frames[:15], 101.5)])
+    h.run_script()
+    states = [s.state for s in h.telemetry.statuses]
+    assert states[0] == "starting" and "running" in states, states
+    assert all(s.frame_source.state == "starting" for s in h.telemetry.statuses
+               if s.state == "starting")
+    h.daemon.flags.request_stop("SIGTERM")
+    h.daemon.run()
+    assert h.telemetry.statuses[-1].state == "stopping"
+    assert [s.state for s in h.telemetry.statuses].count("stopping") == 1
+
+
 def test_observers_get_every_frame_and_status_and_are_closed(frames: list[Frame]) -> None:
     observer = RecordingObserver()
     h = make_harness(demo_config("service.status_interval_s=0.5"), steps(frames[:15]),

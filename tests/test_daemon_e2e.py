@@ -152,13 +152,18 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonRun]:
             proc.kill()
             proc.wait()
         autopilot.close()
+        deadline = time.monotonic() + 3.0  # the token's withdrawal follows the exit closely
+        while not any(kind == "DELETE" for kind, _, _ in tel.tokens()) and (
+                time.monotonic() < deadline):
+            time.sleep(0.05)
         estimates, statuses = tel.snapshot()
+        tokens = tel.tokens()
         tel.close()
         notify.close()
     distances = [(r.t, r.msg.current_distance / 100.0)
                  for r in autopilot.received("DISTANCE_SENSOR")]
     yield DaemonRun(proc.returncode, stderr, stop_latency, started, distances, estimates,
-                    statuses, notify.snapshot())
+                    statuses, notify.snapshot(), extra={"tokens": tokens})
 
 
 def _truth(e: dict[str, Any]) -> dict[str, Any] | None:
@@ -273,6 +278,16 @@ def test_logs_are_state_changes_not_frames(run: DaemonRun) -> None:
     own = [ln for ln in lines if "netpose.daemon" in ln]
     assert len(own) < 20, "\n".join(own)
     assert len(lines) < frames / 3, "\n".join(lines)
+
+
+def test_the_topside_can_tell_a_clean_stop_from_a_lost_vehicle(run: DaemonRun) -> None:
+    """The last status says "stopping", and the liveliness token `netpose/e2e/alive` that
+    was there while the daemon ran is withdrawn: a crash or a cut tether withdraws the token
+    without that status."""
+    assert run.statuses[-1]["state"] == "stopping"
+    assert [s["state"] for s in run.statuses].count("stopping") == 1
+    assert [(kind, key) for kind, key, _ in run.extra["tokens"]] == [
+        ("PUT", "netpose/e2e/alive"), ("DELETE", "netpose/e2e/alive")]
 
 
 def test_telemetry_estimates_and_status_match_the_schema(run: DaemonRun) -> None:

@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -254,6 +255,11 @@ def test_one_rounding_policy_and_strict_json_for_nan_and_infinity() -> None:
     back = json.loads(encode(message))  # encode() refuses NaN: it never reaches the wire
     assert back["confidence"] is None and back["range_m"] is None and back["time_unix"] is None
     assert back["distance_m"] == 1.234568  # micrometres: the one policy for every float
+    # No "-0.0" on the wire (a negated zero closing speed, a tiny negative rounded): some
+    # parsers and every diff of logs trip over it.
+    zero = EstimateMessage(vehicle="r", time_unix=1.0, time_mono=-0.0, seq=1,
+                           confidence=-1e-9, range_m=1.0)
+    assert b"-0.0" not in encode(zero) and json.loads(encode(zero))["confidence"] == 0.0
     assert back["detected"] is False and back["reason"] == "no lattice"
     assert back["latency_ms"]["frame_to_publish"] is None
     status = to_json(status_now(telemetry=TelemetryHealth(state="online", sent={"estimate": 3})))
@@ -325,6 +331,17 @@ def test_docs_carry_the_schema_generated_from_the_message_types() -> None:
     assert documented == schema_markdown(), "regenerate: netpose schema --update docs/telemetry.md"
     settings = set(TelemetrySettings.__dataclass_fields__)
     assert sorted(k for k in settings if f"`{k}`" not in text) == []
+
+
+def test_the_docs_examples_are_complete_messages_of_this_schema() -> None:
+    """Integrators copy the examples into their parsers' fixtures: they lacked keys the daemon
+    sends (seven of the estimate's, nested ones of the status), so a parser built from them
+    failed on the first real message."""
+    text = DOCS.read_text(encoding="utf-8")
+    examples = [json.loads(block) for block in re.findall(r"```json\n(.*?)\n```", text, re.S)]
+    assert sorted(e["kind"] for e in examples) == ["damage", "estimate", "status"]
+    for example in examples:
+        assert schema_problems(example) == [], example["kind"]
 
 
 # --- settings ------------------------------------------------------------------------------
@@ -751,3 +768,90 @@ def test_holes_that_never_reached_the_topside_are_said_at_stop(
     publisher.close()
     assert any("2 confirmed hole(s) never reached a subscriber" in r.getMessage()
                for r in caplog.records)
+
+
+def test_a_stop_says_its_last_status_and_withdraws_the_liveliness_token(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    """A clean stop, a crash and a cut tether looked the same to a topside: the queue was
+    thrown away at stop (the last status never left), and nothing said the vehicle went. The
+    session now holds a liveliness token `<prefix>/<vehicle>/alive`, and what is queued at
+    stop still goes before it is withdrawn."""
+    import zenoh
+
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    events: list[tuple[str, str]] = []  # (kind, key): data and liveliness, in arrival order
+    lock = threading.Lock()
+
+    def seen(kind: str, key: str) -> None:
+        with lock:
+            events.append((kind, key))
+
+    with zenoh.open(conf) as session:
+        alive = session.liveliness().declare_subscriber(
+            "netpose/**", lambda s: seen(str(s.kind).rsplit(".", 1)[-1], str(s.key_expr)),
+            history=True)
+        data = session.declare_subscriber(
+            "netpose/rov9/status",
+            lambda s: seen(json.loads(s.payload.to_bytes())["state"], str(s.key_expr)))
+        wait_for(lambda: ("PUT", "netpose/rov9/alive") in events, 10, "the liveliness token")
+
+        def warm_up() -> bool:  # until one status arrives: the subscription has reached us
+            publisher.publish_status(status_now())
+            return any(kind == "running" for kind, _ in events)
+
+        wait_for(warm_up, 10, "the subscription to reach the publisher")
+        for _ in range(3):
+            publisher.publish_status(status_now())
+        publisher.publish_status(dataclasses.replace(status_now(), state="stopping"))
+        publisher.close()  # at once: the messages above are still queued
+        wait_for(lambda: ("DELETE", "netpose/rov9/alive") in events, 10, "the token to go")
+        alive.undeclare()
+        data.undeclare()
+    kinds = [kind for kind, _ in events]
+    assert kinds.index("stopping") < kinds.index("DELETE"), kinds
+    assert kinds.count("stopping") == 1
+
+
+def test_a_dashboard_that_joins_late_gets_the_runs_holes_by_asking(
+    publisher_factory: Callable[..., ZenohPublisher],
+) -> None:
+    """A hole is published once: a dashboard that joined after it was delivered (to another
+    subscriber, a recorder, a bridge) or restarted mid-dive saw `status.inspection.holes: 2`
+    and had no way to get the two. A `get` on `damage/*` answers every hole of the run, each
+    on its own key `damage/<hole_id>`, as published."""
+    import zenoh
+
+    listen = endpoint()
+    publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
+    publisher.start()
+    wait_for(lambda: publisher.online, 10, "peer session to open")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as early:
+        delivered: list[int] = []
+        sub = early.declare_subscriber(
+            "netpose/rov9/damage",
+            lambda s: delivered.append(json.loads(s.payload.to_bytes())["hole_id"]))
+        time.sleep(0.5)  # the subscription reaches the publisher
+        publisher.publish_damage(_hole(1))
+        publisher.publish_damage(_hole(2))
+        wait_for(lambda: delivered == [1, 2], 10, "the holes to be delivered")
+        sub.undeclare()
+    with zenoh.open(conf) as late:
+        replies = list(late.get("netpose/rov9/damage/*", timeout=5.0))
+        one = list(late.get("netpose/rov9/damage/2", timeout=5.0))
+    holes = [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+    assert sorted(h["hole_id"] for h in holes) == [1, 2]
+    assert [str(r.ok.key_expr) for r in one if r.ok is not None] == ["netpose/rov9/damage/2"]
+    assert all(schema_problems(h) == [] for h in holes)
+    assert publisher.status().damage_waiting == 0

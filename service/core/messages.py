@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 FLOAT_DECIMALS = 6
 
 # Key expressions below the per-vehicle prefix `<key_prefix>/<vehicle>`.
@@ -36,11 +36,13 @@ STATUS_SUFFIX = "status"
 PREVIEW_SUFFIX = "preview"
 STATE_SUFFIX = "state"
 DAMAGE_SUFFIX = "damage"
+# A Zenoh liveliness token, not a message: present while the daemon's session is up.
+ALIVE_SUFFIX = "alive"
 
 Vec3 = tuple[float, float, float]
 
 # States a status section can report (docs/telemetry.md explains each).
-FRAME_SOURCE_STATES = ("starting", "streaming", "reconnecting", "ended", "stopped", "failed")
+FRAME_SOURCE_STATES = ("starting", "streaming", "reconnecting", "ended", "stopped")
 AUTOPILOT_STATES = ("disabled", "waiting", "connected", "lost")
 SERVICE_STATES = ("starting", "running", "degraded", "stopping")
 
@@ -170,7 +172,7 @@ class EstimateMessage(Message):
 class FrameSourceHealth:
     """The camera or video stream."""
 
-    state: str = doc("`starting`, `streaming`, `reconnecting`, `ended`, `stopped`, `failed`")
+    state: str = doc("`starting`, `streaming`, `reconnecting`, `ended`, `stopped`")
     fps: float | None = doc("frames the loop took per second over the last period (the "
                             "camera's rate less what was dropped)", None)
     frames: int = doc("frames the loop took in total", 0)
@@ -407,7 +409,8 @@ def json_value(value: Any) -> Any:
     if isinstance(value, int):
         return int(value)
     if isinstance(value, float):
-        return round(value, FLOAT_DECIMALS) if math.isfinite(value) else None
+        # + 0.0: a zero is 0.0, never -0.0 (a negated zero, or a tiny negative rounded)
+        return round(value, FLOAT_DECIMALS) + 0.0 if math.isfinite(value) else None
     if isinstance(value, enum.Enum):
         return json_value(value.value)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):

@@ -274,6 +274,8 @@ class Daemon:
             self.stopped_for = self.flags.stop_signal
             if self.flags.stop_signal:
                 log.info("%s received: stopping", self.flags.stop_signal)
+            # The topside's last word from this run (the telemetry flushes it as it closes).
+            self.reporter.report(stopping_at, self.last, stopping=True)
             self.parts.notifier.stopping()
             self.service_notices.stopping(self.flags.stop_signal)
             self.reporter.summary(stopping_at, final=True)

@@ -141,7 +141,11 @@ class StatusReporter:
             self._next_summary = now + self.summary_interval_s
             self.summary(now)
 
-    def report(self, now: float, last: TrackOutput | None) -> StatusMessage:
+    def report(self, now: float, last: TrackOutput | None, stopping: bool = False
+               ) -> StatusMessage:
+        """Build and publish a status. `stopping`: the last one, sent as the daemon stops, so a
+        topside can tell a clean stop from a crash or a cut tether (those end the liveliness
+        token without it)."""
         ctx = self._ctx
         link = ctx.link.status()
         self._log_link(link.state, link.url, now)
@@ -151,8 +155,9 @@ class StatusReporter:
         period = snapshot.minus(self._mark)
         seconds = now - self._mark_at
         usage = self._usage()
-        message = self._status_message(now, link, telemetry, period, seconds, usage)
-        ctx.notifier.status(self.status_line(last, period, seconds, link.state))
+        message = self._status_message(now, link, telemetry, period, seconds, usage, stopping)
+        if not stopping:  # systemd has been told STOPPING; its status line stays the last one
+            ctx.notifier.status(self.status_line(last, period, seconds, link.state))
         ctx.telemetry.publish_status(message)
         ctx.outputs.publish_status(message)
         ctx.telemetry.set_state(StateMessage(
@@ -164,7 +169,7 @@ class StatusReporter:
 
     def _status_message(
         self, now: float, link: AutopilotHealth, telemetry: TelemetryHealth | None,
-        period: StatsSnapshot, seconds: float, usage: ProcessUsage,
+        period: StatsSnapshot, seconds: float, usage: ProcessUsage, stopping: bool = False,
     ) -> StatusMessage:
         ctx = self._ctx
         counters = ctx.source.stats()
@@ -177,6 +182,10 @@ class StatusReporter:
             source_state = "ended"
         elif said == "closed":
             source_state = "stopped"
+        elif said == "down":
+            # The source knows it lost the camera at once; the frame watchdog would say so
+            # only after its timeout, and "streaming" beside the source's error meanwhile.
+            source_state = "reconnecting"
         elif watch.up:
             source_state = "streaming"
         else:
@@ -185,13 +194,19 @@ class StatusReporter:
         # Degraded: a part that should work does not (no frames, every frame refused, an
         # autopilot that answered and stopped). An autopilot that never answered is shown in
         # `autopilot.state` ("waiting") without degrading: a demo has none.
-        degraded = not watch.up or refusing or link.state == "lost"
+        degraded = source_state != "streaming" or refusing or link.state == "lost"
+        if stopping:
+            state = "stopping"
+        elif source_state == "starting" and not counters.error:
+            state = "starting"  # no frame yet, and nothing wrong with the source so far
+        else:
+            state = "degraded" if degraded else "running"
         return StatusMessage(
             vehicle=self._vehicle,
             time_unix=self._wall_clock(),
             time_mono=now,
             version=__version__,
-            state="degraded" if degraded else "running",
+            state=state,
             uptime_s=now - self._started_at,
             config_digest=self.config_digest,
             frame_source=FrameSourceHealth(
