@@ -309,6 +309,22 @@ def test_status_says_starting_until_the_first_frame_and_stopping_last(
     assert [s.state for s in h.telemetry.statuses].count("stopping") == 1
 
 
+def test_a_preview_says_which_estimate_and_frame_it_shows(frames: list[Frame]) -> None:
+    """A dashboard draws the holes' pixels on the preview: those are pixels of the camera
+    frame, which the preview is scaled down from, and no message said the frame's size; the
+    preview's metadata also lacked the `time_mono` every other payload carries."""
+    h = make_harness(demo_config("telemetry.preview_hz=5"), steps(frames[:10]))
+    h.run_script()
+    assert h.telemetry.previews
+    _, meta = h.telemetry.previews[0]
+    frame_h, frame_w = frames[0].image.shape[:2]
+    assert (meta.frame_width, meta.frame_height) == (frame_w, frame_h)
+    assert meta.width < frame_w and meta.height == round(meta.width * frame_h / frame_w)
+    estimate = next(e for e in h.telemetry.estimates if e.seq == meta.seq)
+    assert (meta.time_mono, meta.time_unix) == (estimate.time_mono, estimate.time_unix)
+    assert meta.frame_time_mono == estimate.frame_time_mono
+
+
 def test_observers_get_every_frame_and_status_and_are_closed(frames: list[Frame]) -> None:
     observer = RecordingObserver()
     h = make_harness(demo_config("service.status_interval_s=0.5"), steps(frames[:15]),

@@ -142,6 +142,9 @@ def test_both_holes_are_confirmed_once(ran: PassRun) -> None:
     found = set()
     for message in ran.damages:
         assert schema_problems(message) == []
+        # The pixels' frame: a dashboard scales them onto its (smaller) preview with these.
+        assert (message["frame_width_px"], message["frame_height_px"]) == (
+            CAMERA.width, CAMERA.height)
         frame = round((message["frame_time_mono"] - 100.0) * FPS)
         match = _matching(message, ran.truths[frame])
         assert len(match) == 1, (message["image_x_px"], message["image_y_px"])

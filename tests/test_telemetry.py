@@ -260,6 +260,14 @@ def test_one_rounding_policy_and_strict_json_for_nan_and_infinity() -> None:
     zero = EstimateMessage(vehicle="r", time_unix=1.0, time_mono=-0.0, seq=1,
                            confidence=-1e-9, range_m=1.0)
     assert b"-0.0" not in encode(zero) and json.loads(encode(zero))["confidence"] == 0.0
+    # A file name that is not UTF-8 (surrogateescape) must not make the message invalid
+    # Unicode: strict parsers (serde_json) refuse a lone surrogate, escaped or not.
+    odd = EstimateMessage(vehicle="r", time_unix=1.0, time_mono=1.0, seq=1,
+                          reason="cannot read frame_\udcff.png")
+    wire = encode(odd)
+    assert b"\\ud" not in wire.lower()
+    assert json.loads(wire.decode("utf-8", errors="strict"))["reason"] == (
+        "cannot read frame_\ufffd.png")
     assert back["detected"] is False and back["reason"] == "no lattice"
     assert back["latency_ms"]["frame_to_publish"] is None
     status = to_json(status_now(telemetry=TelemetryHealth(state="online", sent={"estimate": 3})))

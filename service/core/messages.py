@@ -353,9 +353,14 @@ class PreviewMeta:
     KIND: ClassVar[str] = PREVIEW_SUFFIX
     vehicle: str = doc("vehicle name")
     seq: int = doc("the frame counter of the estimate it belongs to")
-    time_unix: float = doc("wall clock when drawn")
+    time_unix: float = doc("wall clock of the estimate it belongs to (its `time_unix`)")
     width: int = doc("JPEG width, px")
     height: int = doc("JPEG height, px")
+    time_mono: float | None = doc("monotonic clock of that estimate (its `time_mono`)", None)
+    frame_time_mono: float | None = doc("the frame's monotonic capture time", None)
+    # The frame the JPEG was scaled down from: damage pixels (image_x_px ...) are its pixels.
+    frame_width: int | None = doc("the camera frame's width, px", None)
+    frame_height: int | None = doc("the camera frame's height, px", None)
 
 
 # -- damage ---------------------------------------------------------------------------------
@@ -380,6 +385,9 @@ class DamageMessage(Message):
     image_x_px: float = doc("centre in the confirming frame, pixels from the left")
     image_y_px: float = doc("centre in the confirming frame, pixels from the top")
     image_box_px: list[float] = doc("its knots' box in that frame [x0, y0, x1, y1], pixels", [])
+    frame_width_px: int | None = doc("that frame's width: the pixels above are of a frame this "
+                                     "wide (scale them to draw on a preview)", None)
+    frame_height_px: int | None = doc("that frame's height, px", None)
     plane_x_m: float = doc("centre on the net plane, right of the camera's foot point (the "
                            "plane's point nearest the camera)")
     plane_y_m: float = doc("centre on the net plane, below the camera's foot point")
@@ -402,10 +410,23 @@ MESSAGES: tuple[type[Any], ...] = (EstimateMessage, StatusMessage, StateMessage,
 
 
 # -- serialisation ----------------------------------------------------------------------------
+def _valid_text(text: str) -> str:
+    """`text` as valid Unicode: a file name that is not UTF-8 decodes to lone surrogates
+    (Python's surrogateescape), which json.dumps writes as \\udcXX escapes that strict JSON
+    parsers (serde_json) refuse, losing the whole message. They become U+FFFD."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "".join("\ufffd" if 0xD800 <= ord(c) <= 0xDFFF else c for c in text)
+    return text
+
+
 def json_value(value: Any) -> Any:
     """A JSON value under the one rounding policy (dataclasses become objects)."""
-    if value is None or isinstance(value, bool | str):
+    if value is None or isinstance(value, bool):
         return value
+    if isinstance(value, str):
+        return _valid_text(value)
     if isinstance(value, int):
         return int(value)
     if isinstance(value, float):

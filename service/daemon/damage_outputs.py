@@ -45,6 +45,7 @@ def damage_message(hole: ConfirmedHole, *, vehicle: str, frame: Frame, now_mono:
             log.warning("cannot encode the evidence of hole %d: %s", hole.hole_id, exc)
     # The frame's own stamps, moved back to the first detection on the same clocks.
     first_mono = frame.t_monotonic - (hole.t_confirmed - hole.t_first)
+    height, width = frame.image.shape[:2]
     return DamageMessage(
         vehicle=vehicle, time_unix=now_unix, time_mono=now_mono, hole_id=hole.hole_id,
         run_started_unix=run_started_unix,
@@ -52,6 +53,7 @@ def damage_message(hole: ConfirmedHole, *, vehicle: str, frame: Frame, now_mono:
         first_seen_mono=first_mono, width_m=hole.width_m, height_m=hole.height_m,
         cells=hole.cells, missing_bars=hole.missing_bars, image_x_px=hole.centre_px[0],
         image_y_px=hole.centre_px[1], image_box_px=list(hole.box_px),
+        frame_width_px=int(width), frame_height_px=int(height),
         plane_x_m=hole.plane_xy_m[0], plane_y_m=hole.plane_xy_m[1], position_m=hole.point_m,
         range_m=hole.range_m, bearing=hole.bearing, confidence=hole.confidence,
         detections=hole.detections, looks=hole.looks, crop_jpeg=crop,

@@ -152,13 +152,14 @@ class FrameOutputs:
         for observer in self._observers:
             observer.observe(frame, result, message)
         if self._telemetry.wants_preview(now):
-            self._publish_preview(frame, result, message.time_unix)
+            self._publish_preview(frame, result, message)
 
     def publish_status(self, message: StatusMessage) -> None:
         for observer in self._observers:
             observer.observe_status(message)
 
-    def _publish_preview(self, frame: Frame, result: PipelineResult, wall: float) -> None:
+    def _publish_preview(self, frame: Frame, result: PipelineResult,
+                         message: EstimateMessage) -> None:
         est = result.estimate
         try:
             image = render_preview(frame.color if frame.color is not None else frame.image,
@@ -169,6 +170,9 @@ class FrameOutputs:
             self._problems.problem("preview", "cannot draw the preview: %s", exc)
             return
         h, w = image.shape[:2]
+        frame_h, frame_w = frame.image.shape[:2]
         self._telemetry.publish_preview(
-            jpeg, PreviewMeta(vehicle=self._vehicle, seq=self._seq, time_unix=wall, width=w,
-                              height=h))
+            jpeg, PreviewMeta(vehicle=self._vehicle, seq=self._seq, time_unix=message.time_unix,
+                              width=w, height=h, time_mono=message.time_mono,
+                              frame_time_mono=frame.t_monotonic, frame_width=int(frame_w),
+                              frame_height=int(frame_h)))
