@@ -213,6 +213,22 @@ def test_a_net_seen_without_a_distance_is_shown_as_such() -> None:
     assert "no net" not in text
 
 
+def test_a_clean_stop_and_a_lost_vehicle_are_told_apart() -> None:
+    """After a clean stop the monitor said `stale ... running` for ever, as after a crash.
+    The daemon's liveliness token going tells the monitor it is gone; its last status says
+    whether it stopped (`stopping`) or was lost."""
+    for last_state, shown in (("stopping", "stopped"), ("running", "gone")):
+        state = MonitorState()
+        alive = f"netpose/{VEHICLE}/alive"
+        state.ingest(alive, b"PUT", 0.0)
+        state.ingest(f"netpose/{VEHICLE}/status",
+                     encode(to_json(dataclasses.replace(status_message(), state=last_state))), 0.5)
+        assert state.link_state(0.6, VEHICLE) == "live"
+        state.ingest(alive, b"DELETE", 1.0)
+        assert state.link_state(1.1, VEHICLE) == shown
+        assert f"{VEHICLE} {shown}" in state.summary(1.1)
+
+
 def test_bad_and_foreign_payloads_are_flagged_not_fatal() -> None:
     state = MonitorState()
     assert state.ingest(f"netpose/{VEHICLE}/estimate", b"\x00not json", 1.0) is None
@@ -332,6 +348,8 @@ def test_monitor_saves_prints_plots_and_keeps_the_preview(
         assert record["key"] == f"netpose/{VEHICLE}/{record['kind']}"
         assert schema_problems(record["payload"]) == []
     assert previews[0]["bytes"] == len(jpeg) and previews[0]["meta"]["width"] == 64
+    # The daemon's liveliness token, there all along (history), is in the record too.
+    assert any(r["kind"] == "alive" and r["payload"] == {"token": "PUT"} for r in records)
 
     # Not a terminal: one summary line per second.
     lines = [line for line in out.splitlines() if line.strip()]

@@ -27,7 +27,7 @@ from drivers.telemetry import TelemetrySettings, build_zenoh_config, zenoh_error
 from service.core.backoff import Backoff
 from service.core.errors import ConfigError, NetposeError
 from service.core.files import write_atomically
-from service.core.messages import ESTIMATE_SUFFIX, STATE_SUFFIX
+from service.core.messages import ALIVE_SUFFIX, ESTIMATE_SUFFIX, STATE_SUFFIX
 from service.signals import SignalFlags, handle_signals
 from service.tools.monitor_view import MonitorState, Received
 
@@ -186,8 +186,15 @@ def _watch(
             time.time(),
         ))
 
+    def on_token(sample: zenoh.Sample) -> None:
+        # The daemon's liveliness token came or went: its sample kind stands in for the data.
+        inbox.put((str(sample.key_expr), str(sample.kind).rsplit(".", 1)[-1].encode(), None,
+                   time.monotonic(), time.time()))
+
     key = f"{args.prefix}/{args.vehicle}/**"
     subscriber = session.declare_subscriber(key, on_sample)
+    tokens = session.liveliness().declare_subscriber(
+        f"{args.prefix}/{args.vehicle}/{ALIVE_SUFFIX}", on_token, history=True)
     state = MonitorState(stale_after_s=args.stale_after)
     tty = sys.stdout.isatty()
     plot = LivePlot(args.plot_png) if (args.plot or args.plot_png) else None
@@ -227,6 +234,7 @@ def _watch(
                     plot.update()
                 next_draw = now + REDRAW_S
     finally:
+        tokens.undeclare()
         subscriber.undeclare()
         if save is not None:
             save.close()

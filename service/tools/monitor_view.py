@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from service.core.messages import (
+    ALIVE_SUFFIX,
     DAMAGE_SUFFIX,
     ESTIMATE_SUFFIX,
     PREVIEW_SUFFIX,
@@ -79,6 +80,9 @@ class VehicleView:
     # again, two daemons publishing under one vehicle name.
     seq_backwards: deque[float] = field(default_factory=deque)
     last_seq: int | None = None
+    # The daemon's liveliness token: True while it is there, False once withdrawn, None
+    # before it was seen (an older daemon has none).
+    alive: bool | None = None
 
     def stream(self, name: str) -> StreamStats:
         if name not in self.streams:
@@ -165,11 +169,15 @@ class MonitorState:
         if len(parts) < 3:
             return None
         vehicle, kind = parts[-2], parts[-1]
-        if kind not in (*STREAMS, STATE_SUFFIX, DAMAGE_SUFFIX):
+        if kind not in (*STREAMS, STATE_SUFFIX, DAMAGE_SUFFIX, ALIVE_SUFFIX):
             return None
         view = self.vehicles.get(vehicle)
         if view is None:
             view = self.vehicles[vehicle] = VehicleView(vehicle, self.window_s)
+        if kind == ALIVE_SUFFIX:  # data: the liveliness sample's kind, b"PUT" or b"DELETE"
+            token = data.decode("ascii", errors="replace")
+            view.alive = token == "PUT"
+            return Received(vehicle, kind, key, {"token": token}, 0)
         if kind == PREVIEW_SUFFIX:
             meta = _decode_json(attachment)
             view.stream(kind).add(now_mono)
@@ -199,13 +207,18 @@ class MonitorState:
         return Received(vehicle, kind, key, payload, len(data))
 
     def link_state(self, now_mono: float, vehicle: str | None = None) -> str:
-        """'waiting' (nothing yet), 'live', or 'stale' (silent for stale_after_s)."""
+        """'waiting' (nothing yet), 'live', or 'stale' (silent for stale_after_s); for one
+        vehicle whose daemon withdrew its liveliness token, 'stopped' when its last status
+        said so, 'gone' when it did not (a crash, a cut tether, a dead router)."""
         if vehicle is None:
             views = list(self.vehicles.values())
         else:
             views = [self.vehicles[vehicle]] if vehicle in self.vehicles else []
         if not views:
             return "waiting"
+        if vehicle is not None and views[0].alive is False:
+            status = views[0].status or {}
+            return "stopped" if status.get("state") == "stopping" else "gone"
         last = max(v.last_seen() for v in views)
         return "live" if now_mono - last <= self.stale_after_s else "stale"
 
