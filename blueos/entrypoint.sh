@@ -7,6 +7,15 @@ if [ "$#" -gt 0 ]; then
     exec netpose "$@"
 fi
 mkdir -p "$DATA"
+# /data must be the vehicle's folder (the permissions' bind): a container volume (an install
+# with empty Custom settings) is thrown away by the next update, configuration and all.
+root="$(awk -v d="$DATA" '$5 == d { print $4 }' /proc/self/mountinfo 2>/dev/null | tail -n 1)"
+case "$root" in
+    "" | */volumes/*)
+        echo "netpose: WARNING: $DATA is not a folder of the vehicle (${root:-not a mount}):" \
+             "the configuration, calibration and recordings will be lost at the next update." \
+             "Install with the permissions of docs/blueos.md (Custom settings)." >&2 ;;
+esac
 if [ ! -f "$DATA/netpose.toml" ]; then
     cp /opt/netpose/config/blueos.toml "$DATA/netpose.toml"
     echo "netpose: first start: wrote $DATA/netpose.toml from config/blueos.toml"

@@ -154,3 +154,63 @@ def test_the_extension_runs_the_daemon_and_serves_the_page(
 def _logs(engine: str, name: str) -> str:
     out = subprocess.run([engine, "logs", name], capture_output=True, text=True, timeout=30)
     return out.stdout[-6000:] + out.stderr[-6000:]
+
+
+# --- without a container engine: what the files say ----------------------------------------
+
+
+def _label_text(name: str) -> str:
+    """A LABEL's value as the Dockerfile writes it (quotes and line continuations removed)."""
+    text = (REPO / "blueos" / "Dockerfile").read_text(encoding="utf-8").replace("\\\n", "")
+    for line in text.splitlines():
+        prefix = f"LABEL {name}="
+        if line.startswith(prefix):
+            return line[len(prefix):].strip().strip("'\"")
+    raise AssertionError(f"no LABEL {name}")
+
+
+def test_the_docs_give_the_manual_install_the_labels_permissions() -> None:
+    """BlueOS's create dialog does not read the image's permissions label: the docs said to
+    leave Custom settings empty, which gave a container without the host network, /dev or the
+    data folder (lost at every update). The JSON to paste must be the label's."""
+    docs = (REPO / "docs" / "blueos.md").read_text(encoding="utf-8")
+    section = docs.split("### From the Extensions Manager", 1)[1]
+    pasted = json.loads(section.split("```json\n", 1)[1].split("\n```", 1)[0])
+    assert pasted == json.loads(_label_text("permissions"))
+
+
+def _entrypoint(data: Path, tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    """The extension's entrypoint on `data`, with a stand-in for the netpose command."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    fake = bin_dir / "netpose"
+    fake.write_text("#!/bin/sh\necho \"netpose $*\"\n")
+    fake.chmod(0o755)
+    env = dict(os.environ, NETPOSE_DATA=str(data), PATH=f"{bin_dir}:{os.environ['PATH']}")
+    return subprocess.run(["sh", str(REPO / "blueos" / "entrypoint.sh")], env=env,
+                          capture_output=True, text=True, timeout=10, check=False)
+
+
+def test_the_extension_warns_when_its_data_is_not_the_vehicles_folder(tmp_path: Path) -> None:
+    """Installed without the permissions, /data is a volume of the container, and the next
+    update takes the configuration with it: said at every start, in the log BlueOS shows."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "netpose.toml").write_text("")
+    unmounted = _entrypoint(data, tmp_path)
+    assert unmounted.returncode == 0, unmounted.stderr
+    assert "WARNING" in unmounted.stderr and "lost at the next update" in unmounted.stderr
+    assert f"netpose run --config {data}/netpose.toml" in unmounted.stdout
+    shm = Path("/dev/shm")
+    if not os.path.ismount(shm) or not os.access(shm, os.W_OK):
+        pytest.skip("no writable mount point to stand in for the vehicle's folder")
+    keep = shm / "netpose.toml"
+    existed = keep.exists()
+    try:
+        if not existed:
+            keep.write_text("")
+        bound = _entrypoint(shm, tmp_path)
+    finally:
+        if not existed:
+            keep.unlink(missing_ok=True)
+    assert bound.returncode == 0 and "WARNING" not in bound.stderr, bound.stderr

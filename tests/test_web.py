@@ -585,7 +585,7 @@ def test_register_service_has_what_blueos_requires(daemon: WebDaemon) -> None:
     assert status == 200 and extras["targetSystem"] == "Cockpit"
     widget = extras["widgets"][0]
     assert widget["name"] and widget["useExtensionPathAsBaseUrl"] is True
-    for path in (widget["iframeUrl"], widget["iconUrl"]):
+    for path in (widget["iframeUrl"], widget["iconUrl"], widget["iframeIcon"]):
         assert daemon.request("GET", path)[0] == 200, path
 
 

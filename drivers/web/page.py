@@ -334,12 +334,15 @@ class WebPage(Generic[R]):
         })
 
     async def _cockpit_extras(self, request: web.Request) -> web.Response:
-        # Cockpit's ExtrasJsonSchema: offered as a widget in its edit mode.
+        # Cockpit's ExtrasJsonSchema: offered as a widget in its edit mode. Both icon keys:
+        # Cockpit before 1.18 requires `iframeIcon` (and rejects the file without it), later
+        # ones read `iconUrl`.
         return web.json_response({
             "targetSystem": "Cockpit",
             "targetCockpitApiVersion": "1.0.0",
             "widgets": [{
                 "name": "netpose", "iframeUrl": "/widget", "iconUrl": "/icon.svg",
+                "iframeIcon": "/icon.svg",
                 "useExtensionPathAsBaseUrl": True, "collapsibleContainerName": "netpose",
                 "startCollapsed": False, "version": __version__, "contentZoom": 1,
                 "scaleContentWithWidget": True,
