@@ -312,7 +312,7 @@ def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
 
     page, port = _bare_page(tmp_path)
 
-    async def crowd() -> tuple[bool, bool, bool]:
+    async def crowd() -> tuple[bool, bool]:
         async with aiohttp.ClientSession() as session:
             live = await session.ws_connect(f"ws://127.0.0.1:{port}/ws")
             slow: list[socket.socket] = []
@@ -327,17 +327,13 @@ def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
                         f"http://127.0.0.1:{port}/register_service") as reply:
                         assert reply.status == 200
                 # The oldest half-headers went first (closed, or reset where their unread bytes
-                # were still queued); the newest still wait.
+                # were still queued). (Which of a burst of connections past the cap is closed
+                # depends on whether aiohttp had registered the others yet: the newest may be
+                # refused instead.)
                 try:
                     oldest_gone = slow[0].recv(1, socket.MSG_PEEK) == b""
                 except ConnectionResetError:
                     oldest_gone = True
-                slow[-1].setblocking(False)
-                try:
-                    slow[-1].recv(1, socket.MSG_PEEK)
-                    newest_waits = False
-                except BlockingIOError:
-                    newest_waits = True
                 try:  # a closed view reads its close at once; an open one, a push or nothing
                     message = await live.receive(timeout=0.5)
                     live_open = message.type not in (aiohttp.WSMsgType.CLOSE,
@@ -346,17 +342,17 @@ def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
                 except TimeoutError:
                     live_open = True
                 await live.close()
-                return oldest_gone, newest_waits, live_open
+                return oldest_gone, live_open
             finally:
                 for s in slow:
                     s.close()
 
     page.start()
     try:
-        oldest_gone, newest_waits, live_open = asyncio.run(crowd())
+        oldest_gone, live_open = asyncio.run(crowd())
     finally:
         page.close()
-    assert oldest_gone and newest_waits and live_open
+    assert oldest_gone and live_open
 
 
 def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
@@ -407,6 +403,37 @@ def test_a_stalled_download_does_not_hold_up_the_pages_stop(tmp_path: Path) -> N
         assert stalled == []
     finally:
         client.close()
+
+
+def test_a_download_the_page_gave_up_on_does_not_look_complete(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A client that stops reading for longer than the stall limit (BlueOS's proxy spooling a
+    large recording to its card does) got a response that ended cleanly, cut short: HTTP 200,
+    curl's exit 0, and `tar: Unexpected EOF` only when the file was opened. The page now cuts
+    the connection, so the client sees an incomplete transfer; and a download cut at its end
+    no longer waits for ever for the end that never came. The response also asks a proxy not
+    to buffer it (X-Accel-Buffering: no), so the stall limit meets the real client."""
+    import http.client
+
+    import drivers.web.page as page_module
+
+    monkeypatch.setattr(page_module, "DOWNLOAD_STALL_S", 1.0)
+    page, port, name = _page_with_a_large_recording(tmp_path)
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=20)
+    try:
+        conn.request("GET", f"/api/recordings/{name}.tar")
+        reply = conn.getresponse()
+        assert reply.status == 200 and reply.getheader("X-Accel-Buffering") == "no"
+        reply.read(1024)
+        time.sleep(3.0)  # past the stall limit: the page gives up
+        t0 = time.monotonic()
+        with pytest.raises((http.client.IncompleteRead, ConnectionError)):
+            reply.read()  # the rest: cut, not a clean end
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        conn.close()
+        page.close()
 
 
 def test_downloads_under_way_do_not_hold_up_recording_and_settings(tmp_path: Path) -> None:

@@ -649,7 +649,11 @@ class WebPage(Generic[R]):
                           "has finished")
         response = web.StreamResponse(headers={
             "Content-Type": "application/x-tar",
-            "Content-Disposition": f'attachment; filename="{name}.tar"'})
+            "Content-Disposition": f'attachment; filename="{name}.tar"',
+            # BlueOS's nginx would spool up to 1 GB of it to the card and stop reading us
+            # while it drains that: the stall limit below then cut a download the client was
+            # still reading. Unbuffered, the limit meets the real client.
+            "X-Accel-Buffering": "no"})
         await response.prepare(request)
         loop = asyncio.get_running_loop()
         chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=8)
@@ -658,7 +662,7 @@ class WebPage(Generic[R]):
         producer = loop.run_in_executor(self._download_pool, _write_tar, folder, name, loop,
                                         chunks, cancelled)
         try:
-            while (chunk := await chunks.get()) is not None:
+            while (chunk := await _next_chunk(chunks, producer)) is not None:
                 await response.write(chunk)
             await producer
             await response.write_eof()
@@ -667,6 +671,10 @@ class WebPage(Generic[R]):
             log.info("web page: download of %s ended before it was complete", name)
         except OSError as exc:  # the tar thread gave up: a client that stopped reading
             log.warning("web page: download of %s stopped: %s", name, exc)
+            # Cut the connection: returning would end the response cleanly, and the client
+            # (curl's exit 0, a browser's "done") would take the cut tar for the whole one.
+            if request.transport is not None:
+                request.transport.abort()
         finally:
             self._downloads.pop(cancelled, None)
             cancelled.set()
@@ -676,6 +684,23 @@ class WebPage(Generic[R]):
             producer.add_done_callback(_exception_seen)
         return response
 
+
+
+async def _next_chunk(chunks: asyncio.Queue[bytes | None],
+                      producer: asyncio.Future[None]) -> bytes | None:
+    """The tar's next chunk; None at its end, or once its thread has ended without saying so
+    (it gave up while the queue was full: waiting for its end marker would wait for ever)."""
+    while True:
+        if not chunks.empty():
+            return chunks.get_nowait()
+        if producer.done():
+            return None
+        getter = asyncio.ensure_future(chunks.get())
+        either: set[asyncio.Future[Any]] = {getter, producer}
+        await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+        if getter.done():
+            return getter.result()
+        getter.cancel()
 
 
 class _QueueWriter(io.RawIOBase):
@@ -782,7 +807,8 @@ class _CappedConnections:
     every slot otherwise, and aiohttp has no header timeout, so the pilot's page was refused
     for as long as they stayed open (slowloris). A connection whose request is being answered
     (a download, a live view) is never closed for it; when every one is busy, the newest is
-    refused instead (closed as it is accepted, its descriptor freed at once).
+    refused instead (closed as it is accepted, its descriptor freed at once). So is one of a
+    burst accepted in one pass of the loop, before aiohttp has registered the others.
 
     Open connections are counted by the listening server's transports (asyncio attaches each
     one as it is made, before its protocol is told, and detaches it when it is gone): aiohttp's
