@@ -1099,6 +1099,41 @@ def test_a_first_start_without_mesh_size_or_calibration_is_set_up_on_the_page(
         assert d.stop() == 0, d.log()
 
 
+def test_set_up_says_why_the_camera_shows_nothing_and_takes_a_calibration_anyway(
+    tmp_path: Path,
+) -> None:
+    """A stock BlueOS streams its camera over UDP, with no RTSP endpoint: the page in set-up
+    mode said only "no status from the daemon yet" and asked for the calibration, whose upload
+    was then refused ("no camera frame yet"), so set-up could not be finished from the page.
+    The page now says what the camera does, and takes the calibration unchecked."""
+    from drivers.net import free_port
+
+    nothing_there = f"rtsp://127.0.0.1:{free_port()}/video_stream__dev_video2"
+    d = WebDaemon(tmp_path, sections={"camera": {"calibration": "camera.yaml",
+                                                 "url": nothing_there}}).start(frames=False)
+    try:
+        deadline = time.monotonic() + 20.0
+        while True:
+            _, settings = d.request("GET", "/api/settings")
+            if "check camera.url" in settings["problem"]:
+                break
+            assert time.monotonic() < deadline, settings
+            time.sleep(0.2)
+        assert settings["problem"].startswith("configuration error: camera.calibration")
+        path = tmp_path / "upload.yaml"
+        save_camera(builtin_camera(1280, 720), path)
+        status, reply = _upload(d, "camera.yaml", path.read_bytes())
+        assert status == 200 and reply["checked"] is False, reply
+        assert "not checked against the camera" in reply["summary"]
+        status, preview = d.request("GET", "/" + reply["preview"])
+        assert status == 200 and preview[:2] == b"\xff\xd8"  # a JPEG card, not an error
+        status, applied = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
+                                    token=True)
+        assert status == 200 and applied["saved"], applied
+    finally:
+        assert d.stop() == 0, d.log()
+
+
 def test_a_reload_in_set_up_mode_names_what_is_still_wrong_in_the_log(tmp_path: Path) -> None:
     """An operator who fixes the file over SSH and runs `systemctl reload` in set-up mode must
     read in the journal what is still wrong, as after any other reload: the rejected key was

@@ -107,6 +107,7 @@ class _PendingCalibration:
     camera: CameraModel
     preview: bytes
     created: float
+    checked: bool = True  # against a camera frame (its aspect ratio; the undistorted view)
 
 
 class WebPage(Generic[R]):
@@ -570,10 +571,14 @@ class WebPage(Generic[R]):
             self._calibrations.pop(oldest).path.unlink(missing_ok=True)
         cam = pending.camera
         k1 = cam.distortion[0] if cam.distortion else 0.0
+        unchecked = "" if pending.checked else (
+            "; not checked against the camera (no frame yet): the daemon checks it when "
+            "the camera runs")
         return web.json_response({
             "id": ident, "file": part.filename, "preview": f"api/calibration/{ident}/preview.jpg",
             "summary": f"{cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} px, "
-                       f"centre ({cam.cx:.1f}, {cam.cy:.1f}), k1 {k1:+.3f}",
+                       f"centre ({cam.cx:.1f}, {cam.cy:.1f}), k1 {k1:+.3f}{unchecked}",
+            "checked": pending.checked,
         })
 
     def _check_calibration(self, path: Path, filename: str) -> _PendingCalibration:
@@ -584,8 +589,12 @@ class WebPage(Generic[R]):
             raise CalibrationError(str(exc).replace(str(path), filename)) from None
         newest = self._feed.newest_frame()
         if newest is None:
-            raise CalibrationError("no camera frame yet to check it against; try again when "
-                                   "the live view shows the camera")
+            # Set-up mode with the camera not working yet (a stream still to be made): the
+            # file is taken unchecked, or set-up could not be finished from the page. The
+            # daemon checks it against every frame when it runs (frames of another aspect
+            # ratio give no distance, and the log and status name camera.calibration).
+            return _PendingCalibration(path, camera, _unchecked_preview(
+                camera, self.settings.live_width), time.monotonic(), checked=False)
         image = np.asarray(newest[0].image)
         h, w = image.shape[:2]
         scaled = camera.scaled_to(w, h)  # CalibrationError for another aspect ratio
@@ -775,6 +784,20 @@ def undistorted_preview(image: npt.NDArray[Any], camera: CameraModel, width: int
     ok, data = cv2.imencode(".jpg", np.hstack(pair), [int(cv2.IMWRITE_JPEG_QUALITY), 80])
     if not ok:
         raise CalibrationError("cannot draw the undistorted preview")
+    return bytes(data.tobytes())
+
+
+def _unchecked_preview(camera: CameraModel, width: int) -> bytes:
+    """What the upload shows when there is no camera frame to undistort: a plain card."""
+    height = max(60, round(width * camera.height / max(camera.width, 1) / 2))
+    card = np.full((height, width, 3), 48, np.uint8)
+    for row, text in enumerate(("no camera frame yet:", "the calibration is not checked",
+                                "against the camera until it runs")):
+        cv2.putText(card, text, (10, 24 + 20 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    ok, data = cv2.imencode(".jpg", card, [int(cv2.IMWRITE_JPEG_QUALITY), 80])
+    if not ok:
+        raise CalibrationError("cannot draw the calibration's card")
     return bytes(data.tobytes())
 
 

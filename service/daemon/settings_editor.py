@@ -132,6 +132,7 @@ class SettingsEditor:
         self._reloads = 0
         self._last_outcome: ReloadOutcome | None = None
         self.restart_pending: set[str] = set()
+        self._camera_note = ""  # set-up mode: why the camera shows nothing (set on its thread)
 
     # -- the daemon's side -----------------------------------------------------------------
     def reloaded(self, outcome: ReloadOutcome) -> None:
@@ -147,6 +148,11 @@ class SettingsEditor:
 
     def restarted(self) -> None:
         self.restart_pending.clear()
+
+    def note_camera(self, text: str) -> None:
+        """Set-up mode: what keeps the live view dark (a camera that cannot be opened, or
+        gives no frames), said with the configuration's problem; "" once frames come."""
+        self._camera_note = text
 
     # -- the page's side -------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
@@ -179,6 +185,7 @@ class SettingsEditor:
                         value = None  # the stand-in, not the file's
                     values[key] = redact_config({name: value})[name]
             groups.append({"title": title, "fields": fields})
+        problem = "; ".join(p for p in (problem, self._camera_note) if p)
         return {"path": str(self.path) if self.path else None, "editable": editable,
                 "reason": reason, "problem": problem, "groups": groups, "values": values,
                 "restart_pending": sorted(self.restart_pending)}

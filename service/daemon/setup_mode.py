@@ -32,6 +32,8 @@ log = logging.getLogger("netpose.daemon")
 
 READ_TIMEOUT_S = 0.2
 REOPEN_AFTER_S = 5.0
+# No frame for this long from an open camera: the page says so (a stream that is not there).
+NO_FRAMES_S = 5.0
 
 
 class SetupPage(Protocol):
@@ -63,15 +65,26 @@ def run_setup(
     on_reload: Callable[[ReloadOutcome], None],
     vehicle: str,
     deadline: float | None = None,
+    note_camera: Callable[[str], None] = lambda _text: None,
 ) -> Config | None:
     """Serve the page until a saved configuration is valid (returned), or a stop or the
-    monotonic `deadline` (`netpose run --duration`) comes first (None)."""
+    monotonic `deadline` (`netpose run --duration`) comes first (None). `note_camera` is told
+    what keeps the live view dark ("" once frames come), for the page to say."""
     log.warning("configuration incomplete (%s): set-up mode, nothing is sent to the autopilot; "
                 "finish the set-up on the web page", problem)
     page.start()
     notifier.ready(status=f"set-up mode: {problem}")
     opened_at: float | None = None
+    last_frame_at: float | None = None
+    said = ""
     seq = 0
+
+    def say(text: str) -> None:
+        nonlocal said
+        if text != said:
+            said = text
+            note_camera(text)
+
     try:
         while not flags.stop.is_set():
             now = time.monotonic()
@@ -103,6 +116,7 @@ def run_setup(
                     if opened_at is None:
                         log.warning("set-up mode: the camera cannot be opened (%s); retrying",
                                     exc)
+                    say(f"the camera cannot be opened ({exc}): check camera.url")
                     opened_at = -now  # negative: failed at -opened_at, retry later
                     time.sleep(READ_TIMEOUT_S)
                     continue
@@ -111,7 +125,14 @@ def run_setup(
                 continue
             frame = source.read(READ_TIMEOUT_S)
             if frame is None:
+                silent = now - (last_frame_at if last_frame_at is not None else opened_at)
+                if silent > NO_FRAMES_S:
+                    error = source.stats().error
+                    say(f"no frames from the camera for {silent:.0f} s"
+                        + (f" ({error})" if error else "") + ": check camera.url")
                 continue
+            last_frame_at = now
+            say("")
             seq += 1
             page.observe(frame, None, EstimateMessage(
                 vehicle=vehicle, time_unix=time.time(), time_mono=time.monotonic(), seq=seq,

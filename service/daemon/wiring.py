@@ -500,7 +500,8 @@ def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
     page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
     return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
                      problem=problem, validate=lambda: checked_config(config_path, overrides),
-                     on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline)
+                     on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline,
+                     note_camera=editor.note_camera)
 
 
 class _RestartAware:
