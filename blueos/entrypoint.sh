@@ -17,7 +17,16 @@ case "$root" in
              "Install with the permissions of docs/blueos.md (Custom settings)." >&2 ;;
 esac
 if [ ! -f "$DATA/netpose.toml" ]; then
-    cp /opt/netpose/config/blueos.toml "$DATA/netpose.toml"
+    cp "${NETPOSE_CONFIG_DIR:-/opt/netpose/config}/blueos.toml" "$DATA/netpose.toml"
     echo "netpose: first start: wrote $DATA/netpose.toml from config/blueos.toml"
+    # BlueOS gives every extension the vehicle's MAVLink id: netpose speaks as that vehicle.
+    case "${MAV_SYSTEM_ID:-}" in
+        "" | *[!0-9]*) ;;
+        *)
+            if [ "$MAV_SYSTEM_ID" -ge 1 ] && [ "$MAV_SYSTEM_ID" -le 255 ]; then
+                sed -i "s/^source_system = 1$/source_system = $MAV_SYSTEM_ID/" "$DATA/netpose.toml"
+                echo "netpose: mavlink.source_system = $MAV_SYSTEM_ID (MAV_SYSTEM_ID)"
+            fi ;;
+    esac
 fi
 exec netpose run --config "$DATA/netpose.toml"

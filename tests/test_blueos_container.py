@@ -179,14 +179,17 @@ def test_the_docs_give_the_manual_install_the_labels_permissions() -> None:
     assert pasted == json.loads(_label_text("permissions"))
 
 
-def _entrypoint(data: Path, tmp_path: Path) -> subprocess.CompletedProcess[str]:
-    """The extension's entrypoint on `data`, with a stand-in for the netpose command."""
+def _entrypoint(data: Path, tmp_path: Path, **env_extra: str
+                ) -> subprocess.CompletedProcess[str]:
+    """The extension's entrypoint on `data`, with a stand-in for the netpose command (and the
+    repository's config/ for the image's)."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir(exist_ok=True)
     fake = bin_dir / "netpose"
     fake.write_text("#!/bin/sh\necho \"netpose $*\"\n")
     fake.chmod(0o755)
-    env = dict(os.environ, NETPOSE_DATA=str(data), PATH=f"{bin_dir}:{os.environ['PATH']}")
+    env = dict(os.environ, NETPOSE_DATA=str(data), PATH=f"{bin_dir}:{os.environ['PATH']}",
+               NETPOSE_CONFIG_DIR=str(REPO / "config"), **env_extra)
     return subprocess.run(["sh", str(REPO / "blueos" / "entrypoint.sh")], env=env,
                           capture_output=True, text=True, timeout=10, check=False)
 
@@ -214,3 +217,18 @@ def test_the_extension_warns_when_its_data_is_not_the_vehicles_folder(tmp_path: 
         if not existed:
             keep.unlink(missing_ok=True)
     assert bound.returncode == 0 and "WARNING" not in bound.stderr, bound.stderr
+
+
+def test_the_first_start_speaks_as_the_vehicle_blueos_names(tmp_path: Path) -> None:
+    """BlueOS hands every extension the vehicle's MAVLink id (MAV_SYSTEM_ID); netpose spoke as
+    system 1 whatever it was. The first start writes it into the configuration (a number
+    1..255; anything else leaves the file's)."""
+    import tomllib
+
+    for given, expected in (("7", 7), ("abc", 1), ("300", 1)):
+        data = tmp_path / f"data-{given}"
+        data.mkdir()
+        done = _entrypoint(data, tmp_path, MAV_SYSTEM_ID=given)
+        assert done.returncode == 0, done.stderr
+        config = tomllib.loads((data / "netpose.toml").read_text())
+        assert config["mavlink"]["source_system"] == expected, given
