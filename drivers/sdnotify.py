@@ -7,15 +7,21 @@ is absent and `notifier_from_environment()` returns a `NullNotifier` (or, on a t
 
 Watchdog pings are rate-limited here (at half of $WATCHDOG_USEC, as sd_watchdog_enabled(3)
 recommends) so the frame loop can call `watchdog()` every iteration for free.
+
+Where no systemd watches (a container: BlueOS's extensions), $NETPOSE_HANG_EXIT_S asks for its
+stand-in, `HangWatchdog`: a frame loop that stops pinging for that long ends the process, and
+the container engine's restart policy brings it back, as systemd's watchdog would.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
+import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TextIO
 
 from drivers.errors import NotifyError
@@ -113,6 +119,78 @@ class ConsoleNotifier(Notifier):
         return True
 
 
+log = logging.getLogger(__name__)
+
+# The exit status of a hung frame loop ended by HangWatchdog (EX_SOFTWARE).
+HUNG_EXIT_STATUS = 70
+
+
+def _exit_hung(_silent_s: float) -> None:
+    os._exit(HUNG_EXIT_STATUS)  # the loop's thread holds what a clean exit would wait for
+
+
+class HangWatchdog(Notifier):
+    """systemd's watchdog where there is none (a container): `inner` does the notifying, and a
+    thread of its own ends the process (`on_hang`) when the frame loop has not pinged for
+    `timeout_s` since it said ready. A loop hung in a blocking read would otherwise stop the
+    distances for good without a restart (the autopilot's rangefinder times out: safe, but the
+    vehicle has lost its sensor until someone restarts the extension). Stopping (`stopping`,
+    `close`) disarms it: a slow close is not a hang."""
+
+    def __init__(self, inner: Notifier, timeout_s: float,
+                 on_hang: Callable[[float], None] = _exit_hung,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(inner.watchdog_interval_s)
+        self.inner = inner
+        self.timeout_s = timeout_s
+        self._on_hang = on_hang
+        self._clock = clock
+        self._last_ping = clock()
+        self._disarmed = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def notify(self, message: str) -> bool:
+        return self.inner.notify(message)
+
+    def ready(self, status: str | None = None) -> bool:
+        self._last_ping = self._clock()
+        if self._thread is None and not self._disarmed.is_set():
+            self._thread = threading.Thread(target=self._watch, name="hang watchdog",
+                                            daemon=True)
+            self._thread.start()
+        return self.inner.ready(status)
+
+    def status(self, text: str) -> bool:
+        return self.inner.status(text)
+
+    def stopping(self) -> bool:
+        self._disarmed.set()
+        return self.inner.stopping()
+
+    def reloading(self) -> bool:
+        return self.inner.reloading()
+
+    def watchdog(self, now: float | None = None) -> bool:
+        self._last_ping = self._clock()  # its own clock: `now` may be a replay's
+        return self.inner.watchdog(now)
+
+    def close(self) -> None:
+        self._disarmed.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.inner.close()
+
+    def _watch(self) -> None:
+        while not self._disarmed.wait(min(1.0, self.timeout_s / 4.0)):
+            silent = self._clock() - self._last_ping
+            if silent > self.timeout_s:
+                log.critical("frame loop hung: no pass for %.0f s (NETPOSE_HANG_EXIT_S %.0f s):"
+                             " exiting with status %d so that the container restarts it",
+                             silent, self.timeout_s, HUNG_EXIT_STATUS)
+                self._on_hang(silent)
+                return
+
+
 class SystemdNotifier(Notifier):
     """The real thing: datagrams to the service manager's notification socket."""
 
@@ -170,6 +248,23 @@ def notifier_from_environment(
     interval = watchdog_interval_from_environment(environ)
     if path:
         return SystemdNotifier(path, interval)
-    if console is not None and console.isatty():
-        return ConsoleNotifier(console)
-    return NullNotifier(interval)
+    inner: Notifier = (ConsoleNotifier(console) if console is not None and console.isatty()
+                       else NullNotifier(interval))
+    hang_s = _hang_exit_s(environ)
+    return HangWatchdog(inner, hang_s) if hang_s is not None else inner
+
+
+def _hang_exit_s(environ: Mapping[str, str]) -> float | None:
+    """$NETPOSE_HANG_EXIT_S in seconds (5..3600), None when unset or not such a number (said
+    once in the log: the variable is the image's, not the user's)."""
+    text = environ.get("NETPOSE_HANG_EXIT_S", "").strip()
+    if not text:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 5.0 <= value <= 3600.0:
+        log.warning("NETPOSE_HANG_EXIT_S=%r ignored: must be 5..3600 s", text)
+        return None
+    return value

@@ -133,3 +133,57 @@ def test_console_notifier_on_a_terminal_prints_status_at_most_once_a_second() ->
                                            "netpose: stopping"]
     # Not a terminal (a pipe, a journal): nothing is printed.
     assert isinstance(notifier_from_environment({}, console=io.StringIO()), NullNotifier)
+
+
+def test_outside_systemd_a_hung_loop_ends_the_process_for_the_container_to_restart() -> None:
+    """In a container (BlueOS's extensions) no systemd watches: a frame loop hung in a
+    blocking read stopped the distances for good. $NETPOSE_HANG_EXIT_S asks for the stand-in:
+    no ping for that long after ready ends the process; pings keep it alive, and stopping
+    disarms it (a slow close is not a hang)."""
+    import threading
+    import time
+
+    from drivers.sdnotify import HangWatchdog, NullNotifier, notifier_from_environment
+
+    assert isinstance(notifier_from_environment({"NETPOSE_HANG_EXIT_S": "30"}), HangWatchdog)
+    assert not isinstance(notifier_from_environment({"NETPOSE_HANG_EXIT_S": "1"}),
+                          HangWatchdog)  # out of range: ignored, said in the log
+    systemd = notifier_from_environment({"NETPOSE_HANG_EXIT_S": "30",
+                                         "NOTIFY_SOCKET": "/run/x.sock"})
+    assert not isinstance(systemd, HangWatchdog)  # systemd's own watchdog does the job
+
+    for case in ("hung", "pinging", "stopping"):
+        hung = threading.Event()
+        dog = HangWatchdog(NullNotifier(), 0.4, on_hang=lambda _s, e=hung: e.set())
+        dog.ready()
+        end = time.monotonic() + 1.5
+        if case == "stopping":
+            dog.stopping()
+        while time.monotonic() < end and not hung.is_set():
+            if case == "pinging":
+                dog.watchdog()
+            time.sleep(0.05)
+        dog.close()
+        assert hung.is_set() == (case == "hung"), case
+
+
+def test_the_hang_exit_is_a_real_exit_with_its_reason(tmp_path: Path) -> None:
+    """The stand-in ends a real process, with status 70 and the reason in its log (what the
+    container's log shows before the restart)."""
+    import subprocess
+    import sys
+    import time
+
+    code = ("import logging, time\n"
+            "logging.basicConfig()\n"
+            "from drivers.sdnotify import notifier_from_environment\n"
+            "notifier_from_environment().ready()\n"
+            "time.sleep(60)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC")}
+    env["NETPOSE_HANG_EXIT_S"] = "5"
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=30, cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 70, done.stderr
+    assert 5.0 <= time.monotonic() - t0 < 20.0
+    assert "frame loop hung" in done.stderr
