@@ -154,7 +154,11 @@ def test_outside_systemd_a_hung_loop_ends_the_process_for_the_container_to_resta
 
     for case in ("hung", "pinging", "stopping"):
         hung = threading.Event()
-        dog = HangWatchdog(NullNotifier(), 0.4, on_hang=lambda _s, e=hung: e.set())
+
+        def on_hang(_silent_s: float, event: threading.Event = hung) -> None:
+            event.set()
+
+        dog = HangWatchdog(NullNotifier(), 0.4, on_hang=on_hang)
         dog.ready()
         end = time.monotonic() + 1.5
         if case == "stopping":
