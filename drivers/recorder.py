@@ -422,6 +422,19 @@ class Recorder(Closeable):
             out.append(entry)
         return out
 
+    def delete(self, name: str) -> int:
+        """Remove a recording that is not being made (finished or interrupted): the page's way
+        to free the card BlueOS shares with its own updates. Its size in bytes; RecorderError
+        for one being recorded, one not there, or a folder that cannot be removed."""
+        folder = self.folder_of(name)
+        size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+        try:
+            shutil.rmtree(folder)
+        except OSError as exc:
+            raise RecorderError(f"cannot delete {name}: {exc.strerror or exc}") from exc
+        log.info("recording %s deleted (%.1f MB)", name, size / 1e6)
+        return size
+
     def folder_of(self, name: str) -> Path:
         """The folder of a finished recording; RecorderError for anything else."""
         folder = self.root / name

@@ -436,6 +436,51 @@ def test_a_download_the_page_gave_up_on_does_not_look_complete(
         page.close()
 
 
+def test_a_recording_is_deleted_from_the_page_unless_it_is_being_downloaded(
+    tmp_path: Path,
+) -> None:
+    """Recordings of up to 2 GB each filled the card BlueOS shares with its updates and other
+    extensions, and the page could not delete one. It can now, with the change header (and
+    the token where one is set); not one that is being downloaded or recorded, nor a name
+    that is not a recording."""
+    import http.client
+
+    page, port, name = _page_with_a_large_recording(tmp_path)
+    folder = tmp_path / name
+
+    def delete(which: str, change: bool = True) -> tuple[int, dict[str, Any]]:
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        headers = {"Origin": f"http://127.0.0.1:{port}", "Content-Type": "application/json"}
+        if change:
+            headers["X-Netpose-Change"] = "1"
+        conn.request("POST", f"/api/recordings/{which}/delete", body=b"{}", headers=headers)
+        reply = conn.getresponse()
+        body = json.loads(reply.read() or b"{}")
+        conn.close()
+        return reply.status, body
+
+    try:
+        assert delete(name, change=False)[0] == 403  # a browser's change needs the header
+        assert delete("netpose-rov-20990101T000000Z")[0] == 404
+        assert delete("..")[0] == 404
+        downloading = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        downloading.request("GET", f"/api/recordings/{name}.tar")
+        reply = downloading.getresponse()
+        reply.read(1024)  # under way, not finished
+        status, body = delete(name)
+        assert status == 409 and "being downloaded" in body["error"], body
+        downloading.close()
+        deadline = time.monotonic() + 10.0
+        while (answer := delete(name))[0] == 409:  # once the page has seen it go
+            assert time.monotonic() < deadline, answer
+            time.sleep(0.2)
+        assert answer[0] == 200 and answer[1]["deleted"] == name, answer
+        assert answer[1]["bytes"] >= 32 * 1024 * 1024
+        assert not folder.exists()
+    finally:
+        page.close()
+
+
 def test_downloads_under_way_do_not_hold_up_recording_and_settings(tmp_path: Path) -> None:
     """Two recordings downloading over a slow tether held both threads of the pool that also
     starts and stops recordings and saves settings: "stop recording" waited 140 s while the

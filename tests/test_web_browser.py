@@ -373,3 +373,42 @@ def test_a_stalled_camera_does_not_look_live(
     finally:
         streamer.stop()
         assert daemon.stop() == 0, daemon.log()
+
+
+def test_a_recording_is_deleted_from_the_page(daemon: WebDaemon, browser: Any) -> None:
+    """The card BlueOS shares filled up with recordings the page could not delete: a
+    recording's Delete button, confirmed, removes it from the list and from the card."""
+    import json
+
+    from drivers.recorder import MANIFEST
+
+    name = "netpose-demo-20260101T120000Z"
+    folder = daemon.folder / "recordings" / name
+    (folder / "frames").mkdir(parents=True)
+    (folder / MANIFEST).write_text(json.dumps({"finished": True, "frames": 1, "bytes": 3}))
+    (folder / "frames" / "00000001.png").write_bytes(b"png")
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    asked: list[str] = []
+
+    def confirm(dialog: Any) -> None:
+        asked.append(dialog.message)
+        dialog.accept()
+
+    page.on("dialog", confirm)
+    try:
+        page.goto(daemon.base + "/")
+        page.fill("#token", TOKEN)
+        row = page.locator("#recordings tr", has_text=name)
+        row.wait_for(timeout=15_000)
+        row.locator("button", has_text="Delete").click()
+        page.wait_for_function(
+            "(n) => ![...document.querySelectorAll('#recordings tr')]"
+            ".some((tr) => tr.textContent.includes(n))", arg=name, timeout=15_000)
+        assert asked and name in asked[0]
+        assert "deleted" in page.text_content("#record-message")
+        assert not folder.exists()
+        assert errors == []
+    finally:
+        page.close()

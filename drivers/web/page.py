@@ -273,6 +273,7 @@ class WebPage(Generic[R]):
         app.router.add_post("/api/recordings/start", self._post_recording_start)
         app.router.add_post("/api/recordings/stop", self._post_recording_stop)
         app.router.add_get("/api/recordings/{name}.tar", self._get_recording_tar)
+        app.router.add_post("/api/recordings/{name}/delete", self._post_recording_delete)
         app.router.add_static("/static", STATIC, show_index=False)
         app.on_shutdown.append(self._close_clients)
         return app
@@ -645,6 +646,19 @@ class WebPage(Generic[R]):
         status = await self._in_files(recorder.stop)
         self._publish("recording", json.dumps(status.to_json()))
         return web.json_response(status.to_json())
+
+    async def _post_recording_delete(self, request: web.Request) -> web.Response:
+        recorder = self._need_recorder()
+        name = request.match_info["name"]
+        if name not in {r["name"] for r in await self._in_files(recorder.recordings)}:
+            return _error(404, f"no recording named {name!r}")
+        if any(r.match_info.get("name") == name for r in self._downloads.values()):
+            return _error(409, f"{name} is being downloaded: delete it when that has finished")
+        try:
+            size = await self._in_files(recorder.delete, name)
+        except RecorderError as exc:  # being recorded, or the card refused
+            return _error(409, str(exc))
+        return web.json_response({"deleted": name, "bytes": size})
 
     async def _get_recording_tar(self, request: web.Request) -> web.StreamResponse:
         recorder = self._need_recorder()

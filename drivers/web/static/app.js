@@ -556,11 +556,20 @@ async function loadRecordings() {
   // Interrupted: the daemon ended without finishing it (power lost); what it holds replays.
   $("recordings").tBodies[0].replaceChildren(...data.recordings.filter((r) => r.finished || r.interrupted).map((r) => {
     const tr = document.createElement("tr");
-    tr.innerHTML = "<td><a></a></td><td></td>";
+    tr.innerHTML = "<td><a></a></td><td></td><td><button type='button'>Delete</button></td>";
     const a = tr.querySelector("a"); a.href = `api/recordings/${r.name}.tar`; a.textContent = r.name;
     a.setAttribute("download", `${r.name}.tar`);
     tr.children[1].textContent = `${r.frames} frames, ${((r.bytes || 0) / 1e6).toFixed(1)} MB` +
       (r.interrupted ? " (interrupted)" : "");
+    // The card is BlueOS's too (its updates, other extensions): old recordings go from here.
+    tr.querySelector("button").onclick = async () => {
+      if (!window.confirm(`Delete ${r.name}? It cannot be undone.`)) return;
+      try {
+        const done = await send(`api/recordings/${r.name}/delete`, {});
+        say($("record-message"), `deleted ${done.deleted} (${(done.bytes / 1e6).toFixed(1)} MB)`, true);
+      } catch (e) { say($("record-message"), e.message, false); }
+      loadRecordings();
+    };
     return tr;
   }));
 }
