@@ -256,6 +256,9 @@ class Recorder(Closeable):
         self.root = root
         self._recorded_sections = recorded_sections
         self._finishing: list[threading.Thread] = []  # recordings ended by a reload
+        # Folders whose files are being finished (a stop, a reload's roll-over): not to be
+        # deleted, nor listed as interrupted, until their manifest is written.
+        self._closing: set[Path] = set()
         self._pipeline_state = pipeline_state
         self._vehicle = re.sub(r"[^A-Za-z0-9_.-]", "_", vehicle) or "rov"
         self._setup = setup
@@ -306,6 +309,7 @@ class Recorder(Closeable):
                 self._begin_locked()
             except RecorderError as exc:
                 log.warning("recording after the settings changed: %s", exc)
+            self._closing.add(old.folder)
             finishing = threading.Thread(target=self._finish, args=(old, setup),
                                          name="recorder finish", daemon=True)
             self._finishing.append(finishing)
@@ -364,10 +368,17 @@ class Recorder(Closeable):
             if session is None:
                 return self._last
             assert self._session_setup is not None
+            self._closing.add(session.folder)
             return self._finish(session, self._session_setup)
 
     def _finish(self, session: _Session, setup: RecordingSetup) -> RecorderStatus:
         """Close a session's files and write its finished manifest."""
+        try:
+            return self._finish_files(session, setup)
+        finally:
+            self._closing.discard(session.folder)
+
+    def _finish_files(self, session: _Session, setup: RecordingSetup) -> RecorderStatus:
         written = session.close()
         error = session.error
         if not written:
@@ -410,7 +421,8 @@ class Recorder(Closeable):
                 continue
             finished = bool(manifest.get("finished", False))
             session = self._session
-            running = session is not None and session.folder == folder
+            running = (session is not None and session.folder == folder) or (
+                folder in self._closing)
             entry = {"name": folder.name, "frames": manifest.get("frames"),
                      "dropped": manifest.get("dropped"), "bytes": manifest.get("bytes"),
                      "started_unix": manifest.get("started_unix"), "finished": finished,
@@ -427,8 +439,8 @@ class Recorder(Closeable):
         to free the card BlueOS shares with its own updates. Its size in bytes; RecorderError
         for one being recorded, one not there, or a folder that cannot be removed."""
         folder = self.folder_of(name)
-        size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
         try:
+            size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
             shutil.rmtree(folder)
         except OSError as exc:
             raise RecorderError(f"cannot delete {name}: {exc.strerror or exc}") from exc
@@ -443,6 +455,8 @@ class Recorder(Closeable):
         session = self._session
         if session is not None and session.folder == folder:
             raise RecorderError(f"{name} is still being recorded: stop it first")
+        if folder in self._closing:
+            raise RecorderError(f"{name} is being finished: try again in a moment")
         return folder
 
     # -- internals -------------------------------------------------------------------------

@@ -646,7 +646,7 @@ class ZenohPublisher(TelemetryPublisher):
         tether): a topside that sees it go without a `stopping` status knows which it was."""
         try:
             return session.liveliness().declare_token(self.settings.key(ALIVE_SUFFIX))
-        except zenoh.ZError as exc:
+        except (zenoh.ZError, AttributeError) as exc:  # AttributeError: zenoh 1.0.0 has none
             log.warning("telemetry: no liveliness token (%s); topside sees only the data",
                         zenoh_error_text(exc))
             return None

@@ -431,6 +431,16 @@ def test_a_download_the_page_gave_up_on_does_not_look_complete(
         with pytest.raises((http.client.IncompleteRead, ConnectionError)):
             reply.read()  # the rest: cut, not a clean end
         assert time.monotonic() - t0 < 10.0
+        # A client that never reads again (a paused download): cut all the same, so it holds
+        # no download slot, and its recording can be deleted.
+        paused = http.client.HTTPConnection("127.0.0.1", port, timeout=20)
+        paused.request("GET", f"/api/recordings/{name}.tar")
+        assert paused.getresponse().status == 200
+        deadline = time.monotonic() + 15.0
+        while page._downloads:  # the page's own count of downloads under way
+            assert time.monotonic() < deadline, "a paused download was never cut"
+            time.sleep(0.2)
+        paused.close()
     finally:
         conn.close()
         page.close()
@@ -1175,6 +1185,19 @@ def test_set_up_says_why_the_camera_shows_nothing_and_takes_a_calibration_anyway
         status, applied = d.request("POST", f"/api/calibration/{reply['id']}/apply", {},
                                     token=True)
         assert status == 200 and applied["saved"], applied
+        deadline = time.monotonic() + 30.0
+        while "leaving set-up mode" not in d.log():
+            assert time.monotonic() < deadline, d.log()
+            time.sleep(0.2)
+        # Set-up's camera note ends with it (the daemon's status says what the camera does).
+        while True:  # the daemon's own page takes over from set-up's
+            try:
+                _, settings = d.request("GET", "/api/settings")
+                break
+            except OSError:
+                assert time.monotonic() < deadline, d.log()
+                time.sleep(0.2)
+        assert "check camera.url" not in settings["problem"], settings["problem"]
     finally:
         assert d.stop() == 0, d.log()
 
@@ -1260,3 +1283,35 @@ def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Pa
     finally:
         autopilot.close()
         assert d.stop() == 0, d.log()
+
+
+def test_a_recording_being_finished_is_neither_deletable_nor_listed_as_interrupted(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A recording a reload rolled over is finished on a thread of its own (its writer drains
+    to the card): it was listed as interrupted, with a Delete button, and a delete then made
+    its finish fail ("cannot finish the recording's manifest")."""
+    from drivers.recorder import Recorder, RecorderError, RecordingSetup, _Session
+    from drivers.sources.synthetic import builtin_camera
+
+    release = threading.Event()
+    real_close = _Session.close
+
+    def slow_close(self: Any, *args: Any, **kwargs: Any) -> Any:
+        release.wait(10.0)  # a slow card
+        return real_close(self, *args, **kwargs)
+
+    monkeypatch.setattr(_Session, "close", slow_close)
+    recorder = Recorder(tmp_path, "rov", lambda: RecordingSetup(builtin_camera(640, 360), "",
+                                                                 0.025, 90.0), 1 << 30)
+    first = recorder.begin().name
+    time.sleep(1.1)  # the next one gets another name (one-second stamps)
+    recorder.observe_reload(frozenset({"filter"}))  # `first` is finished on its own thread
+    listed = {r["name"]: r for r in recorder.recordings()}
+    assert not listed[first]["interrupted"] and not listed[first]["finished"]
+    with pytest.raises(RecorderError, match="being finished"):
+        recorder.delete(first)
+    release.set()
+    recorder.stop()
+    assert {r["name"]: r for r in recorder.recordings()}[first]["finished"]
+    assert recorder.delete(first) > 0 and not (tmp_path / first).exists()

@@ -589,6 +589,10 @@ class WebPage(Generic[R]):
             # The message names our temporary file; the user knows theirs by its name.
             raise CalibrationError(str(exc).replace(str(path), filename)) from None
         newest = self._feed.newest_frame()
+        setting_up = getattr(self._backend, "setting_up", None)
+        if newest is None and not (setting_up is not None and setting_up.is_set()):
+            raise CalibrationError("no camera frame yet to check it against; try again when "
+                                   "the live view shows the camera")
         if newest is None:
             # Set-up mode with the camera not working yet (a stream still to be made): the
             # file is taken unchecked, or set-up could not be finished from the page. The
@@ -684,6 +688,16 @@ class WebPage(Generic[R]):
         self._downloads[cancelled] = request
         producer = loop.run_in_executor(self._download_pool, _write_tar, folder, name, loop,
                                         chunks, cancelled)
+        transport = request.transport
+
+        def cut_if_given_up(done: asyncio.Future[None]) -> None:
+            # The handler may be stuck in a write to a client that reads nothing (a paused
+            # download, a sleeping laptop): aiohttp's drain has no timeout, so the connection
+            # is cut here, which also ends that write.
+            if not done.cancelled() and done.exception() is not None and transport is not None:
+                transport.abort()
+
+        producer.add_done_callback(cut_if_given_up)
         try:
             while (chunk := await _next_chunk(chunks, producer)) is not None:
                 await response.write(chunk)
@@ -720,10 +734,12 @@ async def _next_chunk(chunks: asyncio.Queue[bytes | None],
             return None
         getter = asyncio.ensure_future(chunks.get())
         either: set[asyncio.Future[Any]] = {getter, producer}
-        await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
-        if getter.done():
-            return getter.result()
-        getter.cancel()
+        try:
+            await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+            if getter.done():
+                return getter.result()
+        finally:
+            getter.cancel()  # not left pending when the handler itself is cancelled
 
 
 class _QueueWriter(io.RawIOBase):
@@ -878,13 +894,19 @@ class _CappedConnections:
         """Close the oldest connection with no request in progress; False when there is none.
         aiohttp keeps its connections in the order they were made; a handler whose request
         is being answered holds it in `_current_request`, and parsed requests not yet begun
-        wait in `_messages` (both private, on aiohttp 3.8 to 3.14: where they are missing,
-        nothing is closed and the newest is refused as before)."""
+        wait in `_messages`, and one waiting for its next request awaits `_waiter` (all three
+        private, on aiohttp 3.8 to 3.14: where they are missing, nothing is closed and the
+        newest is refused as before)."""
         for handler in list(getattr(self._server, "connections", ())):
             busy = getattr(handler, "_current_request", True)
             queued = getattr(handler, "_messages", True)
+            # aiohttp waits on `_waiter` for the next request: not while a response is still
+            # being sent (`_current_request` is cleared before that), nor between a parsed
+            # request and its handler's start.
+            waiter = getattr(handler, "_waiter", None)
+            waiting = waiter is not None and not waiter.done()
             transport = getattr(handler, "transport", None)
-            if busy is None and not queued and transport is not None and (
+            if busy is None and not queued and waiting and transport is not None and (
                 not transport.is_closing()  # one closed moments ago, in this burst of accepts
             ):
                 transport.close()

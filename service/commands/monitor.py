@@ -193,8 +193,11 @@ def _watch(
 
     key = f"{args.prefix}/{args.vehicle}/**"
     subscriber = session.declare_subscriber(key, on_sample)
-    tokens = session.liveliness().declare_subscriber(
-        f"{args.prefix}/{args.vehicle}/{ALIVE_SUFFIX}", on_token, history=True)
+    try:
+        tokens: Any = session.liveliness().declare_subscriber(
+            f"{args.prefix}/{args.vehicle}/{ALIVE_SUFFIX}", on_token, history=True)
+    except AttributeError:  # zenoh 1.0.0 has no liveliness: stopped/gone is not told
+        tokens = None
     state = MonitorState(stale_after_s=args.stale_after)
     tty = sys.stdout.isatty()
     plot = LivePlot(args.plot_png) if (args.plot or args.plot_png) else None
@@ -234,7 +237,8 @@ def _watch(
                     plot.update()
                 next_draw = now + REDRAW_S
     finally:
-        tokens.undeclare()
+        if tokens is not None:
+            tokens.undeclare()
         subscriber.undeclare()
         if save is not None:
             save.close()

@@ -76,7 +76,7 @@ def run_setup(
     notifier.ready(status=f"set-up mode: {problem}")
     opened_at: float | None = None
     last_frame_at: float | None = None
-    said = ""
+    said: str | None = None  # unknown: the first say() always tells the page
     seq = 0
 
     def say(text: str) -> None:
@@ -85,6 +85,7 @@ def run_setup(
             said = text
             note_camera(text)
 
+    say("")  # a note from an earlier set-up of this run is no longer true
     try:
         while not flags.stop.is_set():
             now = time.monotonic()
@@ -140,6 +141,7 @@ def run_setup(
                 reason=f"set-up mode: {problem}"))
         return None
     finally:
+        note_camera("")  # the daemon proper (or a stop) follows: set-up's camera note ends
         for closer in (page.close, source.close):
             try:
                 closer()
