@@ -26,6 +26,8 @@ from typing import TextIO
 
 from drivers.errors import NotifyError
 
+log = logging.getLogger(__name__)
+
 
 class Notifier(ABC):
     """Tells the service manager how the service is doing. Never raises during operation."""
@@ -118,8 +120,6 @@ class ConsoleNotifier(Notifier):
                 return False
         return True
 
-
-log = logging.getLogger(__name__)
 
 # The exit status of a hung frame loop ended by HangWatchdog (EX_SOFTWARE).
 HUNG_EXIT_STATUS = 70

@@ -373,6 +373,11 @@ FLUSH_S = 0.5
 TOKEN_AFTER_FLUSH_S = 0.1
 
 
+def token_change(sample: zenoh.Sample) -> str:
+    """A liveliness sample as "PUT" (the token came) or "DELETE" (it went)."""
+    return "PUT" if sample.kind == zenoh.SampleKind.PUT else "DELETE"
+
+
 def zenoh_error_text(exc: BaseException) -> str:
     """Zenoh's error message on one line, without the Rust source locations it appends
     (" at /...rs:12") and the backtrace lines some errors carry."""

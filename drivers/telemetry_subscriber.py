@@ -15,6 +15,7 @@ from typing import Any
 import zenoh
 
 from drivers.net import free_port
+from drivers.telemetry import token_change
 
 
 class TelemetrySubscriber:
@@ -49,12 +50,12 @@ class TelemetrySubscriber:
         self._subscriber = self._session.declare_subscriber(f"{key_prefix}/{vehicle}/**",
                                                             on_sample)
         # The daemon's liveliness token: ("PUT" | "DELETE", key, monotonic arrival).
-        self.liveliness: list[tuple[str, str, float]] = []
+        self._liveliness: list[tuple[str, str, float]] = []
 
         def on_token(sample: Any) -> None:
             with self._lock:
-                self.liveliness.append((str(sample.kind).rsplit(".", 1)[-1],
-                                        str(sample.key_expr), time.monotonic()))
+                self._liveliness.append((token_change(sample), str(sample.key_expr),
+                                         time.monotonic()))
 
         self._tokens = self._session.liveliness().declare_subscriber(
             f"{key_prefix}/{vehicle}/**", on_token, history=True)
@@ -74,8 +75,9 @@ class TelemetrySubscriber:
         ]
 
     def tokens(self) -> list[tuple[str, str, float]]:
+        """The daemon's liveliness token's comings and goings so far."""
         with self._lock:
-            return list(self.liveliness)
+            return list(self._liveliness)
 
     def close(self) -> None:
         self._tokens.undeclare()

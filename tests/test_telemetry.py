@@ -33,6 +33,7 @@ from drivers.telemetry import (
     ZenohPublisher,
     build_zenoh_config,
     make_publisher,
+    token_change,
 )
 from service.config import build_section, config_digest
 from service.core.errors import ConfigError
@@ -555,6 +556,17 @@ DAMAGE_SUBSCRIBER = textwrap.dedent(
 )
 
 
+def _topside_config(listen: str) -> Any:
+    """A topside client's Zenoh configuration, connecting to the publisher at `listen`."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
 def _hole(hole_id: int) -> DamageMessage:
     return DamageMessage(
         vehicle="rov9", time_unix=time.time(), time_mono=time.monotonic(), hole_id=hole_id,
@@ -671,10 +683,7 @@ def test_non_finite_values_go_out_as_null_and_the_stream_goes_on(
     publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
     publisher.start()
     wait_for(lambda: publisher.online, 10, "peer session to open")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([listen]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = _topside_config(listen)
     received: list[dict[str, Any]] = []
     with zenoh.open(conf) as session:
         subscriber = session.declare_subscriber(
@@ -714,10 +723,7 @@ def test_preview_is_wanted_only_when_someone_subscribes_to_it(
         now[0] += 10.0  # a fake monotonic clock, far beyond the 0.5 s preview period
         return publisher.wants_preview(now[0])
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([listen]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = _topside_config(listen)
     with zenoh.open(conf) as session:
         estimates_only = session.declare_subscriber("netpose/rov9/estimate", lambda s: None)
         wait_for(lambda: publisher.status().links == 1, 5, "the subscriber's link")
@@ -791,10 +797,7 @@ def test_a_stop_says_its_last_status_and_withdraws_the_liveliness_token(
     publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
     publisher.start()
     wait_for(lambda: publisher.online, 10, "peer session to open")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([listen]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = _topside_config(listen)
     events: list[tuple[str, str]] = []  # (kind, key): data and liveliness, in arrival order
     lock = threading.Lock()
 
@@ -804,7 +807,7 @@ def test_a_stop_says_its_last_status_and_withdraws_the_liveliness_token(
 
     with zenoh.open(conf) as session:
         alive = session.liveliness().declare_subscriber(
-            "netpose/**", lambda s: seen(str(s.kind).rsplit(".", 1)[-1], str(s.key_expr)),
+            "netpose/**", lambda s: seen(token_change(s), str(s.key_expr)),
             history=True)
         data = session.declare_subscriber(
             "netpose/rov9/status",
@@ -843,10 +846,7 @@ def test_a_dashboard_that_joins_late_gets_the_runs_holes_by_asking(
     publisher = publisher_factory(mode="peer", listen=(listen,), connect=())
     publisher.start()
     wait_for(lambda: publisher.online, 10, "peer session to open")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([listen]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = _topside_config(listen)
     with zenoh.open(conf) as early:
         delivered: list[int] = []
         sub = early.declare_subscriber(

@@ -23,7 +23,12 @@ from typing import IO, Any
 import numpy as np
 import zenoh
 
-from drivers.telemetry import TelemetrySettings, build_zenoh_config, zenoh_error_text
+from drivers.telemetry import (
+    TelemetrySettings,
+    build_zenoh_config,
+    token_change,
+    zenoh_error_text,
+)
 from service.core.backoff import Backoff
 from service.core.errors import ConfigError, NetposeError
 from service.core.files import write_atomically
@@ -188,7 +193,7 @@ def _watch(
 
     def on_token(sample: zenoh.Sample) -> None:
         # The daemon's liveliness token came or went: its sample kind stands in for the data.
-        inbox.put((str(sample.key_expr), str(sample.kind).rsplit(".", 1)[-1].encode(), None,
+        inbox.put((str(sample.key_expr), token_change(sample).encode(), None,
                    time.monotonic(), time.time()))
 
     key = f"{args.prefix}/{args.vehicle}/**"
