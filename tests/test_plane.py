@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from service.core.plane import (
     PRIOR_DOF,
+    RoiTriples,
     axis_leverage,
     fit_plane,
     plane_through,
@@ -90,6 +92,27 @@ def test_two_gross_outliers_of_fifteen_are_rejected_and_flagged() -> None:
     assert int(fit.used.sum()) == 13
     np.testing.assert_allclose(fit.normal_away, normal, atol=1e-9)
     assert fit.distance_m == pytest.approx(distance, abs=1e-9)
+
+
+def test_a_kept_triple_table_gives_the_same_plane_as_a_new_one() -> None:
+    """The estimator keeps its table of ROI triples between fits: every triple once, in
+    combinations' order (the consensus's sampling of a long table depends on it), read-only,
+    and a fit with a kept table is the fit without one."""
+    triples = RoiTriples()
+    for k in (3, 4, 15):
+        np.testing.assert_array_equal(triples(k), list(itertools.combinations(range(k), 3)))
+        assert triples(k) is triples(k)
+        assert not triples(k).flags.writeable
+    normal, distance = POSES[2]
+    rays = _rays(cols=7, rows=5)  # 35 ROIs: 6545 triples, more than the consensus samples
+    areas = _areas(rays, normal, distance)
+    areas[3] *= 0.5
+    fresh = fit_plane(rays, areas, np.full(35, 0.01), CELL_M2, min_rois=4)
+    kept = fit_plane(rays, areas, np.full(35, 0.01), CELL_M2, min_rois=4, triples=triples)
+    assert fresh is not None and kept is not None
+    np.testing.assert_array_equal(kept.used, fresh.used)
+    assert not kept.used[3]
+    assert kept.distance_m == pytest.approx(distance, abs=1e-9)
 
 
 def test_small_outliers_against_noise_are_flagged_too() -> None:

@@ -263,6 +263,7 @@ class DamageDetector:
         self._cameras: dict[tuple[int, int], CameraModel] = {}
         self._rays: dict[tuple[int, int], tuple[F64, F64, F64]] = {}
         self._dcts: dict[int, F64] = {}  # DCT matrices by length: windows repeat their sizes
+        self._carriers: dict[int, npt.NDArray[np.complex64]] = {}  # by samples per cell
         # Which part of a large view to inspect, and what was inspected (places on the net).
         self.planner = InspectionPlanner(mesh.bar_length_m)
 
@@ -274,6 +275,16 @@ class DamageDetector:
                 del self._dcts[next(iter(self._dcts))]
             self._dcts[n] = _dct_matrix(n)
         return self._dcts[n]
+
+    def _carrier(self, s: int) -> npt.NDArray[np.complex64]:
+        """exp(-2 pi i q / s) for q < s: a cell's first harmonic over its s samples (built
+        once per sample count, not per inspection; a handful of counts occur). Read-only."""
+        carrier = self._carriers.get(s)
+        if carrier is None:
+            carrier = np.exp(-2j * np.pi * np.arange(s) / s).astype(np.complex64)
+            carrier.flags.writeable = False
+            self._carriers[s] = carrier
+        return carrier
 
     def _camera(self, w: int, h: int) -> CameraModel:
         key = (w, h)
@@ -528,7 +539,7 @@ class DamageDetector:
                ) -> tuple[int, F64]:
         """Twine polarity (+1 light, -1 dark, 0 none) and, per cell, where the knots are
         relative to the nominal lattice (cells, each family), unwrapped over the region."""
-        carrier = _carrier(s)
+        carrier = self._carrier(s)
         block = lat.reshape(n2, s, n1, s)
         ok = _cells_valid(valid, n1, n2, s)
         across = block @ carrier  # (n2, s, n1): each row of a cell at family 1's carrier
@@ -797,15 +808,6 @@ def _across_bars(lat: F32, n1: int, n2: int, s: int) -> tuple[F32, F32]:
     a1 = np.concatenate([np.roll(m1, 1, axis=1)[..., half:], m1[..., : half + 1]], axis=3)
     a2 = np.concatenate([np.roll(m2, 1, axis=0)[..., half:], m2[..., : half + 1]], axis=3)
     return np.asarray(a1, dtype=np.float32), np.asarray(a2, dtype=np.float32)
-
-
-@functools.cache
-def _carrier(s: int) -> npt.NDArray[np.complex64]:
-    """exp(-2 pi i q / s) for q < s: a cell's first harmonic over its s samples (built once
-    per sample count, not per inspection). Read-only: it is shared."""
-    carrier = np.exp(-2j * np.pi * np.arange(s) / s).astype(np.complex64)
-    carrier.flags.writeable = False
-    return carrier
 
 
 def _cells_valid(valid: npt.NDArray[np.bool_], n1: int, n2: int, s: int

@@ -35,7 +35,6 @@ lens Jacobians) is computed once and cached. ROIs are measured independently of 
 
 from __future__ import annotations
 
-import functools
 import itertools
 import math
 import time
@@ -54,6 +53,7 @@ from service.core.mesh import MeshGeometry
 from service.core.plane import (
     CONSENSUS_TOLERANCE,
     PlaneFit,
+    RoiTriples,
     axis_leverage,
     fit_plane,
     plane_through,
@@ -69,15 +69,12 @@ F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[Any]
 
 # Refinements of index 2, 3, 4, 9 and 16 of a reciprocal lattice K: the lattices K S^-1 that
-# contain K. Their extra points are where the spectrum of a mesh coarser by sqrt(2), sqrt(3), 2,
-# 3 or 4 (in period) would have peaks.
-_REFINEMENTS = tuple(
-    np.linalg.inv(np.array(s, dtype=np.float64))
-    for s in (
-        [[2, 0], [0, 1]], [[1, 0], [0, 2]], [[1, 0], [1, 2]],
-        [[3, 0], [0, 1]], [[1, 0], [0, 3]], [[1, 0], [1, 3]], [[1, 0], [2, 3]],
-        [[2, 0], [0, 2]], [[3, 0], [0, 3]], [[4, 0], [0, 4]],
-    )
+# contain K, given by S. Their extra points are where the spectrum of a mesh coarser by sqrt(2),
+# sqrt(3), 2, 3 or 4 (in period) would have peaks (`_Refinements` tabulates them).
+_REFINEMENT_BASES = (
+    ((2, 0), (0, 1)), ((1, 0), (0, 2)), ((1, 0), (1, 2)),
+    ((3, 0), (0, 1)), ((1, 0), (0, 3)), ((1, 0), (1, 3)), ((1, 0), (2, 3)),
+    ((2, 0), (0, 2)), ((3, 0), (0, 3)), ((4, 0), (0, 4)),
 )
 
 
@@ -90,8 +87,6 @@ MAX_TRACKED_SCALE_STEP = 1.25
 # Coarse rectified ROIs (the leanest level) only where the mesh keeps this period in them: its
 # second harmonic then still lies inside the analysed band.
 _COARSE_MIN_PERIOD_PX = 4.4
-
-_REFINEMENT_INDEX = tuple(abs(round(1.0 / float(np.linalg.det(r)))) for r in _REFINEMENTS)
 
 # How a refusal begins when the view was recognised as a grid that is not the configured net.
 _NOT_A_NET = ("a brick-like grid", "a checkerboard-like grid", "the grid's cells are not",
@@ -367,6 +362,8 @@ class NetEstimator:
         # The whole view at 64 px, down to 1.8 cycles: the "too close" check.
         self._whole = SpectrumAnalyzer(64, min_radius_bins=1.8, min_snr=s.min_snr)
         self._layouts: dict[tuple[int, int], _Layout] = {}
+        self._refinements = _Refinements.build()
+        self._plane_triples = RoiTriples()
         self._mesh_opening = min(mesh.opening_angle_deg, 180.0 - mesh.opening_angle_deg)
 
     # -- geometry, cached per frame size ------------------------------------------------------
@@ -967,6 +964,7 @@ class NetEstimator:
                 np.array([m.ray for m in valid]), np.array([m.area_norm for m in valid]),
                 np.array([m.fit.relative_area_sigma for m in valid if m.fit is not None]),
                 self.mesh.cell_area_m2, min_rois=self.settings.min_rois,
+                triples=self._plane_triples,
             )
         timings["plane"] = timings.get("plane", 0.0) + (time.perf_counter() - t1) * 1e3
         if plane is None:
@@ -1164,7 +1162,7 @@ class NetEstimator:
                     np.array([m.ray for m in agreeing]),
                     np.array([m.area_norm for m in agreeing]),
                     np.array([m.fit.relative_area_sigma for m in agreeing if m.fit is not None]),
-                    self.mesh.cell_area_m2, min_rois=s.min_rois,
+                    self.mesh.cell_area_m2, min_rois=s.min_rois, triples=self._plane_triples,
                 )
                 if plane is not None:
                     for m, used in zip(agreeing, plane.used, strict=True):
@@ -1384,7 +1382,7 @@ class NetEstimator:
         fund = float(np.nanmean(spectrum.sample(snr, fundamentals)))
         threshold = max(null_level + 4.0 * null_spread, null_level + 0.35 * (fund - null_level))
         # The extra points of every refinement, looked up in one go.
-        points, group_of = _extra_points(k, spectrum.size)
+        points, group_of = _extra_points(k, spectrum.size, self._refinements)
         if points.shape[0] == 0:
             return None
         # A real peak there is a local maximum of its own: the skirt of a strong neighbour
@@ -1399,7 +1397,7 @@ class NetEstimator:
         real = keep[0] & ~_near_lattice(found[0], k, 1.5)
         best: tuple[float, int] | None = None
         for g in np.unique(group_of).tolist():
-            index = _REFINEMENT_INDEX[g]
+            index = self._refinements.index[g]
             values = centre[0][real & (group_of == g)]
             # The strongest extra point: the true mesh's fundamental or a harmonic sits at one
             # of them (the others are weak cross terms, or outside the band).
@@ -1941,48 +1939,62 @@ def _near_lattice(points: F64, basis: F64, radius: float) -> npt.NDArray[np.bool
     return np.asarray(np.linalg.norm(points.T - nearest, axis=0) < radius, dtype=bool)
 
 
-def _extra_points(k: F64, size: int) -> tuple[F64, npt.NDArray[np.int64]]:
+def _extra_points(k: F64, size: int, refinements: _Refinements
+                  ) -> tuple[F64, npt.NDArray[np.int64]]:
     """The low-order points (m, 2) of each refinement of the lattice `k` that are not points
     of `k`, inside the analysed band, and the refinement each belongs to (m,): those of a
     refinement with fewer than two such points are left out.
 
     In `k`'s own coordinates the points of refinement S are S^-1 (h, j): which of them are not
     lattice points, and their offsets from the nearest ones, depend on S alone and are
-    tabulated once (`_extra_coords`); only their lengths in bins depend on `k`."""
-    coords, offsets, group = _extra_coords()
-    points = coords @ k.T
-    off = offsets @ k.T  # (corners, m, 2): to the four points of `k` around each
+    tabulated once (`_Refinements`); only their lengths in bins depend on `k`."""
+    points = refinements.coords @ k.T
+    off = refinements.offsets @ k.T  # (corners, m, 2): to the four points of `k` around each
     nearest = np.hypot(off[..., 0], off[..., 1]).min(axis=0)
     radius = np.hypot(points[:, 0], points[:, 1])
     # Too near a point of `k` to be told from its skirt, or outside the band.
     keep = (nearest >= 2.5) & (radius >= 2.6) & (radius <= 0.45 * size)
-    counts = np.bincount(group[keep], minlength=len(_REFINEMENTS))
+    group = refinements.group
+    counts = np.bincount(group[keep], minlength=len(refinements.index))
     keep &= counts[group] >= 2
     return points[keep], group[keep]
 
 
-@functools.cache
-def _extra_coords() -> tuple[F64, F64, npt.NDArray[np.int64]]:
-    """`_extra_points`' table: for each refinement S^-1 and each low-order (h, j), the point's
-    coordinates in the coarse lattice when they are not integers, their offsets from the four
-    integer points around them (a point halfway between two is near both), and the
-    refinement's number."""
-    coords: list[F64] = []
-    group: list[int] = []
-    for g, inv_s in enumerate(_REFINEMENTS):
-        for h in range(0, 3):
-            for j in range(-2, 3):
-                if (h, j) == (0, 0) or (h == 0 and j < 0):
-                    continue
-                c = inv_s @ np.array([h, j], dtype=np.float64)
-                if np.abs(c - np.rint(c)).max() < 1e-6:
-                    continue
-                coords.append(c)
-                group.append(g)
-    table = np.array(coords)
-    corners = np.array([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
-    offsets = (table - np.floor(table))[None] - corners[:, None, :]
-    return table, offsets, np.array(group, dtype=np.int64)
+@dataclass(frozen=True)
+class _Refinements:
+    """`_extra_points`' table, built once per estimator: for each refinement S (of
+    `_REFINEMENT_BASES`) and each low-order (h, j), the point S^-1 (h, j)'s coordinates in the
+    coarse lattice when they are not integers (`coords`), their offsets from the four integer
+    points around them (`offsets`: a point halfway between two is near both), the refinement's
+    number (`group`); and each refinement's index |det S| (`index`)."""
+
+    coords: F64
+    offsets: F64
+    group: npt.NDArray[np.int64]
+    index: tuple[int, ...]
+
+    @classmethod
+    def build(cls) -> _Refinements:
+        coords: list[F64] = []
+        group: list[int] = []
+        index: list[int] = []
+        for g, basis in enumerate(_REFINEMENT_BASES):
+            s = np.array(basis, dtype=np.float64)
+            inv_s = np.asarray(np.linalg.inv(s), dtype=np.float64)
+            index.append(abs(round(float(np.linalg.det(s)))))
+            for h in range(0, 3):
+                for j in range(-2, 3):
+                    if (h, j) == (0, 0) or (h == 0 and j < 0):
+                        continue
+                    c = inv_s @ np.array([h, j], dtype=np.float64)
+                    if np.abs(c - np.rint(c)).max() < 1e-6:
+                        continue
+                    coords.append(c)
+                    group.append(g)
+        table = np.array(coords)
+        corners = np.array([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
+        offsets = (table - np.floor(table))[None] - corners[:, None, :]
+        return cls(table, offsets, np.array(group, dtype=np.int64), tuple(index))
 
 
 def _bar_pair(edges: F64) -> F64:

@@ -19,7 +19,6 @@ the result must use.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -72,15 +71,18 @@ def fit_plane(
     outlier_sigma: float = 3.5,
     min_relative_tolerance: float = 0.01,
     consensus_tolerance: float = CONSENSUS_TOLERANCE,
+    triples: RoiTriples | None = None,
 ) -> PlaneFit | None:
-    """Robust weighted plane fit; None when too few consistent ROIs or a degenerate layout."""
+    """Robust weighted plane fit; None when too few consistent ROIs or a degenerate layout.
+    `triples`: the caller's table of ROI triples, kept between fits (a new one otherwise)."""
     if rays.shape[0] < min_rois:
         return None
     c = np.cbrt(cell_area_norm / mesh_cell_area_m2)
     rel_sigma_c = relative_sigma_c(relative_area_sigma)
     # A ROI joins the consensus within 3 sigma of its own measurement, but never tighter than
     # `consensus_tolerance`: weak lattices (few cycles, faint peaks) are known less well.
-    used = _consensus(rays, c, np.maximum(consensus_tolerance, 3.0 * rel_sigma_c))
+    used = _consensus(rays, c, np.maximum(consensus_tolerance, 3.0 * rel_sigma_c),
+                      triples if triples is not None else RoiTriples())
     if used is None:
         return None
     m = np.zeros(3)
@@ -208,27 +210,40 @@ def tilt_leverage(rays: F64, extent: float) -> float:
         return math.inf
 
 
-@functools.lru_cache(maxsize=64)
-def _triples(k: int) -> npt.NDArray[np.int64]:
-    """Every (a, b, c) with a < b < c < k, in the order itertools.combinations gives them
-    (built by numpy: a Python list of them cost about as much as the RANSAC itself). Kept per
-    k, read-only: a tracked frame fits the same number of ROIs as the last, and building the
-    table was a third of the consensus's time."""
-    a, b, c = np.meshgrid(*(np.arange(k, dtype=np.int64),) * 3, indexing="ij")
-    ordered = (a < b) & (b < c)
-    table = np.stack([a[ordered], b[ordered], c[ordered]], axis=1)
-    table.flags.writeable = False
-    return table
+class RoiTriples:
+    """Every (a, b, c) with a < b < c < k, in the order itertools.combinations gives them,
+    per ROI count k: built by numpy (a Python list of them cost about as much as the RANSAC
+    itself) and kept, read-only, by its owner (an estimator): a tracked frame fits the same
+    number of ROIs as the last, and building the table was a third of the consensus's time."""
+
+    # ROI counts kept: an estimator sees a few (its grid, minus what a frame rejects).
+    MAX_COUNTS = 64
+
+    def __init__(self) -> None:
+        self._tables: dict[int, npt.NDArray[np.int64]] = {}
+
+    def __call__(self, k: int) -> npt.NDArray[np.int64]:
+        table = self._tables.get(k)
+        if table is None:
+            if len(self._tables) >= self.MAX_COUNTS:
+                del self._tables[next(iter(self._tables))]
+            a, b, c = np.meshgrid(*(np.arange(k, dtype=np.int64),) * 3, indexing="ij")
+            ordered = (a < b) & (b < c)
+            table = np.stack([a[ordered], b[ordered], c[ordered]], axis=1)
+            table.flags.writeable = False
+            self._tables[k] = table
+        return table
 
 
-def _consensus(rays: F64, c: F64, tolerance: F64, max_triples: int = 600) -> Bools | None:
+def _consensus(rays: F64, c: F64, tolerance: F64, all_triples: RoiTriples,
+               max_triples: int = 600) -> Bools | None:
     """Exhaustive RANSAC over ROI triples: the plane most ROIs agree with seeds the fit.
 
     A wrong lattice in one ROI (a sub- or super-lattice, a fish) is off by a factor of at least
     2^(1/3) in c, far outside the tolerance, so it cannot join a consensus of correct ROIs.
     """
     k = rays.shape[0]
-    triples = _triples(k)
+    triples = all_triples(k)
     if triples.shape[0] > max_triples:
         step = triples.shape[0] / max_triples
         triples = triples[(np.arange(max_triples) * step).astype(np.int64)]
