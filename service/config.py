@@ -360,12 +360,22 @@ def load_config(
     extra_sections: Mapping[str, type] | None = None,
     *,
     check_files: bool = True,
+    drop: Iterable[str] = (),
 ) -> Config:
-    """Read, merge overrides, validate. `path=None` means defaults plus overrides only."""
+    """Read, merge overrides, validate. `path=None` means defaults plus overrides only.
+    `drop`: keys ('section.key') or whole sections of the file left out, as if not written
+    (their defaults hold; the overrides still apply)."""
     sections = core_sections()
     sections.update(extra_sections or {})
     cfg_path = None if path is None else Path(path).expanduser().resolve()
     doc: dict[str, Any] = {} if cfg_path is None else read_toml(cfg_path)
+    for dropped in drop:
+        section_name, dot, key = dropped.partition(".")
+        table = doc.get(section_name)
+        if not dot:
+            doc.pop(section_name, None)
+        elif isinstance(table, dict):
+            table.pop(key, None)
     override_list = tuple(overrides)
     for text in override_list:
         section, key, value = parse_override(text)

@@ -1251,6 +1251,69 @@ def test_restart_in_set_up_mode_comes_back_in_set_up_mode(tmp_path: Path) -> Non
         assert d.stop() == 0, d.log()
 
 
+def test_any_configuration_error_serves_the_page_that_names_and_fixes_it(
+    tmp_path: Path,
+) -> None:
+    """A mistyped MAVLink URL in the file of a vehicle with the page on: `run` exited 78 and
+    the container engine restarted it for ever, with no page to say why (BlueOS review). Now
+    set-up mode serves the page, naming the key; nothing reaches the autopilot; the page's
+    settings fix it and the daemon starts, sending to the fixed URL."""
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    autopilot.bind(("127.0.0.1", 0))
+    autopilot.settimeout(3.0)
+    url = f"udpout:127.0.0.1:{autopilot.getsockname()[1]}"
+    d = WebDaemon(tmp_path, sections={"mavlink": {"url": url.replace(":", "//", 1)}})
+    try:
+        d.start()
+        assert d.proc is not None and d.proc.poll() is None
+        _, settings = d.request("GET", "/api/settings")
+        assert settings["problem"].startswith("configuration error: mavlink.url"), settings
+        assert "set-up mode, nothing is sent" in d.log() and "mavlink.url" in d.log()
+        texts, frames = d.collect(3.0)  # the camera is shown, with the problem
+        reasons = {t["reason"] for t in texts if t["kind"] == "estimate"}
+        assert frames and reasons and all(r.startswith("set-up mode: configuration error: "
+                                                       "mavlink.url") for r in reasons)
+        with pytest.raises(TimeoutError):
+            autopilot.recv(1024)
+        # Another setting cannot be saved past the error: the page says which key is wrong.
+        status, reply = d.request("POST", "/api/settings",
+                                  {"changes": {"mavlink.sensor_id": 3}}, token=True)
+        assert status == 400 and "mavlink.url" in reply["error"], reply
+        status, reply = d.request("POST", "/api/settings", {"changes": {"mavlink.url": url}},
+                                  token=True)
+        assert status == 200 and reply["saved"], reply
+        deadline = time.monotonic() + 60.0
+        while "leaving set-up mode" not in d.log():
+            assert time.monotonic() < deadline, d.log()
+            time.sleep(0.3)
+        assert autopilot.recv(1024)[:1] in (b"\xfd", b"\xfe")  # the daemon proper's MAVLink
+    finally:
+        autopilot.close()
+        assert d.stop() == 0, d.log()
+
+
+def test_a_camera_url_the_page_cannot_open_is_set_up_with_the_reason(tmp_path: Path) -> None:
+    """camera.url itself wrong (a scheme no source knows) and a key no section has: the page
+    comes up all the same, saying both what the file has wrong and why the view is dark."""
+    d = WebDaemon(tmp_path, sections={"camera": {"url": "vl42:/dev/video0"},
+                                      "telemetry": {"vehicel": "rov1"}})
+    try:
+        d.start(frames=False)
+        assert d.proc is not None
+        deadline = time.monotonic() + 20.0
+        while True:
+            _, settings = d.request("GET", "/api/settings")
+            if "check camera.url" in settings["problem"]:
+                break
+            assert d.proc.poll() is None, d.log()
+            assert time.monotonic() < deadline, settings
+            time.sleep(0.2)
+        assert settings["problem"].startswith("configuration error: telemetry.vehicel")
+        assert "vl42" in settings["problem"], settings["problem"]
+    finally:
+        assert d.stop() == 0, d.log()
+
+
 def test_without_a_calibration_the_page_sets_up_and_nothing_is_sent(tmp_path: Path) -> None:
     autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     autopilot.bind(("127.0.0.1", 0))

@@ -14,8 +14,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
+import tomlkit
 
 from drivers.mavlink_link import RecordingAutopilotLink
 from drivers.sdnotify import NullNotifier
@@ -25,7 +27,13 @@ from service.core.camera import save_camera
 from service.core.errors import ConfigError
 from service.core.messages import to_json
 from service.daemon.loop import Daemon
-from service.daemon.wiring import build_parts, build_source, check_config, load_daemon_config
+from service.daemon.wiring import (
+    build_parts,
+    build_source,
+    check_config,
+    load_daemon_config,
+    main,
+)
 from tests.daemon_harness import (
     REPO,
     FakeClock,
@@ -279,6 +287,36 @@ def test_check_says_what_run_does_with_a_configuration_set_up_mode_can_finish() 
     with pytest.raises(ConfigError) as info:  # set-up mode cannot fix a bad MAVLink URL
         check_config(str(REPO / "config" / "blueos.toml"), ["mavlink.url=nonsense"])
     assert info.value.key == "mavlink.url"
+
+
+@pytest.mark.parametrize(("changes", "key"), [
+    # No page to serve: the one-line error and exit 78, as ever.
+    ({"web.enabled": False, "mavlink.url": "nonsense"}, "mavlink.url"),
+    # The page's own settings wrong: no page to serve it with.
+    ({"web.port": "eighty"}, "web.port"),
+    # A required key with no default: nothing to stand in for it.
+    ({"camera.url": None}, "camera.url"),
+])
+def test_set_up_mode_serves_no_configuration_error_it_cannot_serve_the_page_past(
+    tmp_path: Path, changes: dict[str, Any], key: str,
+) -> None:
+    """Set-up mode takes any configuration error while the page is on (test_web.py); these it
+    cannot, and `run` exits with the error naming the key instead of serving a page."""
+    doc = tomlkit.parse(DEMO.read_text(encoding="utf-8"))
+    doc["web"]["enabled"] = True
+    doc["web"]["host"] = "127.0.0.1"
+    doc["web"]["port"] = 0
+    for name, value in changes.items():
+        section, _, field = name.partition(".")
+        if value is None:
+            del doc[section][field]
+        else:
+            doc[section][field] = value
+    path = tmp_path / "netpose.toml"
+    path.write_text(tomlkit.dumps(doc), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        main(str(path), duration_s=5.0)
+    assert info.value.key == key, info.value
 
 
 def test_a_bad_calibration_file_is_a_configuration_error_naming_the_key(

@@ -3,7 +3,9 @@
 On a first start under BlueOS there is no mesh size and no camera calibration yet, and `netpose
 run` would stop with exit status 78, restarted in a loop by the container engine, with no page to
 fix it from. With `web.enabled`, a problem with either starts this mode instead: the camera's
-frames (with the problem written on them), the settings form and the calibration upload.
+frames (with the problem written on them), the settings form and the calibration upload. So
+does any other configuration error but the page's own (wiring.py's `_rescue`): the page names
+the key, and its settings or the file fix it.
 Nothing is sent to the autopilot and nothing is published: the link and telemetry are not even
 built. A change saved on the page asks for a reload (the editor's ordinary path); when the
 configuration is then valid, set-up mode ends and the daemon starts as usual, in the same
@@ -70,8 +72,8 @@ def run_setup(
     """Serve the page until a saved configuration is valid (returned), or a stop or the
     monotonic `deadline` (`netpose run --duration`) comes first (None). `note_camera` is told
     what keeps the live view dark ("" once frames come), for the page to say."""
-    log.warning("configuration incomplete (%s): set-up mode, nothing is sent to the autopilot; "
-                "finish the set-up on the web page", problem)
+    log.warning("configuration not usable yet (%s): set-up mode, nothing is sent to the "
+                "autopilot; finish it on the web page (or in the file)", problem)
     page.start()
     notifier.ready(status=f"set-up mode: {problem}")
     opened_at: float | None = None

@@ -24,7 +24,7 @@ from drivers.mavlink_settings import MavlinkSettings
 from drivers.recorder import Recorder, RecordingSetup
 from drivers.sdnotify import NullNotifier, notifier_from_environment
 from drivers.sources import FrameSource as DriverFrameSource
-from drivers.sources import SourceOptions, create_source
+from drivers.sources import SourceOptions, SourceState, SourceStats, create_source
 from drivers.sources.url import OWN_SCHEMES, is_network_url, parse_source_url
 from drivers.telemetry import TelemetrySettings, make_publisher
 from drivers.web import WebSettings
@@ -33,7 +33,7 @@ from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError, ConfigError
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
-from service.daemon.ports import FrameObserver, Notifier
+from service.daemon.ports import FrameObserver, FrameSource, Notifier
 from service.daemon.settings_editor import (
     RECORDED_SECTIONS,
     SET_UP_MESH_KEY,
@@ -59,10 +59,11 @@ _FILE_KEYS = (("mavlink", "signing_key_file"), ("telemetry", "config_file"))
 
 
 def load_daemon_config(
-    path: str | None, overrides: Iterable[str] = (), *, check_files: bool = True
+    path: str | None, overrides: Iterable[str] = (), *, check_files: bool = True,
+    drop: Iterable[str] = (),
 ) -> Config:
     config = load_config(path, overrides, extra_sections=driver_sections(),
-                         check_files=check_files)
+                         check_files=check_files, drop=drop)
     sections = dict(config.sections)
     for name, key in _FILE_KEYS:
         value = getattr(sections[name], key)
@@ -344,7 +345,7 @@ def main(
                     try:
                         parts = build_parts(config, _RestartAware(notify, restart), controls)
                     except (ConfigError, CalibrationError) as exc:
-                        problem = _setup_problem(config, exc)
+                        problem = _setup_problem(config, exc, rescue=True)
                 if parts is None:
                     assert problem is not None
                     deadline = None if duration_s is None else started + duration_s
@@ -457,14 +458,61 @@ def _set_up_can_fix(exc: Exception) -> bool:
         isinstance(exc, ConfigError) and exc.key in SET_UP_KEYS)
 
 
-def _setup_problem(config: Config, exc: Exception) -> str:
+def _setup_problem(config: Config, exc: Exception, *, rescue: bool = False) -> str:
     """The problem set-up mode can fix from the page (the mesh size or the calibration
-    missing or unusable, with the page enabled); anything else is raised again (exit status
-    78)."""
-    if not _set_up_can_fix(exc) or not config.section("web", WebSettings).enabled:
+    missing or unusable, with the page enabled); with `rescue`, any configuration error but
+    the page's own (see `_rescue`). Anything else is raised again (exit status 78)."""
+    fixable = _set_up_can_fix(exc) or (rescue and isinstance(exc, ConfigError)
+                                       and _rescuable(exc.key))
+    if not fixable or not config.section("web", WebSettings).enabled:
         raise exc
     return f"configuration error: camera.calibration: {exc}" if isinstance(
         exc, CalibrationError) else f"configuration error: {exc}"
+
+
+# Broken keys a rescue looks past to serve the page: a file with more needs more than a page.
+_RESCUE_MAX_KEYS = 8
+_KEY_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(\.[A-Za-z_][A-Za-z0-9_-]*)?")
+
+
+def _rescuable(key: str) -> bool:
+    """A key (or section) of the file that set-up mode can serve the page without: not the
+    page's own settings, not a file's name (a file that is not TOML at all)."""
+    return _KEY_NAME.fullmatch(key) is not None and key.partition(".")[0] != "web"
+
+
+def _rescue(config_path: str | None, overrides: tuple[str, ...], exc: ConfigError
+            ) -> tuple[Config, str]:
+    """Set-up mode for a configuration error that set-up was not made for (a bad camera or
+    MAVLink URL, a mistyped key, a value out of range).
+
+    With the page on (BlueOS), `run` exited 78 on such a file and the container engine started
+    it again, for ever, with no page to say why (only the extension's log did). Now the page
+    comes up and says what is wrong, naming the key; its settings, or the file, fix it. The
+    broken keys are left out (their defaults hold) only to serve the page: set-up mode sends
+    nothing and publishes nothing, and it ends only once the file itself is valid. Raised
+    again (exit 78, as ever) when the page is off, or when what is wrong is the page's own
+    settings, a file that is not TOML, or a required key that has no default."""
+    drop: list[str] = []
+    extra: tuple[str, ...] = ()
+    error: ConfigError = exc
+    for _ in range(_RESCUE_MAX_KEYS):
+        if error.key == SET_UP_MESH_KEY and not extra:
+            extra = (SET_UP_MESH_OVERRIDE,)  # set-up's own stand-in
+        elif _rescuable(error.key) and error.key not in drop:
+            drop.append(error.key)
+        else:
+            raise exc
+        try:
+            config = load_daemon_config(config_path, (*overrides, *extra), check_files=False,
+                                        drop=drop)
+        except ConfigError as again:
+            error = again
+            continue
+        if not config.section("web", WebSettings).enabled:
+            raise exc
+        return config, f"configuration error: {exc}"
+    raise exc
 
 
 def _setup_config(config_path: str | None, overrides: tuple[str, ...]) -> Config:
@@ -485,8 +533,11 @@ def _load_or_setup(config_path: str | None, overrides: tuple[str, ...]
         return load_daemon_config(config_path, overrides), None
     except ConfigError as exc:
         if not _set_up_can_fix(exc):
-            raise
-        config = _setup_config(config_path, overrides)
+            return _rescue(config_path, overrides, exc)
+        try:
+            config = _setup_config(config_path, overrides)
+        except ConfigError:  # something else is wrong besides
+            return _rescue(config_path, overrides, exc)
         return config, _setup_problem(config, exc)
 
 
@@ -498,10 +549,35 @@ def _set_up(config: Config, problem: str, notify: Notifier, flags: SignalFlags,
     web = config.section("web", WebSettings)
     vehicle = config.section("telemetry", TelemetrySettings).vehicle
     page = WebPage[None](web, setup_renderer(problem, web.live_width), editor, None, vehicle)
-    return run_setup(source=build_source(config), page=page, notifier=notify, flags=flags,
+    source: FrameSource
+    try:
+        source = build_source(config)
+    except ConfigError as exc:  # camera.url is what is wrong: the page says so
+        source = _NoCamera(exc)
+    return run_setup(source=source, page=page, notifier=notify, flags=flags,
                      problem=problem, validate=lambda: checked_config(config_path, overrides),
                      on_reload=editor.reloaded, vehicle=vehicle, deadline=deadline,
                      note_camera=editor.note_camera)
+
+
+class _NoCamera:
+    """Set-up mode's camera when `camera.url` itself is what is wrong: it never opens, and
+    says why (set-up mode shows it beside the problem)."""
+
+    def __init__(self, problem: ConfigError) -> None:
+        self._problem = problem
+
+    def open(self) -> None:
+        raise self._problem
+
+    def read(self, timeout_s: float) -> None:
+        return None
+
+    def stats(self) -> SourceStats:
+        return SourceStats(SourceState.DOWN, 0, 0, 0, 0, 0, 0.0, error=str(self._problem))
+
+    def close(self) -> None:
+        """Nothing was opened."""
 
 
 class _RestartAware:
