@@ -29,8 +29,7 @@ local PLANE_NAME = "NET_PLANE"
 local MSG = {DEBUG_VECT = 250, MANUAL_CONTROL = 69, COMMAND_LONG = 76, COMMAND_ACK = 77,
              RC_CHANNELS_OVERRIDE = 70}
 local MAV = {CMD_USER_1 = 31010, RESULT_ACCEPTED = 0, RESULT_DENIED = 2}
-local SEV_WARNING = 4
-local SEV_INFO = 6
+local SEV = {WARNING = 4, INFO = 6}  -- MAV_SEVERITY
 local NEUTRAL = 1500
 local UPDATE_MS = 10  -- re-assert overrides often: the pilot's MANUAL_CONTROL writes them too
 -- A plane is stamped with its frame's capture time (the autopilot's clock), so it can only be
@@ -63,6 +62,26 @@ local TRIM_DROP_M = 0.05
 -- millis() is a uint32: it wraps after 49.7 days.
 local CLOCK_WRAP_S = 4294967.296
 local HISTORY_N = 160    -- heading samples kept: 1.6 s at the 10 ms update
+-- What this ArduSub offers and expects.
+-- The vehicle's attitude, radians: 4.5 has ahrs:get_roll()/get_pitch()/get_yaw(); 4.7 renamed
+-- them *_rad (ArduPilot PR #30222, 2025) and keeps the old names, deprecated. A method a
+-- firmware lacks reads as nil (the binding's __index finds nothing), so take what this one has.
+-- The modes whose forward and yaw channels are thrust and turn rate as the pilot's sticks give
+-- them (Sub's mode numbers): not GUIDED or AUTO (they never read forward), not POSHOLD (forward
+-- is a velocity demand there), not SURFACE or MOTOR_DETECT.
+-- Steering pulse widths stay where ArduSub's own joystick keeps them (joystick.cpp); beyond
+-- 0..2200 set_override raises.
+local SUB = {roll = ahrs.get_roll_rad or ahrs.get_roll,
+             pitch = ahrs.get_pitch_rad or ahrs.get_pitch,
+             yaw = ahrs.get_yaw_rad or ahrs.get_yaw,
+             hold_modes = {[0] = "STABILIZE", [1] = "ACRO", [2] = "ALT_HOLD", [19] = "MANUAL",
+                           [21] = "SURFTRAK"},
+             pwm_min = 1100, pwm_max = 1900}
+-- An update that fails (a bug, a binding this firmware lacks) is said at most every `every_s`;
+-- after `give_up` failures in a row (a second) the applet stops, thrust neutral, rather than
+-- fill the pilot's link (and ArduPilot's text queue, which drops its oldest: a leak warning)
+-- with the same two lines a hundred times a second.
+local FAULTS = {count = 0, said = nil, every_s = 5.0, give_up = 100}
 
 -- Parameters: name, default, and the range net hold engages with (outside it, or NaN, it
 -- refuses and says which: an inverted clamp or a dead zone no stick can leave would otherwise
@@ -223,9 +242,10 @@ local function setup()
   lateral_rc = math.floor(param_or("RCMAP_LATERAL", 6))
   my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
   gcs_param = bind_gcs_param()
-  -- Four message ids; a queue of 20 holds a quarter second of the pilot's and netpose's
-  -- messages should the scripting thread stall (a full queue drops what comes).
-  mavlink:init(4, 20)
+  -- A queue of 20 messages (about half a second of the pilot's and netpose's, should the
+  -- scripting thread stall: a full queue drops what comes), four message ids. The queue's
+  -- length comes first (lua_bindings.cpp): (4, 20) was a queue of four.
+  mavlink:init(20, 4)
   mavlink:register_rx_msgid(MSG.DEBUG_VECT)
   mavlink:register_rx_msgid(MSG.MANUAL_CONTROL)
   mavlink:register_rx_msgid(MSG.RC_CHANNELS_OVERRIDE)
@@ -243,7 +263,7 @@ local function level_vector(x, y, z)
   local by = x
   local bz = math.cos(t) * y + math.sin(t) * z
   -- body -> level: R = Ry(pitch) Rx(roll)
-  local r, p = ahrs:get_roll_rad(), ahrs:get_pitch_rad()
+  local r, p = SUB.roll(ahrs), SUB.pitch(ahrs)
   local cr, sr, cp, sp = math.cos(r), math.sin(r), math.cos(p), math.sin(p)
   local y1 = cr * by - sr * bz
   local z1 = sr * by + cr * bz
@@ -258,13 +278,13 @@ end
 local function record_yaw(now)
   if yaw_n > 0 and now < yaw_t[yaw_head] then yaw_n = 0 end  -- the clock wrapped: start again
   yaw_head = yaw_head % HISTORY_N + 1
-  yaw_t[yaw_head], yaw_v[yaw_head] = now, ahrs:get_yaw_rad()
+  yaw_t[yaw_head], yaw_v[yaw_head] = now, SUB.yaw(ahrs)
   if yaw_n < HISTORY_N then yaw_n = yaw_n + 1 end
 end
 
 local function yaw_at(t)
   -- The recorded heading nearest to time t (the samples are 10 ms apart, oldest first).
-  if yaw_n == 0 then return ahrs:get_yaw_rad() end
+  if yaw_n == 0 then return SUB.yaw(ahrs) end
   local oldest = (yaw_head - yaw_n) % HISTORY_N
   local lo, hi = 0, yaw_n - 1
   while lo < hi do  -- the first sample at or after t (or the newest)
@@ -280,8 +300,12 @@ local function yaw_at(t)
 end
 
 -- Messages ------------------------------------------------------------------------------------
-local function send_ack(chan, command, result)
-  mavlink:send_chan(chan, MSG.COMMAND_ACK, string.pack("<HB", command, result))
+local function send_ack(chan, command, result, sysid, compid)
+  -- Every field of COMMAND_ACK (10 bytes): send_chan sends as many bytes as the message has
+  -- whatever the string holds, and a short one sent the autopilot's memory after it as the
+  -- target (a ground station that drops ACKs not addressed to it timed the command out).
+  mavlink:send_chan(chan, MSG.COMMAND_ACK,
+                    string.pack("<HBBi4BB", command, result, 0, 0, sysid, compid))
 end
 
 local disengage
@@ -455,15 +479,17 @@ end
 local function on_command(msg, chan, from_gcs)
   local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
   if command ~= MAV.CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
+  local sysid, compid = string.byte(msg, 8), string.byte(msg, 9)
   if p1 >= 0.5 and not from_gcs then  -- only the pilot's ground station engages
-    send_ack(chan, command, MAV.RESULT_DENIED)
+    send_ack(chan, command, MAV.RESULT_DENIED, sysid, compid)
     return
   end
   if p1 >= 0.5 then
-    send_ack(chan, command, engage() and MAV.RESULT_ACCEPTED or MAV.RESULT_DENIED)
+    send_ack(chan, command, engage() and MAV.RESULT_ACCEPTED or MAV.RESULT_DENIED, sysid,
+             compid)
   else
     if engaged then disengage("command", true) end
-    send_ack(chan, command, MAV.RESULT_ACCEPTED)
+    send_ack(chan, command, MAV.RESULT_ACCEPTED, sysid, compid)
   end
 end
 
@@ -516,7 +542,7 @@ disengage = function(why, to_neutral)
   engaged, paused, yaw_rate_cmd = false, false, 0
   if to_neutral then neutral() end
   v_cmd, trim.sum, trim.held, yaw_integral = 0, 0, false, 0
-  say(SEV_WARNING, "OFF, " .. why)
+  say(SEV.WARNING, "OFF, " .. why)
   gcs:send_named_float("NH_ON", 0)
 end
 
@@ -524,39 +550,43 @@ engage = function()
   if engaged then return true end
   local now = now_s()
   if get("ENABLE") < 1 then
-    say(SEV_WARNING, "disabled (NETH_ENABLE = 0)")
+    say(SEV.WARNING, "disabled (NETH_ENABLE = 0)")
     return false
   end
   local bad = bad_param()
   if bad ~= nil then
-    say(SEV_WARNING, "refused: " .. bad)
+    say(SEV.WARNING, "refused: " .. bad)
     return false
   end
   if not arming:is_armed() then
-    say(SEV_WARNING, "refused: disarmed")
+    say(SEV.WARNING, "refused: disarmed")
+    return false
+  end
+  if SUB.hold_modes[vehicle:get_mode()] == nil then
+    say(SEV.WARNING, "refused in this mode (use ALT_HOLD)")
     return false
   end
   if since(last_pilot, now) > PILOT_TIMEOUT_S then
-    say(SEV_WARNING, "refused: no joystick input from the GCS")
+    say(SEV.WARNING, "refused: no joystick input from the GCS")
     return false
   end
   if plane_age(now) > get("TIMEOUT") or no_net_t ~= nil then
-    say(SEV_WARNING, "refused: no net in view")
+    say(SEV.WARNING, "refused: no net in view")
     return false
   end
   if plane.d > get("DIST_MAX") or plane.d < get("DIST_MIN") then
-    say(SEV_WARNING, string.format("refused: net at %.2f m", plane.d))
+    say(SEV.WARNING, string.format("refused: net at %.2f m", plane.d))
     return false
   end
   if doubt > 0 then
-    say(SEV_WARNING, "refused: " .. (doubt_why or "net distance not steady"))
+    say(SEV.WARNING, "refused: " .. (doubt_why or "net distance not steady"))
     return false
   end
   engaged, paused, yaw_rate_cmd = true, false, 0
   engaged_mode = vehicle:get_mode()
   v_cmd, trim.sum, trim.held, yaw_integral = 0, 0, false, 0
   last_update = now
-  say(SEV_INFO, string.format("ON, holding %.2f m (net at %.2f m)", set_point(), plane.d))
+  say(SEV.INFO, string.format("ON, holding %.2f m (net at %.2f m)", set_point(), plane.d))
   gcs:send_named_float("NH_ON", 1)
   return true
 end
@@ -658,7 +688,7 @@ local function control(now)
   -- Heading: yaw until the net's normal is straight ahead in the level frame.
   -- Heading error now: the heading that faces the net (from the plane, at its capture time)
   -- minus the heading now. Positive: yaw right.
-  local heading_err = math.deg(wrap_pi(target_yaw - ahrs:get_yaw_rad()))
+  local heading_err = math.deg(wrap_pi(target_yaw - SUB.yaw(ahrs)))
   local yaw_pwm = NEUTRAL
   local max_rate = get("YAW_RATE")
   local rate_want = 0
@@ -677,7 +707,8 @@ local function control(now)
       offset = offset + (offset > 0 and get("YAW_DZ") or -get("YAW_DZ"))
     end
     local yaw_max = get("YAW_DZ") + max_rate * get("YAW_GAIN")
-    yaw_pwm = math.floor(NEUTRAL + clamp(offset, -yaw_max, yaw_max) + 0.5)
+    yaw_pwm = clamp(math.floor(NEUTRAL + clamp(offset, -yaw_max, yaw_max) + 0.5), SUB.pwm_min,
+                    SUB.pwm_max)
   else
     yaw_integral = 0  -- square: ArduSub's heading hold keeps it
   end
@@ -737,11 +768,11 @@ local function update()
       if said_pause then
         last_pause_text = now
         if doubt_why ~= nil then
-          say(SEV_WARNING, doubt_why .. ": thrust stopped")
+          say(SEV.WARNING, doubt_why .. ": thrust stopped")
         elseif no_net_t ~= nil then
-          say(SEV_WARNING, "net not seen: thrust stopped")
+          say(SEV.WARNING, "net not seen: thrust stopped")
         else
-          say(SEV_WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
+          say(SEV.WARNING, string.format("no fresh net (%.2f s): thrust stopped", age))
         end
       end
     end
@@ -763,7 +794,7 @@ local function update()
       end
       paused = false
       last_update = now
-      if said_pause then say(SEV_INFO, "net back, holding again") end
+      if said_pause then say(SEV.INFO, "net back, holding again") end
     end
     control(now)
   end
@@ -771,23 +802,36 @@ end
 
 local function protected_update()
   local ok, err = pcall(update)
-  if not ok then
-    -- A bug must not leave thrust behind: neutral, off, and keep running.
-    if engaged then
-      engaged = false
-      neutral()
-    end
-    gcs:send_named_float("NH_ON", 0)
+  if ok then
+    FAULTS.count = 0
+    return protected_update, UPDATE_MS
+  end
+  -- A bug must not leave thrust behind: neutral, off, and keep running (a fault that comes
+  -- and goes, one odd message), but not for ever on one that stays.
+  if engaged then
+    engaged = false
+    pcall(neutral)
+  end
+  gcs:send_named_float("NH_ON", 0)
+  FAULTS.count = FAULTS.count + 1
+  local now = now_s()
+  if FAULTS.said == nil or since(FAULTS.said, now) >= FAULTS.every_s then
+    FAULTS.said = now
     -- Two texts: each holds 50 characters, and the error's start (file and line) matters most.
     gcs:send_text(3, "NetHold: internal error, OFF")
     gcs:send_text(3, "NetHold: " .. string.sub(tostring(err), 1, 41))
+  end
+  if FAULTS.count >= FAULTS.give_up then
+    pcall(neutral)
+    gcs:send_text(3, "NetHold: stopped after repeated errors")
+    return  -- no next run: ArduPilot ends the script
   end
   return protected_update, UPDATE_MS
 end
 
 setup()
 clear_buttons()  -- presses from before the applet was there are not the pilot's to it
-say(SEV_INFO, string.format("loaded, set point %.2f m, button %d", set_point(), math.floor(get("BTN"))))
+say(SEV.INFO, string.format("loaded, set point %.2f m, button %d", set_point(), math.floor(get("BTN"))))
 -- The first run at once: a command in the first second after loading (the pilot engaging
 -- right after a reboot) got no COMMAND_ACK at all, the command being blocked for the applet.
 return protected_update, UPDATE_MS

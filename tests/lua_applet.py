@@ -57,7 +57,7 @@ function rc:get_channel(n)
   end}
 end
 mavlink = {}
-function mavlink:init(q, n) stub.mav_init = n end
+function mavlink:init(q, n) stub.mav_queue, stub.mav_init = q, n end
 function mavlink:register_rx_msgid(id) table.insert(stub.rx_ids, id) return true end
 function mavlink:block_command(id) stub.blocked[id] = true return true end
 function mavlink:receive_chan()
@@ -66,7 +66,9 @@ function mavlink:receive_chan()
   return m[1], m[2], m[3]
 end
 function mavlink:send_chan(chan, msgid, payload)
-  table.insert(stub.sent, {chan, msgid, payload}) return true
+  -- Kept as hex too: the bytes (a system id of 255) are not UTF-8 for the Python side.
+  local hex = payload:gsub(".", function(c) return string.format("%02x", c:byte()) end)
+  table.insert(stub.sent, {chan, msgid, payload, hex}) return true
 end
 gcs = {}
 -- ArduPilot cuts a STATUSTEXT at 50 characters (GCS::send_text): a longer text loses its end
@@ -87,12 +89,29 @@ function arming:is_armed() return stub.armed end
 vehicle = {}
 function vehicle:get_mode() return stub.mode end
 ahrs = {}
-function ahrs:get_roll_rad() return stub.roll end
-function ahrs:get_pitch_rad() return stub.pitch end
-function ahrs:get_yaw_rad() return stub.yaw end
+""" + "{ahrs}" + r"""
 logger = {}
 function logger:write(...) stub.logs = stub.logs + 1 end
 """
+
+
+# The attitude bindings by firmware: 4.7 added the *_rad names (ArduPilot PR #30222) and kept
+# the old ones, deprecated; 4.5, the series BlueOS installs, has only the old ones.
+AHRS_BINDINGS = {
+    "4.7": r"""
+function ahrs:get_roll_rad() return stub.roll end
+function ahrs:get_pitch_rad() return stub.pitch end
+function ahrs:get_yaw_rad() return stub.yaw end
+function ahrs:get_roll() return stub.roll end
+function ahrs:get_pitch() return stub.pitch end
+function ahrs:get_yaw() return stub.yaw end
+""",
+    "4.5": r"""
+function ahrs:get_roll() return stub.roll end
+function ahrs:get_pitch() return stub.pitch end
+function ahrs:get_yaw() return stub.yaw end
+""",
+}
 
 
 def mavlink_struct(msgid: int, sysid: int, compid: int, payload: bytes) -> bytes:
@@ -129,14 +148,15 @@ def command_user_1(on: bool, target: int = 1, sysid: int = 255) -> bytes:
 class Applet:
     """The shipped script in a Lua 5.3 runtime with the stand-in bindings; time is simulated."""
 
-    def __init__(self, params: dict[str, float] | None = None) -> None:
+    def __init__(self, params: dict[str, float] | None = None, firmware: str = "4.7") -> None:
         self.lua = LuaRuntime(unpack_returned_tuples=True)
-        self.lua.execute(STUBS)
+        self.lua.execute(STUBS.replace("{ahrs}", AHRS_BINDINGS[firmware]))
         self.stub = self.lua.globals().stub
         for name, value in (params or {}).items():
             self.stub.params[name] = value
         self._fn, delay = self.lua.execute(SCRIPT.read_text())
         self.next_run_ms = float(delay)
+        self.ended = False  # the script returned no next run: ArduPilot ends it
         # The simulated netpose and joystick (run_closed_loop): planes on their way, schedules.
         self.in_flight: list[tuple[float, bytes]] = []
         self.next_frame: float | None = None
@@ -149,9 +169,13 @@ class Applet:
 
     def run_until(self, t_s: float) -> None:
         """Run the script's update at the intervals it asks for, up to `t_s`."""
-        while self.next_run_ms <= t_s * 1000.0:
+        while not self.ended and self.next_run_ms <= t_s * 1000.0:
             self.stub.now_ms = self.next_run_ms
-            fn, delay = self._fn()
+            result = self._fn()
+            if result is None:  # nothing returned
+                self.ended = True
+                break
+            fn, delay = result
             self._fn = fn
             self.next_run_ms += float(delay)
             too_long = [str(t) for t in self.stub.too_long.values()]
@@ -207,12 +231,19 @@ class Applet:
         return None if value is None else float(value)
 
     def acks(self) -> list[tuple[int, int]]:
+        """(command, result) of each COMMAND_ACK sent."""
+        return [(command, result) for command, result, *_ in self.ack_fields()]
+
+    def ack_fields(self) -> list[tuple[int, ...]]:
+        """Every field of each COMMAND_ACK sent: command, result, progress, result_param2,
+        target_system, target_component. ArduPilot's send_chan sends the message's full
+        length (10 bytes) whatever the string holds: a shorter one is the autopilot's memory."""
         sent = self.stub.sent
         out = []
         for i in range(1, len(sent) + 1):
-            payload = sent[i][3]
-            raw = payload.encode("latin-1") if isinstance(payload, str) else bytes(payload)
-            out.append(struct.unpack("<HB", raw[:3]))
+            raw = bytes.fromhex(str(sent[i][4]))
+            assert len(raw) == 10, f"COMMAND_ACK of {len(raw)} bytes, not 10: {raw!r}"
+            out.append(struct.unpack("<HBBiBB", raw))
         return out
 
     @property

@@ -27,8 +27,8 @@ from tests.lua_applet import (
 FWD, YAW = 5, 4
 
 
-def engaged_applet(vehicle: NetVehicle, **params: float) -> Applet:
-    applet = Applet({f"NETH_{k}": v for k, v in params.items()})
+def engaged_applet(vehicle: NetVehicle, *, firmware: str = "4.7", **params: float) -> Applet:
+    applet = Applet({f"NETH_{k}": v for k, v in params.items()}, firmware=firmware)
     run_closed_loop(applet, vehicle, 1.0, t0=0.0)
     applet.press(1)
     run_closed_loop(applet, vehicle, 0.1)
@@ -49,9 +49,12 @@ def test_loads_with_its_parameters_and_listens_for_its_messages() -> None:
     assert applet.override(FWD) is None and applet.override(YAW) is None  # nothing unasked
 
 
-def test_holds_the_set_distance_and_squares_the_heading() -> None:
+@pytest.mark.parametrize("firmware", ["4.7", "4.5"])
+def test_holds_the_set_distance_and_squares_the_heading(firmware: str) -> None:
+    """On 4.7 and on 4.5, whose AHRS binding has get_yaw() but not get_yaw_rad(): the applet
+    called the 4.7 names and failed every update on 4.5, the stable series."""
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=20.0)
-    applet = engaged_applet(vehicle)
+    applet = engaged_applet(vehicle, firmware=firmware)
     trace = run_closed_loop(applet, vehicle, 40.0)
     t0 = trace[0][0]
     settled = next(t for t, d, *_ in trace if abs(d - 1.0) < 0.05) - t0
@@ -65,6 +68,7 @@ def test_holds_the_set_distance_and_squares_the_heading() -> None:
     speeds = [(trace[i][1] - trace[i + 1][1]) / 0.01 for i in range(len(trace) - 1)]
     assert max(speeds) < 0.33
     assert applet.engaged
+    assert not [text for _, text in applet.texts() if "error" in text]
 
 
 def test_refuses_to_engage_without_a_fresh_net() -> None:
@@ -290,6 +294,9 @@ def test_engage_and_disengage_by_command_with_acks() -> None:
     run_closed_loop(applet, vehicle, 0.1)
     assert not applet.engaged and applet.override(FWD) == 1500
     assert applet.acks() == [(MAV_CMD_USER_1, 0), (MAV_CMD_USER_1, 0)]
+    # Addressed to the ground station that asked (255/190), nothing else in it: ArduPilot
+    # sends all 10 bytes, and a 3-byte string sent its memory as the target.
+    assert {fields[2:] for fields in applet.ack_fields()} == {(0, 0, 255, 190)}
     applet.stub.armed = False
     applet.receive(command_user_1(True))
     run_closed_loop(applet, vehicle, 0.1)
@@ -310,6 +317,76 @@ def test_an_internal_error_leaves_no_thrust_behind() -> None:
     applet.stub.pitch = 0.0
     run_closed_loop(applet, vehicle, 0.5)  # still running, still off until asked again
     assert applet.override(FWD) == 1500
+
+
+def test_an_error_in_every_update_is_said_rarely_and_ends_the_applet() -> None:
+    """A fault that stays (on 4.5, a binding the applet called that only 4.7 has) sent two
+    texts every 10 ms for ever: 200 a second on the pilot's link, where ArduPilot's text queue
+    drops its oldest entries (a leak warning among them). It is said once, and after a second
+    of failures the applet ends, thrust neutral."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 1.0)
+    before = len(applet.texts())
+    # A binding that fails in every update (the buttons are read in each).
+    applet.lua.execute("function sub:get_and_clear_button_count(i) error('gone') end")
+    run_closed_loop(applet, vehicle, 10.0)
+    texts = [text for _, text in applet.texts()[before:]]
+    assert texts[:2] == ["NetHold: internal error, OFF", texts[1]] and len(texts) == 3, texts
+    assert texts[2] == "NetHold: stopped after repeated errors"
+    assert applet.ended
+    assert applet.override(FWD) == 1500 and applet.override(YAW) == 1500
+
+
+def test_an_error_that_comes_and_goes_is_said_every_five_seconds_at_most() -> None:
+    """An error in the updates that handle a plane (10 a second), not in those between: the
+    applet runs on (the error may pass), telling the pilot every 5 s, not 20 times a second."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    run_closed_loop(applet, vehicle, 1.0)
+    before = len(applet.texts())
+    applet.stub.pitch = applet.lua.table()  # fails where a plane is levelled
+    run_closed_loop(applet, vehicle, 12.0)
+    errors = [t for t, text in applet.texts()[before:] if text.endswith("internal error, OFF")]
+    assert len(errors) == 3 and errors[1] - errors[0] >= 5.0, errors
+    assert not applet.ended
+
+
+def test_engages_only_in_a_mode_that_flies_by_the_sticks() -> None:
+    """GUIDED and AUTO never read the forward channel and POSHOLD takes it as a speed: net
+    hold's thrust means nothing, or something else, there."""
+    vehicle = NetVehicle(distance_m=1.5, heading_error_deg=0.0)
+    applet = Applet()
+    applet.stub.mode = 16  # POSHOLD
+    run_closed_loop(applet, vehicle, 1.0, t0=0.0)
+    applet.press(1)
+    run_closed_loop(applet, vehicle, 0.1)
+    assert not applet.engaged and "refused in this mode" in applet.texts()[-1][1]
+    applet.stub.mode = 19  # MANUAL
+    applet.press(1)
+    run_closed_loop(applet, vehicle, 0.1)
+    assert applet.engaged
+
+
+def test_the_largest_yaw_command_the_parameters_allow_stays_a_stick_command() -> None:
+    """NETH_YAW_DZ 100 + 45 deg/s x 20 us: 1000 us off neutral, beyond set_override's 0..2200
+    (an error, the hold off). It is held to the joystick's own 1100..1900."""
+    vehicle = NetVehicle(distance_m=1.5, heading_error_deg=60.0)
+    applet = engaged_applet(vehicle, YAW_DZ=100, YAW_RATE=45, YAW_GAIN=20, YAW_ACC=90)
+    run_closed_loop(applet, vehicle, 1.0)
+    yaws = [pwm for _, channel, pwm in applet.history() if channel == YAW]
+    assert max(yaws) == 1900 and min(yaws) >= 1100
+    assert applet.engaged
+
+
+def test_its_message_queue_holds_what_comes_while_the_scripting_thread_stalls() -> None:
+    """mavlink:init takes the queue's length first, then the number of message ids: (4, 20)
+    was a queue of four, 0.1 s of the pilot's 25 Hz and netpose's 10 Hz, beyond which a stall
+    dropped netpose's "no net"."""
+    applet = Applet()
+    applet.run_until(0.1)
+    assert int(applet.stub.mav_init) == len(applet.stub.rx_ids) == 4
+    assert int(applet.stub.mav_queue) >= 0.4 * (25 + 10)
 
 
 def test_camera_tilt_is_taken_out_of_the_heading() -> None:
