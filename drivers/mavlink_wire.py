@@ -24,13 +24,14 @@ NET_PLANE_NAME = b"NET_PLANE"
 def signal_quality(quality: float) -> int:
     """Map a 0..1 confidence to DISTANCE_SENSOR.signal_quality (percent).
 
-    0 is reserved for "unknown" and sent only when the confidence is unknown (nan); a known
-    confidence maps to round(100 * q) clamped to 1..100, so even the weakest reading we still
-    send is "1 = worst" (ArduPilot turns 1 into 0 % and 0 into "unknown").
+    0 is reserved for "unknown" and sent only when the confidence is unknown (nan); 1 is
+    MAVLink's "invalid signal" (common.xml), which a reading we send is not. A known confidence
+    maps to round(100 * q) clamped to 2..100, so the weakest reading we still send is the worst
+    valid one (ArduPilot turns it into 1 %, 1 into 0 % and 0 into "unknown").
     """
     if not math.isfinite(quality):
         return 0
-    return max(1, min(100, round(100.0 * quality)))
+    return max(2, min(100, round(100.0 * quality)))
 
 
 def covariance_cm2(sigma_m: float) -> int:

@@ -144,9 +144,11 @@ def test_settings_from_toml_through_the_one_coercer() -> None:
     assert info.value.key == "mavlink.send_net_plane"
 
 
-def test_signal_quality_keeps_zero_for_unknown() -> None:
+def test_signal_quality_keeps_zero_for_unknown_and_one_for_invalid() -> None:
+    """0 is "unknown", 1 "invalid signal" (MAVLink common.xml): a reading netpose sends is
+    neither, however weak."""
     assert signal_quality(math.nan) == 0
-    assert [signal_quality(q) for q in (0.0, 0.004, 0.5, 0.87, 1.0, 1.7)] == [1, 1, 50, 87, 100,
+    assert [signal_quality(q) for q in (0.0, 0.004, 0.5, 0.87, 1.0, 1.7)] == [2, 2, 50, 87, 100,
                                                                                100]
 
 
