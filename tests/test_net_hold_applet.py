@@ -27,8 +27,11 @@ from tests.lua_applet import (
 FWD, YAW = 5, 4
 
 
-def engaged_applet(vehicle: NetVehicle, *, firmware: str = "4.7", **params: float) -> Applet:
-    applet = Applet({f"NETH_{k}": v for k, v in params.items()}, firmware=firmware)
+def engaged_applet(vehicle: NetVehicle, **params: float) -> Applet:
+    return engage(Applet({f"NETH_{k}": v for k, v in params.items()}), vehicle)
+
+
+def engage(applet: Applet, vehicle: NetVehicle) -> Applet:
     run_closed_loop(applet, vehicle, 1.0, t0=0.0)
     applet.press(1)
     run_closed_loop(applet, vehicle, 0.1)
@@ -54,7 +57,7 @@ def test_holds_the_set_distance_and_squares_the_heading(firmware: str) -> None:
     """On 4.7 and on 4.5, whose AHRS binding has get_yaw() but not get_yaw_rad(): the applet
     called the 4.7 names and failed every update on 4.5, the stable series."""
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=20.0)
-    applet = engaged_applet(vehicle, firmware=firmware)
+    applet = engage(Applet(firmware=firmware), vehicle)
     trace = run_closed_loop(applet, vehicle, 40.0)
     t0 = trace[0][0]
     settled = next(t for t, d, *_ in trace if abs(d - 1.0) < 0.05) - t0
