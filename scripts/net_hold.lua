@@ -26,7 +26,8 @@ local PARAM_TABLE_KEY = 86
 local PARAM_PREFIX = "NETH_"
 local PLANE_NAME = "NET_PLANE"
 -- MAVLink message ids, and the command and results used (tables: see JUMP below).
-local MSG = {DEBUG_VECT = 250, MANUAL_CONTROL = 69, COMMAND_LONG = 76, COMMAND_ACK = 77,
+local MSG = {DEBUG_VECT = 250, MANUAL_CONTROL = 69, COMMAND_LONG = 76, COMMAND_INT = 75,
+             COMMAND_ACK = 77,
              RC_CHANNELS_OVERRIDE = 70}
 local MAV = {CMD_USER_1 = 31010, RESULT_ACCEPTED = 0, RESULT_DENIED = 2}
 local SEV = {WARNING = 4, INFO = 6}  -- MAV_SEVERITY
@@ -243,13 +244,16 @@ local function setup()
   my_sysid = math.floor(param_or("MAV_SYSID", param_or("SYSID_THISMAV", 1)))
   gcs_param = bind_gcs_param()
   -- A queue of 20 messages (about half a second of the pilot's and netpose's, should the
-  -- scripting thread stall: a full queue drops what comes), four message ids. The queue's
+  -- scripting thread stall: a full queue drops what comes), five message ids. The queue's
   -- length comes first (lua_bindings.cpp): (4, 20) was a queue of four.
-  mavlink:init(20, 4)
+  mavlink:init(20, 5)
   mavlink:register_rx_msgid(MSG.DEBUG_VECT)
   mavlink:register_rx_msgid(MSG.MANUAL_CONTROL)
   mavlink:register_rx_msgid(MSG.RC_CHANNELS_OVERRIDE)
   mavlink:register_rx_msgid(MSG.COMMAND_LONG)
+  -- block_command holds MAV_CMD_USER_1 back from ArduSub as COMMAND_INT too: unanswered, a
+  -- ground station that sends it so would time out.
+  mavlink:register_rx_msgid(MSG.COMMAND_INT)
   mavlink:block_command(MAV.CMD_USER_1)
 end
 
@@ -477,6 +481,8 @@ local function on_rc_override(msg, now)
 end
 
 local function on_command(msg, chan, from_gcs)
+  -- COMMAND_LONG (param1..7 floats) and COMMAND_INT (param1..4, x, y int32, z): both put
+  -- param1 first and the command and its target after 28 bytes.
   local p1, _, _, _, _, _, _, command, target = string.unpack("<fffffffHB", msg, 13)
   if command ~= MAV.CMD_USER_1 or (target ~= my_sysid and target ~= 0) then return end
   local sysid, compid = string.byte(msg, 8), string.byte(msg, 9)
@@ -506,7 +512,7 @@ local function read_messages(now)
       if sysid == my_sysid and (plane_comp == 0 or compid == plane_comp) then
         on_plane(msg, now)
       end
-    elseif msgid == MSG.COMMAND_LONG then
+    elseif msgid == MSG.COMMAND_LONG or msgid == MSG.COMMAND_INT then
       on_command(msg, chan, sysid == gcs_sysid)
     elseif sysid ~= gcs_sysid then
       -- The pilot's input comes from the ground station only (as ArduSub takes it).

@@ -21,6 +21,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "net_hold.lua"
 MSG_DEBUG_VECT = 250
 MSG_MANUAL_CONTROL = 69
 MSG_COMMAND_LONG = 76
+MSG_COMMAND_INT = 75
 MSG_RC_CHANNELS_OVERRIDE = 70
 MAV_CMD_USER_1 = 31010
 ALT_HOLD = 2
@@ -137,6 +138,13 @@ def manual_control(x: int = 0, y: int = 0, z: int = 500, r: int = 0, buttons: in
                    sysid: int = 255, target: int = 1) -> bytes:
     return mavlink_struct(MSG_MANUAL_CONTROL, sysid, 190,
                           struct.pack("<hhhhHB", x, y, z, r, buttons, target))
+
+
+def command_int_user_1(on: bool, target: int = 1, sysid: int = 255) -> bytes:
+    """MAV_CMD_USER_1 as COMMAND_INT: param1..4, x, y (int32), z, command, target."""
+    payload = struct.pack("<ffffiifHBBBBB", 1.0 if on else 0.0, 0, 0, 0, 0, 0, 0,
+                          MAV_CMD_USER_1, target, 1, 0, 0, 0)
+    return mavlink_struct(MSG_COMMAND_INT, sysid, 190, payload)
 
 
 def command_user_1(on: bool, target: int = 1, sysid: int = 255) -> bytes:

@@ -109,6 +109,7 @@ class Record:
     named: list[tuple[float, str, float]] = field(default_factory=list)
     planes: list[tuple[float, int, float, float, float]] = field(default_factory=list)
     sticks: list[tuple[float, int, int, int, int, int]] = field(default_factory=list)
+    acks: list[tuple[float, Any]] = field(default_factory=list)  # COMMAND_ACK
 
 
 def connect(port: int, timeout_s: float = 60.0, **kwargs: Any) -> Any:
@@ -162,6 +163,18 @@ class Pilot:
         with self._lock:
             self.conn.mav.command_long_send(1, 1, MAV_CMD_COMPONENT_ARM_DISARM, 0, 1,
                                             ARM_FORCE_MAGIC, 0, 0, 0, 0, 0)
+
+    def command(self, command: int, param1: float) -> float:
+        """COMMAND_LONG to the autopilot; returns when it was sent."""
+        with self._lock:
+            self.conn.mav.command_long_send(1, 1, command, 0, param1, 0, 0, 0, 0, 0, 0)
+        return time.monotonic()
+
+    def ack(self, command: int, after: float) -> Any:
+        """The first COMMAND_ACK for `command` that came after `after`, or None."""
+        with self._lock:
+            return next((m for t, m in self.record.acks
+                         if t >= after and m.command == command), None)
 
     def mode(self, mode: int) -> None:
         with self._lock:
@@ -230,6 +243,8 @@ class Pilot:
                 rec.texts.append((now, msg.text))
             elif kind == "NAMED_VALUE_FLOAT":
                 rec.named.append((now, msg.name, msg.value))
+            elif kind == "COMMAND_ACK":
+                rec.acks.append((now, msg))
             elif kind == "DEBUG_VECT" and msg.name == "NET_PLANE":
                 rec.planes.append((now, msg.time_usec, msg.x, msg.y, msg.z))
 

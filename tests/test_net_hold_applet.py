@@ -10,6 +10,7 @@ import pytest
 
 from tests.lua_applet import (
     MAV_CMD_USER_1,
+    MSG_COMMAND_INT,
     MSG_COMMAND_LONG,
     MSG_DEBUG_VECT,
     MSG_MANUAL_CONTROL,
@@ -17,6 +18,7 @@ from tests.lua_applet import (
     SCRIPT,
     Applet,
     NetVehicle,
+    command_int_user_1,
     command_user_1,
     debug_vect,
     manual_control,
@@ -46,7 +48,7 @@ def test_loads_with_its_parameters_and_listens_for_its_messages() -> None:
     assert stub.params["NETH_DIST"] == 1.0 and stub.params["NETH_DIST_MIN"] == 0.4
     assert stub.params["NETH_TIMEOUT"] == pytest.approx(0.4)
     assert set(stub.rx_ids.values()) == {MSG_DEBUG_VECT, MSG_MANUAL_CONTROL, MSG_COMMAND_LONG,
-                                         MSG_RC_CHANNELS_OVERRIDE}
+                                         MSG_COMMAND_INT, MSG_RC_CHANNELS_OVERRIDE}
     assert stub.blocked[MAV_CMD_USER_1]
     assert any("loaded, set point 1.00 m" in text for _, text in applet.texts())
     assert applet.override(FWD) is None and applet.override(YAW) is None  # nothing unasked
@@ -306,6 +308,20 @@ def test_engage_and_disengage_by_command_with_acks() -> None:
     assert applet.acks()[-1] == (MAV_CMD_USER_1, 2)  # denied: disarmed
 
 
+def test_the_command_sent_as_command_int_is_answered_too() -> None:
+    """ArduPilot's block_command holds MAV_CMD_USER_1 back as COMMAND_INT as well: the applet
+    listened only for COMMAND_LONG, so a ground station sending COMMAND_INT got no answer."""
+    vehicle = NetVehicle(distance_m=1.5, heading_error_deg=0.0)
+    applet = Applet()
+    run_closed_loop(applet, vehicle, 1.0, t0=0.0)
+    applet.receive(command_int_user_1(True), chan=2)
+    run_closed_loop(applet, vehicle, 0.2)
+    assert applet.engaged and applet.acks() == [(MAV_CMD_USER_1, 0)]
+    applet.receive(command_int_user_1(False), chan=2)
+    run_closed_loop(applet, vehicle, 0.1)
+    assert not applet.engaged and applet.acks()[-1] == (MAV_CMD_USER_1, 0)
+
+
 def test_an_internal_error_leaves_no_thrust_behind() -> None:
     vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
     applet = engaged_applet(vehicle)
@@ -388,7 +404,7 @@ def test_its_message_queue_holds_what_comes_while_the_scripting_thread_stalls() 
     dropped netpose's "no net"."""
     applet = Applet()
     applet.run_until(0.1)
-    assert int(applet.stub.mav_init) == len(applet.stub.rx_ids) == 4
+    assert int(applet.stub.mav_init) == len(applet.stub.rx_ids) == 5
     assert int(applet.stub.mav_queue) >= 0.4 * (25 + 10)
 
 

@@ -25,6 +25,7 @@ import pytest
 
 from drivers.sim_world import CameraMount, VehiclePose, WorldNet, camera_view
 from service.core.mesh import MeshGeometry
+from tests.lua_applet import MAV_CMD_USER_1
 from tests.sitl_harness import MODE_ALT_HOLD, Pilot, Sitl, local_ne
 
 SITL = os.environ.get("NETPOSE_ARDUSUB_SITL")
@@ -133,6 +134,14 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             # blocked-camera check below still requires thrust to end within 0.5 s.
             pilot.param("NETH_TIMEOUT", SITL_TIMEOUT_S)
             pilot.wait_for("netpose tracking", lambda: fresh_planes(pilot, 2.0), 30)
+
+            # -- The applet's COMMAND_ACK, decoded by pymavlink: every field, to the asker -------
+            asked_at = pilot.command(MAV_CMD_USER_1, 0.0)  # off while off: accepted, no change
+            pilot.wait_for("the applet's COMMAND_ACK",
+                           lambda: pilot.ack(MAV_CMD_USER_1, asked_at) is not None, 5)
+            ack = pilot.ack(MAV_CMD_USER_1, asked_at)
+            ack_fields = (ack.result, ack.progress, ack.result_param2, ack.target_system,
+                          ack.target_component)
 
             # -- A: engage from START m, TURN_DEG off; settle; hold ------------------------------
             engage_at = time.monotonic()
@@ -290,6 +299,8 @@ def test_net_hold_closed_loop_in_sitl(tmp_path: Path) -> None:
             Path(target).write_bytes(plot.read_bytes())
         print("net hold SITL results:", {k: round(v, 4) for k, v in results.items()})
 
+    # A 3-byte ACK string sent 7 bytes of the autopilot's memory: target 95/84, param2 22096.
+    assert ack_fields == (0, 0, 0, 255, 190), context
     assert abs(results["start_distance_m"] - START) < 0.15, context
     assert abs(results["start_heading_error_deg"] - TURN_DEG) < 3.0, context
     assert results["settle_s"] <= 30.0, context
