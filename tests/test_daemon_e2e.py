@@ -324,6 +324,41 @@ def test_bad_configuration_exits_78_naming_the_key(tmp_path: Path) -> None:
     assert not any("READY=1" in m for _, m in notify.snapshot())
 
 
+def test_a_watchdog_abort_writes_where_every_thread_was_to_the_log(tmp_path: Path) -> None:
+    """systemd's watchdog kills a hung daemon with SIGABRT. It left no Python traceback in the
+    journal (and, without LimitCORE=0, a 355 MB core on the SD card): nothing said where it
+    hung. The daemon's threads' stacks now go to stderr."""
+    sock_path = tmp_path / "n.sock"
+    notify = NotifyRecorder(sock_path)
+    env = dict(os.environ, NOTIFY_SOCKET=str(sock_path), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(daemon_command(DEMO, ["telemetry.enabled=false"]), cwd=REPO,
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not any("READY=1" in m for _, m in notify.snapshot()):
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline, "no READY=1 within 30 s"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGABRT)
+        _, stderr = proc.communicate(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        notify.close()
+    assert proc.returncode == -signal.SIGABRT
+    assert "Fatal Python error: Aborted" in stderr, stderr[-2000:]
+    # The frame loop's thread (the main one) and the link's, each with its stack.
+    assert "Current thread" in stderr and stderr.count("hread 0x") >= 2, stderr[-2000:]
+    assert "service/daemon/" in stderr, stderr[-2000:]
+
+
+def test_the_unit_writes_no_core_dump() -> None:
+    unit = (REPO / "systemd" / "netpose.service").read_text()
+    assert "\nLimitCORE=0\n" in unit
+
+
 def test_check_validates_without_running() -> None:
     ok = _run_briefly(daemon_command(DEMO, []) + ["--check"])
     assert ok.returncode == 0, ok.stderr

@@ -683,6 +683,23 @@ def test_pages_use_only_relative_urls(daemon: WebDaemon) -> None:
 
 
 # -- safety ---------------------------------------------------------------------------------------
+def test_a_page_open_to_the_network_without_a_token_is_warned_of(tmp_path: Path) -> None:
+    """The Pi profile's page turned on with an empty token said only "web page on
+    http://0.0.0.0:8780/" at INFO: anyone on the network could change the mesh size."""
+    d = WebDaemon(tmp_path, token="", host="0.0.0.0").start()
+    try:
+        line = next((line for line in d.log().splitlines() if "without web.token" in line), "")
+        assert "WARNING" in line and f"port {d.port}" in line, d.log()
+    finally:
+        assert d.stop() == 0, d.log()
+    (tmp_path / "loopback").mkdir()
+    quiet = WebDaemon(tmp_path / "loopback", token="").start()  # 127.0.0.1: this machine only
+    try:
+        assert "without web.token" not in quiet.log()
+    finally:
+        assert quiet.stop() == 0, quiet.log()
+
+
 def test_changes_without_the_token_are_refused(daemon: WebDaemon) -> None:
     before = daemon.config.read_bytes()
     for path, body in (("/api/settings", {"changes": {"mesh.bar_length_m": 0.03}}),

@@ -1,4 +1,4 @@
-"""A V4L2 camera (USB or CSI on a plain Raspberry Pi) opened through OpenCV's V4L2 backend.
+"""A V4L2 camera (USB/UVC on a plain Raspberry Pi) opened through OpenCV's V4L2 backend.
 
 Deliberately thin: parse `v4l2:/dev/video0?width=1920&height=1080&fps=30&fourcc=MJPG`, ask the
 driver for that format, read back and log what it granted (drivers round to the modes they

@@ -17,6 +17,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import io
+import ipaddress
 import json
 import logging
 import shutil
@@ -220,6 +221,11 @@ class WebPage(Generic[R]):
             self.port = sockets[0].getsockname()[1] if sockets else self.settings.port
             log.info("web page on http://%s:%d/%s", self.settings.host, self.port,
                      " (changes need web.token)" if self.settings.token else "")
+            if not self.settings.token and not _loopback(self.settings.host):
+                log.warning("web page open to the network without web.token: anyone who "
+                            "reaches port %d can change settings (the mesh size scales every "
+                            "distance sent to the autopilot) and delete recordings; set "
+                            "web.token", self.port)
             self._started.set()
             await self._stop.wait()
         for timer in (self._push_timer, self._draw_timer):
@@ -945,3 +951,13 @@ async def _json_body(request: web.Request) -> dict[str, Any]:
         raise web.HTTPBadRequest(text='{"error": "expected a JSON object"}',
                                  content_type="application/json")
     return body
+
+
+def _loopback(host: str) -> bool:
+    """Whether `host` (web.host) is reachable from this machine only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a name: it may well resolve to the network

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import sys
@@ -40,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.duration is not None and not args.duration > 0:
         raise ConfigError("--duration", "must be a positive number of seconds")
+    # systemd's watchdog ends a hung daemon with SIGABRT: every thread's Python stack goes to
+    # stderr (the journal) first, the one thing that says where it hung (the unit keeps the
+    # core dump, hundreds of MB on an SD card, from being written: LimitCORE=0).
+    faulthandler.enable(all_threads=True)
     status = main(args.config, args.overrides, args.duration,
                   early=getattr(args, "early_signals", None))
     # Everything is closed and the final lines are logged. The interpreter's own teardown of
