@@ -48,8 +48,17 @@ Vec3 = tuple[float, float, float]
 # MAVLink 1's STATUSTEXT: ground stations show at most this many characters.
 STATUSTEXT_LENGTH = 50
 MAX_SPEED_MPS = 0.6
-# Once the velocity is known, how much it may change (m/s).
+# Once the velocity is known, how much it may change (m/s); of a confirmed hole's, measured
+# over more sightings, less: a confirmed missing knot's gate grew to 0.26 m in a gap of 0.9 s
+# and took the sightings of a tear 0.25 m away, which was never reported.
 SPEED_UNCERTAINTY_MPS = 0.2
+CONFIRMED_SPEED_UNCERTAINTY_MPS = 0.1
+# Sightings of one hole differ in size (a bar at the edge of a fouled tear seen or not: 2 to 5
+# cells for a 3-cell tear); holes of more than twice the track's usual size are other holes,
+# however near the gate lets them be (a confirmed 3-cell tear took every sighting of a 10-cell
+# one 0.25 m away, which was never reported). Sizes kept per track, for its median.
+SAME_SIZE_RATIO = 2.0
+SIZES_KEPT = 9
 # Inspection time banked at most: this many frames' worth of earned share.
 CREDIT_FRAMES = 30
 
@@ -135,6 +144,7 @@ class _Track:
     # One entry per look (an inspection that judged its place): found there or not.
     record: list[bool] = field(default_factory=list)
     confirmed: bool = False
+    cells_seen: list[int] = field(default_factory=list)  # of the last SIZES_KEPT sightings
     # Nothing was inspected for longer than a track lives since it was last seen: its speed
     # says nothing of where it went, so it is looked for only where it was, with the smallest
     # gate, until it is seen again.
@@ -144,19 +154,30 @@ class _Track:
     def looks(self) -> int:
         return len(self.record)
 
+    def same_size(self, cand: HoleCandidate) -> bool:
+        """Could `cand` be this hole, by its size in mesh openings against the track's usual
+        (the median of its last sightings)?"""
+        usual = float(np.median(self.cells_seen)) if self.cells_seen else float(cand.cells)
+        return max(cand.cells, usual) <= SAME_SIZE_RATIO * min(cand.cells, usual)
+
     def predicted(self, t: float, longest_s: float = math.inf) -> npt.NDArray[np.float64]:
         """Where the hole is now by its last place and speed, carried at most `longest_s`:
-        a speed measured over a second or two says nothing of where it went over ten."""
+        a speed measured over a second or two says nothing of where it went over ten. A
+        confirmed hole still in view is carried on as long as it lives: its speed is the
+        net's across the view, measured over many sightings, and a place that stopped after
+        2 s while the net moved on was looked at and not found, so the hole held in view was
+        dropped and reported again under a new number."""
         if self.velocity is None or self.stale:
             return self.position
-        dt = min(t - self.t_last, longest_s)
+        dt = t - self.t_last if self.confirmed else min(t - self.t_last, longest_s)
         return np.asarray(self.position + self.velocity * dt, dtype=np.float64)
 
     def gate(self, t: float, base: float, longest_s: float) -> float:
         # A confirmed track can outlive its last sighting (while in view): how far it may
         # have moved since grows only up to what an unconfirmed one is given, `longest_s`.
         dt = min(max(t - self.t_last, 0.0), longest_s)
-        speed = MAX_SPEED_MPS if self.velocity is None else SPEED_UNCERTAINTY_MPS
+        speed = (MAX_SPEED_MPS if self.velocity is None else
+                 CONFIRMED_SPEED_UNCERTAINTY_MPS if self.confirmed else SPEED_UNCERTAINTY_MPS)
         size = max((max(c.width_m, c.height_m) for c in self.hits[-1:]), default=0.0)
         return base + 0.5 * size + (0.0 if self.stale else speed * dt)
 
@@ -224,14 +245,15 @@ class HoleTracker:
                 tr.stale = True
         self._last_update = t
         self._tracks = [tr for tr in self._tracks if t - tr.t_last <= st.track_timeout_s
-                        or (tr.confirmed and self._still_in_view(scan, tr, t, hopeless))]
+                        or (tr.confirmed
+                            and self._still_in_view(scan, tr, t, st.confirm_looks))]
         candidates = list(scan.candidates)
         pairs = []
         for ci, cand in enumerate(candidates):
             p = np.array(cand.plane_xy_m)
             for ti, tr in enumerate(self._tracks):
                 dist = float(np.linalg.norm(p - tr.predicted(t, st.track_timeout_s)))
-                if dist <= tr.gate(t, st.gate_m, st.track_timeout_s):
+                if dist <= tr.gate(t, st.gate_m, st.track_timeout_s) and tr.same_size(cand):
                     pairs.append((dist, ci, ti))
         used_c: set[int] = set()
         used_t: set[int] = set()
@@ -251,7 +273,8 @@ class HoleTracker:
         for ci, cand in enumerate(candidates):
             if ci not in used_c:
                 self._tracks.append(_Track(self._next_id, t, t, np.array(cand.plane_xy_m),
-                                           hits=[cand], record=[True]))
+                                           hits=[cand], record=[True],
+                                           cells_seen=[cand.cells]))
                 self._next_id += 1
         # Unconfirmed tracks that can no longer be confirmed: their last looks without a hit
         # leave fewer than `confirm_hits` sightings possible in any window of `confirm_looks`.
@@ -287,6 +310,8 @@ class HoleTracker:
         tr.t_last = t
         tr.stale = False
         tr.hits.append(cand)
+        tr.cells_seen.append(cand.cells)
+        del tr.cells_seen[:-SIZES_KEPT]
         tr.record.append(True)
         if tr.confirmed:
             # Reported: only the last sighting and looks are read again (its place, the gate,
