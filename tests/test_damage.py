@@ -351,7 +351,7 @@ def test_a_confirmed_hole_that_stays_in_view_is_not_reported_again() -> None:
                                   0.1 * k, k)
     assert [h.hole_id for h in reports] == [1]
     (view,) = tracker.tracks
-    assert view.confirmed and view.track_id == 1
+    assert view.confirmed and view.hole_id == 1
 
 
 def _moving_scan(holes: list[tuple[float, float, int]], judged_left: float = 959.0
@@ -411,6 +411,24 @@ def test_a_confirmed_hole_missed_a_few_looks_in_a_row_is_still_the_same_hole() -
         judged = 959.0 if found or k >= 27 else 5.0
         reports += tracker.update(_moving_scan([place] if found else [], judged), t, k)
     assert [h.hole_id for h in reports] == [1]
+
+
+def test_holes_are_numbered_as_confirmed_and_drawn_with_the_size_reported() -> None:
+    """Candidates that came to nothing took numbers between the holes ("hole 4, hole 6": where
+    is hole 5?), and the annotated video labelled a hole with its last sighting's size (8x6 cm)
+    where damage.csv had the reported median (6.3x5.1)."""
+    settings = DamageSettings(confirm_hits=2, confirm_looks=3)
+    tracker = HoleTracker(CAMERA, settings)
+    reports = []
+    for k in range(3):  # a streak of light here and there: candidates, never confirmed
+        reports += tracker.update(_moving_scan([(-0.3 + 0.2 * k, -0.1, 2)]), 0.1 * k, k)
+    for k in range(3, 12):
+        cells = 4 if k < 6 else 6  # sighted at 4 cells, later at 6 (one hole, a bar more)
+        reports += tracker.update(_moving_scan([(0.2, 0.1, cells)]), 0.1 * k, k)
+    assert [h.hole_id for h in reports] == [1]
+    (view,) = [v for v in tracker.tracks if v.confirmed]
+    assert view.hole_id == 1
+    assert (view.width_m, view.height_m) == (reports[0].width_m, reports[0].height_m)
 
 
 def test_a_hole_held_in_view_for_long_keeps_its_memory_bounded() -> None:

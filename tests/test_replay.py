@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import signal
@@ -318,6 +319,25 @@ def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> N
     assert code == 0
     valid = [r["filter_valid"] for r in read_csv(out / "estimates.csv")]
     assert valid == ["0", "0", "0", "0", "1", "1"]
+
+
+def test_a_replay_that_inspected_nothing_says_so(
+    recording: Recording, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An empty damage.csv read as an intact net: only summary.json said that no frame was
+    inspected (inspection review: the real stills). The last lines say it."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    blank = np.full_like(recording.frames[0], 90)  # no net: nothing to inspect
+    for i in range(3):
+        cv2.imwrite(str(folder / f"frame_{i:03d}.png"), blank)
+    caplog.set_level(logging.INFO)
+    code = main(["replay", str(folder), "--calibration", str(recording.calibration),
+                 "--mesh-size", "0.025", "--out", str(tmp_path / "out"), "--fps", "5"])
+    assert code == 0
+    said = [r.getMessage() for r in caplog.records if "net inspection:" in r.getMessage()]
+    assert said == ["replay: net inspection: 0 holes in 0 inspected frames (0 cells judged): "
+                    "nothing was inspected, so no hole found says nothing of the net"], said
 
 
 def test_image_folder_with_a_frame_the_calibration_does_not_fit(

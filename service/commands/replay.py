@@ -728,3 +728,9 @@ def _finish(
     log.info("replay: %d frames, %s detected (a distance), %d with the net seen, written to %s",
              summary["frames"], "-" if detection is None else f"{100 * detection:.0f} %",
              summary.get("net_seen_frames", 0), out_dir)
+    if outcome.holes is not None:
+        # "No rows" must not read as "no holes": say how much of the net was looked at.
+        log.info("replay: net inspection: %d holes in %d inspected frames (%d cells judged)%s",
+                 outcome.holes, outcome.inspected_frames, outcome.judged_cells,
+                 "" if outcome.inspected_frames else
+                 ": nothing was inspected, so no hole found says nothing of the net")

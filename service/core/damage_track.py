@@ -144,6 +144,9 @@ class _Track:
     # One entry per look (an inspection that judged its place): found there or not.
     record: list[bool] = field(default_factory=list)
     confirmed: bool = False
+    # Once confirmed: its number and the size reported (what the video's label says too).
+    hole_id: int | None = None
+    reported_size_m: Vec2 | None = None
     cells_seen: list[int] = field(default_factory=list)  # of the last SIZES_KEPT sightings
     # Nothing was inspected for longer than a track lives since it was last seen: its speed
     # says nothing of where it went, so it is looked for only where it was, with the smallest
@@ -191,8 +194,9 @@ class TrackView:
     detections: int
     centre_px: Vec2
     box_px: tuple[float, float, float, float]
-    width_m: float
+    width_m: float  # a confirmed hole's as reported; a candidate's last sighting's
     height_m: float
+    hole_id: int | None = None  # a confirmed hole's number, as reported
 
 
 class HoleTracker:
@@ -202,7 +206,11 @@ class HoleTracker:
         self.camera = camera
         self.settings = settings or DamageSettings()
         self._tracks: list[_Track] = []
-        self._next_id = 1
+        self._next_id = 1  # tracks' own numbers (candidates included)
+        # Holes are numbered as they are confirmed, 1, 2, 3: numbered as tracks, a report
+        # read "hole 4, hole 6" (candidates that came to nothing took the numbers between),
+        # and a farm manager asked where hole 5 was.
+        self._next_hole = 1
         self._last_update: float | None = None  # the time of the last inspection
 
     def reset(self) -> None:
@@ -211,15 +219,16 @@ class HoleTracker:
 
     @property
     def next_id(self) -> int:
-        """The number the next new track gets (hole ids are unique in a service run)."""
-        return self._next_id
+        """The number the next confirmed hole gets (hole ids are unique in a service run)."""
+        return self._next_hole
 
     def continue_from(self, next_id: int, previous: HoleTracker | None = None) -> None:
-        """Go on where another tracker of this run left off: numbers after its, and, given
-        `previous`, its tracks (confirmed holes are not reported again)."""
-        self._next_id = max(self._next_id, next_id)
+        """Go on where another tracker of this run left off: hole numbers after its, and,
+        given `previous`, its tracks (confirmed holes are not reported again)."""
+        self._next_hole = max(self._next_hole, next_id)
         if previous is not None:
             self._tracks = list(previous._tracks)
+            self._next_id = max(self._next_id, previous._next_id)
             self._last_update = previous._last_update
 
     @property
@@ -227,8 +236,9 @@ class HoleTracker:
         out = []
         for tr in self._tracks:
             last = tr.hits[-1]
+            width, height = tr.reported_size_m or (last.width_m, last.height_m)
             out.append(TrackView(tr.track_id, tr.confirmed, len(tr.hits), last.centre_px,
-                                 last.box_px, last.width_m, last.height_m))
+                                 last.box_px, width, height, tr.hole_id))
         return out
 
     def update(self, scan: DamageScan, t: float, frame_index: int) -> list[ConfirmedHole]:
@@ -374,11 +384,14 @@ class HoleTracker:
         repeat = 1.0 - 0.5 ** max(len(tr.hits) - 1, 0)
         window = tr.record[-self.settings.confirm_looks:]
         confidence = conf_frame * (0.5 + 0.5 * repeat) * sum(window) / len(window)
+        tr.hole_id = self._next_hole
+        self._next_hole += 1
+        tr.reported_size_m = (float(np.median([c.width_m for c in tr.hits])),
+                              float(np.median([c.height_m for c in tr.hits])))
         return ConfirmedHole(
-            hole_id=tr.track_id, t_first=tr.t_first, t_confirmed=t, frame_index=frame_index,
+            hole_id=tr.hole_id, t_first=tr.t_first, t_confirmed=t, frame_index=frame_index,
             detections=len(tr.hits), looks=tr.looks,
-            width_m=float(np.median([c.width_m for c in tr.hits])),
-            height_m=float(np.median([c.height_m for c in tr.hits])),
+            width_m=tr.reported_size_m[0], height_m=tr.reported_size_m[1],
             cells=int(round(float(np.median([c.cells for c in tr.hits])))),
             missing_bars=int(round(float(np.median([c.missing_bars for c in tr.hits])))),
             centre_px=last.centre_px, box_px=last.box_px, plane_xy_m=last.plane_xy_m,

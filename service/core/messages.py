@@ -370,7 +370,7 @@ class DamageMessage(Message):
     docs/inspection.md). Sizes are knot to knot on the net plane."""
 
     KIND: ClassVar[str] = DAMAGE_SUFFIX
-    hole_id: int = doc("number of the hole in this service run")
+    hole_id: int = doc("number of the hole in this service run, 1, 2, 3 in the order confirmed")
     run_started_unix: float | None = doc(
         "when this run of the service started (wall clock): hole_id starts again at 1 in the "
         "next one, so (vehicle, run_started_unix, hole_id) is a hole's key across runs", None)

@@ -138,7 +138,7 @@ def draw_damage(image: BGR, report: DamageReport | None, scale: float, font: flo
         colour = CONFIRMED if track.confirmed else CANDIDATE
         cv2.rectangle(image, p0, p1, colour, thick + (1 if track.confirmed else 0), cv2.LINE_AA)
         if track.confirmed:
-            text = (f"hole {track.track_id}: {max(1, round(track.width_m * 100))}x"
+            text = (f"hole {track.hole_id}: {max(1, round(track.width_m * 100))}x"
                     f"{max(1, round(track.height_m * 100))} cm")
             cv2.putText(image, text, (p0[0], max(12, p0[1] - 6)), cv2.FONT_HERSHEY_SIMPLEX,
                         font * 0.7, colour, max(1, thick), cv2.LINE_AA)
