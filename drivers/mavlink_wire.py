@@ -27,7 +27,7 @@ def signal_quality(quality: float) -> int:
     0 is reserved for "unknown" and sent only when the confidence is unknown (nan); 1 is
     MAVLink's "invalid signal" (common.xml), which a reading we send is not. A known confidence
     maps to round(100 * q) clamped to 2..100, so the weakest reading we still send is the worst
-    valid one (ArduPilot turns it into 1 %, 1 into 0 % and 0 into "unknown").
+    valid one (ArduPilot keeps it, turns 1 into 0 % and 0 into "unknown").
     """
     if not math.isfinite(quality):
         return 0

@@ -814,6 +814,7 @@ local function protected_update()
   end
   -- A bug must not leave thrust behind: neutral, off, and keep running (a fault that comes
   -- and goes, one odd message), but not for ever on one that stays.
+  local was_engaged = engaged
   if engaged then
     engaged = false
     pcall(neutral)
@@ -821,7 +822,8 @@ local function protected_update()
   gcs:send_named_float("NH_ON", 0)
   FAULTS.count = FAULTS.count + 1
   local now = now_s()
-  if FAULTS.said == nil or since(FAULTS.said, now) >= FAULTS.every_s then
+  -- Switching off is always said: the pilot must not think it still holds.
+  if was_engaged or FAULTS.said == nil or since(FAULTS.said, now) >= FAULTS.every_s then
     FAULTS.said = now
     -- Two texts: each holds 50 characters, and the error's start (file and line) matters most.
     gcs:send_text(3, "NetHold: internal error, OFF")

@@ -371,6 +371,24 @@ def test_an_error_that_comes_and_goes_is_said_every_five_seconds_at_most() -> No
     assert not applet.ended
 
 
+def test_switching_off_on_an_error_is_always_said() -> None:
+    """The error texts are rate-limited, and a second error within 5 s switched the hold off
+    without a word: the pilot thought it still held."""
+    vehicle = NetVehicle(distance_m=2.0, heading_error_deg=0.0)
+    applet = engaged_applet(vehicle)
+    for _ in range(2):  # engaged, an error; engaged again, another error 1 s later
+        applet.stub.pitch = applet.lua.table()
+        before = len(applet.texts())
+        run_closed_loop(applet, vehicle, 0.3)
+        assert not applet.engaged
+        assert "NetHold: internal error, OFF" in [t for _, t in applet.texts()[before:]]
+        applet.stub.pitch = 0.0
+        run_closed_loop(applet, vehicle, 0.5)
+        applet.press(1)
+        run_closed_loop(applet, vehicle, 0.2)
+        assert applet.engaged, applet.texts()[-3:]
+
+
 def test_engages_only_in_a_mode_that_flies_by_the_sticks() -> None:
     """GUIDED and AUTO never read the forward channel and POSHOLD takes it as a speed: net
     hold's thrust means nothing, or something else, there."""

@@ -1292,12 +1292,21 @@ def test_any_configuration_error_serves_the_page_that_names_and_fixes_it(
                                                        "mavlink.url") for r in reasons)
         with pytest.raises(TimeoutError):
             autopilot.recv(1024)
+        # The form shows what the file has (the broken key at its default), typed: it came up
+        # blank and all text, and the group's Save was refused field by field.
+        values = settings["values"]
+        assert values["mavlink.sensor_id"] is not None and values["telemetry.vehicle"]
+        kinds = {f["key"]: f["type"] for g in settings["groups"] for f in g["fields"]}
+        assert kinds["mavlink.orientation"] != "text", kinds
         # Another setting cannot be saved past the error: the page says which key is wrong.
         status, reply = d.request("POST", "/api/settings",
                                   {"changes": {"mavlink.sensor_id": 3}}, token=True)
         assert status == 400 and "mavlink.url" in reply["error"], reply
-        status, reply = d.request("POST", "/api/settings", {"changes": {"mavlink.url": url}},
-                                  token=True)
+        # The whole group as the page's Save sends it, the URL fixed.
+        group = next(g for g in settings["groups"] if g["title"].startswith("Autopilot"))
+        changes = {f["key"]: values[f["key"]] for f in group["fields"]}
+        changes["mavlink.url"] = url
+        status, reply = d.request("POST", "/api/settings", {"changes": changes}, token=True)
         assert status == 200 and reply["saved"], reply
         deadline = time.monotonic() + 60.0
         while "leaving set-up mode" not in d.log():

@@ -20,6 +20,7 @@ import pytest
 import tomlkit
 
 from drivers.mavlink_link import RecordingAutopilotLink
+from drivers.net import free_port
 from drivers.sdnotify import NullNotifier
 from drivers.sources.synthetic import builtin_camera
 from drivers.telemetry import RecordingPublisher
@@ -305,7 +306,7 @@ def test_set_up_mode_serves_no_configuration_error_it_cannot_serve_the_page_past
     doc = tomlkit.parse(DEMO.read_text(encoding="utf-8"))
     doc["web"]["enabled"] = True
     doc["web"]["host"] = "127.0.0.1"
-    doc["web"]["port"] = 0
+    doc["web"]["port"] = free_port()
     for name, value in changes.items():
         section, _, field = name.partition(".")
         if value is None:
@@ -317,6 +318,21 @@ def test_set_up_mode_serves_no_configuration_error_it_cannot_serve_the_page_past
     with pytest.raises(ConfigError) as info:
         main(str(path), duration_s=5.0)
     assert info.value.key == key, info.value
+
+
+def test_a_broken_set_on_the_command_line_is_not_set_up_for(tmp_path: Path) -> None:
+    """A --set that fails only when the parts are built (a video file that is not there):
+    set-up mode could never end (the page refuses overridden keys, --set wins over the file),
+    so it is the configuration error, exit 78, as ever."""
+    doc = tomlkit.parse(DEMO.read_text(encoding="utf-8"))
+    doc["web"]["enabled"] = True
+    doc["web"]["host"] = "127.0.0.1"
+    doc["web"]["port"] = free_port()
+    path = tmp_path / "netpose.toml"
+    path.write_text(tomlkit.dumps(doc), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        main(str(path), ["camera.url=missing.mp4"], duration_s=5.0)
+    assert info.value.key == "camera.url", info.value
 
 
 def test_a_bad_calibration_file_is_a_configuration_error_naming_the_key(

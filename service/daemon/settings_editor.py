@@ -114,7 +114,8 @@ class SettingsEditor:
                  request_reload: Callable[[], None],
                  request_restart: Callable[[], None],
                  load_incomplete: Loader | None = None,
-                 stopping: Callable[[], bool] = lambda: False) -> None:
+                 stopping: Callable[[], bool] = lambda: False,
+                 load_shown: Loader | None = None) -> None:
         """`load` checks a file as `netpose run` does; `load_incomplete` as set-up mode may save
         it (what set-up is there to finish may still be missing), used while `setting_up`.
         `stopping` says that the daemon is stopping (a signal, a restart): it reloads nothing
@@ -123,6 +124,9 @@ class SettingsEditor:
         self._overridden = {text.partition("=")[0].strip() for text in overrides}
         self._load = load
         self._load_incomplete = load_incomplete
+        # What set-up mode shows of a file with any other error (its broken keys at their
+        # defaults): without it the form came up blank and all text, and no save could fix it.
+        self._load_shown = load_shown
         self.setting_up = threading.Event()
         self._request_reload = request_reload
         self._request_restart = request_restart
@@ -167,8 +171,10 @@ class SettingsEditor:
                 problem = f"configuration error: {exc}"
                 set_up = self._set_up_loader()
                 if set_up is not None:  # what is there, to show it
-                    with contextlib.suppress(ConfigError, CalibrationError):
-                        config = set_up(self.path)
+                    for loader in (set_up, self._load_shown):
+                        if config is None and loader is not None:
+                            with contextlib.suppress(ConfigError, CalibrationError):
+                                config = loader(self.path)
         groups = []
         for title, keys in self._groups(config):
             fields = []

@@ -334,7 +334,8 @@ def main(
                 flags.reload.set, request_restart,
                 load_incomplete=lambda path: checked_config(str(path), overrides,
                                                             incomplete_ok=True),
-                stopping=flags.stop.is_set)
+                stopping=flags.stop.is_set,
+                load_shown=lambda path: _load_or_setup(str(path), overrides)[0])
             running: list[Daemon] = []
             started = time.monotonic()
             controls = WebControls(editor, lambda: running[-1].config if running else config,
@@ -345,7 +346,8 @@ def main(
                     try:
                         parts = build_parts(config, _RestartAware(notify, restart), controls)
                     except (ConfigError, CalibrationError) as exc:
-                        problem = _setup_problem(config, exc, rescue=True)
+                        problem = _setup_problem(config, exc,
+                                                 rescue=not _overridden(exc, overrides))
                 if parts is None:
                     assert problem is not None
                     deadline = None if duration_s is None else started + duration_s
@@ -473,6 +475,14 @@ def _setup_problem(config: Config, exc: Exception, *, rescue: bool = False) -> s
 # Broken keys a rescue looks past to serve the page: a file with more needs more than a page.
 _RESCUE_MAX_KEYS = 8
 _KEY_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*(\.[A-Za-z_][A-Za-z0-9_-]*)?")
+
+
+def _overridden(exc: Exception, overrides: tuple[str, ...]) -> bool:
+    """Is what is wrong set with --set? Neither the page (it refuses overridden keys) nor the
+    file (--set wins) can fix that: set-up mode would never end."""
+    key = getattr(exc, "key", None)
+    return key is not None and any(text.partition("=")[0].strip() == key
+                                   for text in overrides)
 
 
 def _rescuable(key: str) -> bool:
