@@ -105,6 +105,16 @@ class DaemonRun:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def wait_ready(proc: subprocess.Popen[str], notify: NotifyRecorder,
+               timeout_s: float = 30.0) -> None:
+    """Until the daemon says READY=1 (imports and start-up done); it must not exit first."""
+    deadline = time.monotonic() + timeout_s
+    while not any("READY=1" in m for _, m in notify.snapshot()):
+        assert proc.poll() is None, proc.communicate()[1]
+        assert time.monotonic() < deadline, f"no READY=1 within {timeout_s:g} s"
+        time.sleep(0.05)
+
+
 def daemon_command(config: Path, overrides: list[str]) -> list[str]:
     cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(config)]
     for o in overrides:
@@ -136,11 +146,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonRun]:
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         # Wait for READY (imports and start-up), then let the scene play.
-        deadline = time.monotonic() + 30.0
-        while not any("READY=1" in m for _, m in notify.snapshot()):
-            assert proc.poll() is None, proc.communicate()[1]
-            assert time.monotonic() < deadline, "no READY=1 within 30 s"
-            time.sleep(0.05)
+        wait_ready(proc, notify)
         time.sleep(RUN_S)
         assert proc.poll() is None, "daemon died: " + proc.communicate()[1]
         t_term = time.monotonic()
@@ -335,11 +341,7 @@ def test_a_watchdog_abort_writes_where_every_thread_was_to_the_log(tmp_path: Pat
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True)
     try:
-        deadline = time.monotonic() + 30.0
-        while not any("READY=1" in m for _, m in notify.snapshot()):
-            assert proc.poll() is None, proc.communicate()[1]
-            assert time.monotonic() < deadline, "no READY=1 within 30 s"
-            time.sleep(0.05)
+        wait_ready(proc, notify)
         proc.send_signal(signal.SIGABRT)
         _, stderr = proc.communicate(timeout=10.0)
     finally:
@@ -386,10 +388,7 @@ def test_sighup_reloads_filter_settings(tmp_path: Path) -> None:
     proc = subprocess.Popen(daemon_command(cfg, overrides), cwd=REPO, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 30.0
-        while not any("READY=1" in m for _, m in notify.snapshot()):
-            assert proc.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
+        wait_ready(proc, notify)
         cfg.write_text(DEMO.read_text() + "\n[filter]\ngate_sigma = 6.0\n")
         proc.send_signal(signal.SIGHUP)
         deadline = time.monotonic() + 10.0
