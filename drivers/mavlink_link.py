@@ -95,6 +95,7 @@ MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_AUTOPILOT1 = 1
+MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_NOTICE = 5
 # STATUSTEXT.text is 50 characters; texts queued while the link is down wait, up to this many.
@@ -154,6 +155,7 @@ class _AutopilotIdentity:
     mavlink_version: int
     last_heartbeat: float
     flight_sw_version: int | None = None
+    armed: bool = False  # its last HEARTBEAT's base_mode
 
 
 class _TransportClosedError(MavlinkLinkError):
@@ -410,8 +412,9 @@ class MavlinkLink(AutopilotLink):
                     sysid=ap.sysid, compid=ap.compid, type=ap.mav_type, autopilot=ap.autopilot,
                     mavlink_version=ap.mavlink_version, flight_sw_version=ap.flight_sw_version,
                 )
+            state = self._state_locked()
             return AutopilotHealth(
-                state=self._state_locked(),
+                state=state,
                 heartbeat_age_s=None if ap is None else now - ap.last_heartbeat,
                 messages_sent=sum(self._sent.values()),
                 transport="up" if self._transport_up else "down",
@@ -429,6 +432,9 @@ class MavlinkLink(AutopilotLink):
                 min_distance_m=self.settings.min_distance_m,
                 max_distance_m=self.settings.max_distance_m,
                 texts_dropped=self._texts_dropped,
+                # Known only while its heartbeat is: a lost autopilot's last word could keep
+                # the page's settings locked for good (it hears no distance then either).
+                armed=ap.armed if ap is not None and state == "connected" else None,
             )
 
     def _state_locked(self) -> str:
@@ -820,6 +826,7 @@ class MavlinkLink(AutopilotLink):
                 mavlink_version=2 if msg.get_msgbuf()[0] == 0xFD else 1,
                 last_heartbeat=now,
                 flight_sw_version=version,
+                armed=bool(int(msg.base_mode) & MAV_MODE_FLAG_SAFETY_ARMED),
             )
             self._autopilot_alive = True
         if first:

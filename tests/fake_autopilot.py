@@ -238,6 +238,7 @@ class FakeAutopilot(Closeable):
         self.flight_sw_version = flight_sw_version
         self.echo = echo
         self.heartbeats_enabled = True
+        self.armed = False  # its HEARTBEAT's base_mode says so (MAV_MODE_FLAG_SAFETY_ARMED)
         # SYSTEM_TIME with each heartbeat (ArduSub streams it; a rebooted one only after a
         # while, `reboot`), and answers to TIMESYNC requests (as GCS_MAVLINK does).
         self.system_time_enabled = True
@@ -369,8 +370,10 @@ class FakeAutopilot(Closeable):
             )
 
     def _send_heartbeat(self) -> None:
+        # base_mode: MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, and SAFETY_ARMED when armed (ArduSub's).
         self._mav.heartbeat_send(
-            self.MAV_TYPE_SUBMARINE, self.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3
+            self.MAV_TYPE_SUBMARINE, self.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            1 | (128 if self.armed else 0), 0, 4 if self.armed else 3
         )
         if self.system_time_enabled:
             self._mav.system_time_send(int(time.time() * 1e6), self.boot_ms())

@@ -345,6 +345,26 @@ def test_autopilot_heartbeat_lost_and_back(caplog: pytest.LogCaptureFixture) -> 
     assert sum("heartbeat back" in m for m in messages) == 1
 
 
+def test_armed_is_what_the_current_heartbeat_says() -> None:
+    """The web page's settings wait for a disarmed vehicle (settings_editor.ARMED): the link
+    says armed from the autopilot's HEARTBEAT (base_mode's SAFETY_ARMED), and nothing once that
+    heartbeat is lost (a vanished autopilot's last word must not lock the page for good)."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        link = MavlinkLink(settings(autopilot.url))
+        with link:
+            assert link.status().armed is None  # no autopilot heard yet
+            wait_status(link, "armed", False)
+            autopilot.armed = True
+            wait_status(link, "armed", True)
+            autopilot.armed = False
+            wait_status(link, "armed", False)
+            autopilot.armed = True
+            wait_status(link, "armed", True)
+            autopilot.heartbeats_enabled = False
+            lost = wait_status(link, "state", "lost")
+    assert lost.armed is None
+
+
 def test_own_echo_and_other_components_are_not_the_autopilot() -> None:
     with FakeAutopilot(UdpServerTransport(), echo=True) as autopilot:
         autopilot.heartbeats_enabled = False

@@ -44,6 +44,7 @@ from drivers.web.settings import WebSettings
 from service.core.camera import save_camera
 from service.core.errors import ConfigError
 from service.core.messages import EstimateMessage, FilteredView
+from tests.fake_autopilot import FakeAutopilot, UdpServerTransport
 from tests.web_harness import REPO, WebDaemon
 
 REQUIRED_SERVICE_KEYS = ("name", "description", "icon", "company", "version", "webpage", "api")
@@ -353,6 +354,40 @@ def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
     finally:
         page.close()
     assert oldest_gone and live_open
+
+
+@pytest.mark.parametrize("kind", ["application/json", "multipart/form-data; boundary=b"])
+def test_a_body_sent_a_byte_at_a_time_is_cut_off(tmp_path: Path, kind: str,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A change whose body trickled in (a byte every few seconds) held its connection for as
+    long as it went on, and 64 of them every connection the page has (aiohttp reads a body
+    with no deadline). A body not in by BODY_DEADLINE_S gets 408 and its connection ends."""
+    from drivers.web import page as page_module
+
+    monkeypatch.setattr(page_module, "BODY_DEADLINE_S", 1.0, raising=False)
+    page, port = _bare_page(tmp_path)
+    page.start()
+    s = socket.create_connection(("127.0.0.1", port), timeout=10.0)
+    path = "/api/calibration" if kind.startswith("multipart") else "/api/settings"
+    try:
+        s.sendall(f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {kind}\r\n"
+                  "Content-Length: 200\r\n\r\n--b\r\n".encode())
+        started = time.monotonic()
+        reply = b""
+        s.settimeout(0.3)
+        while b"\r\n\r\n" not in reply:
+            assert time.monotonic() - started < 8.0, reply
+            try:
+                s.sendall(b"x")  # a trickle that never ends
+                reply += s.recv(4096)
+            except TimeoutError:
+                continue
+        waited = time.monotonic() - started
+    finally:
+        s.close()
+        page.close()
+    assert reply.startswith(b"HTTP/1.1 408"), reply
+    assert 0.9 < waited < 3.0, waited
 
 
 def _page_with_a_large_recording(tmp_path: Path) -> tuple[Any, int, str]:
@@ -778,6 +813,37 @@ def test_a_rebound_name_cannot_change_settings(daemon: WebDaemon) -> None:
                              "X-Netpose-Change": "1"})  # a script that asked: not even then
     assert status == 403 and "web.allowed_origins" in reply["error"], (status, reply)
     assert daemon.config.read_bytes() == before
+    # Nor read the page's data: the live view, the settings (camera and link addresses), the
+    # recordings of the dive. The page itself answers any name (it holds no data).
+    rebound = {"Host": f"evil.example:{port}"}
+    for path in ("/api/settings", "/api/recordings"):
+        status, reply = daemon.request("GET", path, headers=rebound)
+        assert status == 403 and "web.allowed_origins" in reply["error"], (path, status)
+    status, reply = daemon.request("GET", "/ws", headers={
+        **rebound, "Upgrade": "websocket", "Connection": "Upgrade",
+        "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==", "Sec-WebSocket-Version": "13"})
+    assert status == 403, status
+    assert daemon.request("GET", "/", headers=rebound)[0] == 200
+    assert daemon.request("GET", "/api/settings", headers={"Host": "blueos.local"})[0] == 200
+
+
+def test_only_the_vehicles_own_pages_may_frame_the_page(daemon: WebDaemon) -> None:
+    """Clickjacking: any website could lay the full page (Restart, recording) under its own.
+    It may be framed by the vehicle's own pages only (BlueOS's sidebar, Cockpit served by
+    BlueOS: the same host, any port); the Cockpit widget, which has no controls, anywhere.
+    (Chromium enforcing it: tests/test_web_browser.py.)"""
+    req = urllib.request.Request(daemon.base + "/", headers={"Host": "blueos.local"})
+    with urllib.request.urlopen(req, timeout=10) as reply:
+        policy = reply.headers["Content-Security-Policy"]
+        assert reply.headers["X-Content-Type-Options"] == "nosniff"
+    assert policy == ("frame-ancestors 'self' http://blueos.local:* https://blueos.local:*"
+                      ), policy
+    # A Host header is the client's word: nothing odd in it reaches the policy.
+    req = urllib.request.Request(daemon.base + "/", headers={"Host": "x; frame-ancestors *"})
+    with urllib.request.urlopen(req, timeout=10) as reply:
+        assert reply.headers["Content-Security-Policy"] == "frame-ancestors 'self'"
+    with urllib.request.urlopen(daemon.base + "/widget", timeout=10) as reply:
+        assert reply.headers["Content-Security-Policy"] is None
 
 
 def test_a_page_on_another_port_of_the_vehicle_cannot_change_settings(daemon: WebDaemon) -> None:
@@ -1022,6 +1088,53 @@ def test_a_change_needing_a_restart_that_is_undone_needs_none(daemon: WebDaemon)
     status, reply = daemon.request("POST", "/api/settings",
                                    {"changes": {"mesh.bar_length_m": 0.026}}, token=True)
     assert status == 200 and reply["restart_needed"] == [], reply
+
+
+def test_nothing_is_changed_from_the_page_while_the_vehicle_is_armed(tmp_path: Path) -> None:
+    """With no token (BlueOS's default) one request from anyone on the vehicle's network
+    doubled the distance the autopilot steered by (mesh.bar_length_m), swapped the camera or
+    redirected the link mid-dive. While the autopilot says it is armed, settings, calibration
+    and restarts from the page are refused (409, the reason said) and the file is untouched;
+    disarmed, the same change is taken, and the log says who changed what from what."""
+    with FakeAutopilot(UdpServerTransport()) as autopilot:
+        autopilot.armed = True
+        d = WebDaemon(tmp_path, token="", sections={"mavlink": {"url": autopilot.url}})
+        d.start()
+        try:
+            autopilot.wait_for("DISTANCE_SENSOR", count=3, timeout=30.0)
+            deadline = time.monotonic() + 10.0
+            while not d.request("GET", "/api/settings")[1]["reason"].startswith("the vehicle "
+                                                                                "is armed"):
+                assert time.monotonic() < deadline, d.log()
+                time.sleep(0.2)
+            before = d.config.read_bytes()
+            status, reply = d.request("POST", "/api/settings",
+                                      {"changes": {"mesh.bar_length_m": 0.05}})
+            assert status == 409 and "armed" in reply["error"], reply
+            status, reply = d.request("POST", "/api/restart", {})
+            assert status == 409 and "armed" in reply["error"], reply
+            assert d.config.read_bytes() == before
+            before_cm = statistics.median(
+                r.msg.current_distance for r in autopilot.received("DISTANCE_SENSOR")[-5:])
+            autopilot.clear()
+            # Still sending, at the scale it had (the demo's net moves slowly: not double).
+            after = autopilot.wait_for("DISTANCE_SENSOR", count=5)
+            after_cm = statistics.median(r.msg.current_distance for r in after)
+            assert abs(after_cm / before_cm - 1.0) < 0.2, (before_cm, after_cm)
+
+            autopilot.armed = False
+            deadline = time.monotonic() + 10.0
+            while not d.request("GET", "/api/settings")[1]["editable"]:
+                assert time.monotonic() < deadline, d.log()
+                time.sleep(0.2)
+            status, reply = d.request("POST", "/api/settings",
+                                      {"changes": {"mesh.bar_length_m": 0.026}},
+                                      headers={"X-Forwarded-For": "192.168.2.1"})
+            assert status == 200 and reply["saved"], reply
+        finally:
+            assert d.stop() == 0, d.log()
+    assert re.search(r"configuration changed from the web page by 127\.0\.0\.1 \(for "
+                     r"'192\.168\.2\.1'\): mesh\.bar_length_m 0\.025 -> 0\.026", d.log()), d.log()
 
 
 def test_a_stop_during_a_restart_ends_the_service(tmp_path: Path) -> None:

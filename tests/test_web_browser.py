@@ -207,6 +207,61 @@ def test_the_cockpit_widget_page(daemon: WebDaemon, browser: Any, shots: Path) -
     page.screenshot(path=str(shots / "web-widget.png"))
 
 
+def test_another_site_cannot_frame_the_page(daemon: WebDaemon, browser: Any) -> None:
+    """Clickjacking, in the browser that enforces it: a page of another site framing the page
+    gets Chromium's blocked frame, not the page and its Restart button; a page of the
+    vehicle's own host on another port (BlueOS's sidebar, Cockpit) frames it; the Cockpit
+    widget may be framed anywhere. The framing page is served on loopback, reached as
+    127.0.0.1 (the page's own host) and as `localhost` (another host: a local one, as
+    Chromium's local-network rules block a public site's frame for a reason of their own)."""
+    import http.server
+    import threading
+
+    port = daemon.base.rsplit(":", 1)[1]
+    parent = (f'<iframe id="full" src="http://127.0.0.1:{port}/"></iframe>'
+              f'<iframe id="widget" src="http://127.0.0.1:{port}/widget"></iframe>'
+              ).encode()
+
+    class Parent(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(parent)))
+            self.end_headers()
+            self.wfile.write(parent)
+
+        def log_message(self, *args: Any) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Parent)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+
+    def shown(host: str) -> dict[str, bool]:
+        page = browser.new_page()
+        try:
+            page.goto(f"http://{host}:{server.server_address[1]}/")
+            result = {}
+            for name in ("full", "widget"):
+                try:
+                    page.frame_locator(f"#{name}").locator("#distance").wait_for(
+                        state="attached", timeout=10_000)
+                    result[name] = True
+                except Exception:
+                    result[name] = False
+            return result
+        finally:
+            page.close()
+
+    try:
+        assert shown("localhost") == {"full": False, "widget": True}
+        assert shown("127.0.0.1") == {"full": True, "widget": True}
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5.0)
+
+
 def _started(daemon: WebDaemon) -> WebDaemon:
     """daemon.start() beside Playwright's event loop (its asyncio.run needs a thread without
     one), for a daemon a test starts once the browser is up."""

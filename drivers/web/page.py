@@ -20,6 +20,7 @@ import io
 import ipaddress
 import json
 import logging
+import re
 import shutil
 import tarfile
 import tempfile
@@ -49,7 +50,12 @@ from drivers.web.security import (
 from drivers.web.settings import WebSettings
 from service import __version__
 from service.core.camera import CameraModel, load_camera
-from service.core.errors import CalibrationError, ConfigError, NetposeError
+from service.core.errors import (
+    CalibrationError,
+    ConfigError,
+    NetposeError,
+    SettingsLockedError,
+)
 from service.core.messages import DamageMessage, EstimateMessage, StatusMessage, to_json
 
 log = logging.getLogger(__name__)
@@ -73,6 +79,14 @@ DOWNLOAD_STALL_S = 60.0
 # pilot's "stop recording" and every settings change waiting for 140 s.
 MAX_DOWNLOADS = 3
 _CANCEL_POLL_S = 0.2
+# A change's body (settings, an upload) must have arrived by then: one sent a byte at a time held
+# its connection for ever, and 64 of them every connection the page has. A calibration file of
+# web.max_upload_kb at the default 1 MB is seconds over the slowest tether.
+BODY_DEADLINE_S = 20.0
+# What may go into a Content-Security-Policy source as it is: a host name or IPv4 address, an
+# origin of one.
+_PLAIN_NAME = re.compile(r"[a-z0-9]([a-z0-9.-]{0,252})")
+_PLAIN_ORIGIN = re.compile(r"https?://[A-Za-z0-9.-]{1,253}(:[0-9]{1,5})?")
 
 R = TypeVar("R")
 
@@ -84,16 +98,17 @@ class SettingsBackend(Protocol):
         """JSON: the file, whether it can be changed, the editable keys and their values."""
         ...
 
-    def apply(self, changes: Mapping[str, Any]) -> dict[str, Any]:
+    def apply(self, changes: Mapping[str, Any], client: str = "") -> dict[str, Any]:
         """Validate `{"section.key": value}` like the file, save, reload; ConfigError names
-        the key of the first problem and nothing is changed."""
+        the key of the first problem and nothing is changed. `client`: who asked (the log's).
+        SettingsLockedError: not now (the vehicle is armed)."""
         ...
 
-    def install_calibration(self, path: Path) -> dict[str, Any]:
+    def install_calibration(self, path: Path, client: str = "") -> dict[str, Any]:
         """Copy a validated calibration file next to the configuration and use it."""
         ...
 
-    def restart(self) -> None:
+    def restart(self, client: str = "") -> None:
         """Restart the daemon's parts with the saved configuration."""
         ...
 
@@ -282,7 +297,17 @@ class WebPage(Generic[R]):
         app.router.add_post("/api/recordings/{name}/delete", self._post_recording_delete)
         app.router.add_static("/static", STATIC, show_index=False)
         app.on_shutdown.append(self._close_clients)
+        app.on_response_prepare.append(self._policy_headers)
         return app
+
+    async def _policy_headers(self, request: web.Request, response: web.StreamResponse) -> None:
+        """Which pages may frame this one: the full page (its Restart, its recording buttons)
+        only the vehicle's own pages (BlueOS's sidebar, Cockpit served by BlueOS: the same host,
+        any port) and web.allowed_origins, so a website cannot lay it under its own and have
+        the pilot click it; the Cockpit widget (no controls) anywhere."""
+        response.headers["X-Content-Type-Options"] = "nosniff"
+        if request.path != "/widget":
+            response.headers["Content-Security-Policy"] = self._frame_ancestors(request.host)
 
     # -- safety --------------------------------------------------------------------------------
     @web.middleware
@@ -298,12 +323,17 @@ class WebPage(Generic[R]):
         if changes and origin is not None and CHANGE_HEADER not in request.headers:
             return _error(403, f"a change from a browser needs the {CHANGE_HEADER} header, as "
                           "the page's own requests have (security.py)")
-        # Changes only: the live WebSocket reads, and reading is open (GET / answers anyway).
-        if (changes and origin is not None
+        # The page's data (the live view, settings, recordings) and every change from a
+        # browser: only by a name no website can point at the vehicle. A site the topside
+        # browser visits, rebound to the vehicle, would otherwise read the cage's video and the
+        # dive's recordings (the pages themselves answer any name: they hold no data).
+        data = request.path == "/ws" or request.path.startswith("/api/")
+        if ((data or (changes and origin is not None))
                 and not host_trusted(request.host, self.settings.allowed_origins)):
             return _error(403, f"the page was reached as {request.host}, a name any website "
-                          "could point at this vehicle: to change things from it, list "
-                          f"{origin} in web.allowed_origins (or use the vehicle's address)")
+                          "could point at this vehicle: to use it by that name, list "
+                          f"{origin or 'its origin'} in web.allowed_origins (or use the "
+                          "vehicle's address)")
         if changes:
             if not token_ok(self.settings.token, request.headers.get(TOKEN_HEADER)):
                 return _error(401, "this change needs the token (web.token); enter it on the "
@@ -313,10 +343,24 @@ class WebPage(Generic[R]):
                 return _error(413, f"request of {request.content_length} bytes refused: at "
                               f"most {self.settings.max_upload_kb} KB (web.max_upload_kb)")
         try:
+            if changes and not request.content_type.startswith("multipart/"):
+                # Read whole before the handler, in time (an upload's handler bounds its own).
+                try:
+                    await asyncio.wait_for(request.read(), BODY_DEADLINE_S)
+                except TimeoutError:
+                    return _slow_body()
             return await handler(request)
         except web.HTTPRequestEntityTooLarge:
             return _error(413, f"request refused: at most {self.settings.max_upload_kb} KB "
                           "(web.max_upload_kb)")
+
+    def _frame_ancestors(self, host: str) -> str:
+        sources = ["'self'"]
+        name = host.strip().lower().rpartition(":")[0] if ":" in host else host.strip().lower()
+        if _PLAIN_NAME.fullmatch(name):  # not an IPv6 literal, nor anything odd
+            sources += [f"http://{name}:*", f"https://{name}:*"]
+        sources += [o for o in self.settings.allowed_origins if _PLAIN_ORIGIN.fullmatch(o)]
+        return "frame-ancestors " + " ".join(sources)
 
     # -- pages and BlueOS ------------------------------------------------------------------------
     def _static_page(self, name: str) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
@@ -512,14 +556,19 @@ class WebPage(Generic[R]):
         if not isinstance(changes, dict) or not changes:
             return _error(400, "expected {\"changes\": {\"section.key\": value, ...}}")
         try:
-            outcome = await self._in_files(self._backend.apply, changes)
+            outcome = await self._in_files(self._backend.apply, changes, _client(request))
+        except SettingsLockedError as exc:
+            return _error(409, str(exc))
         except NetposeError as exc:
             return _error(400, _config_text(exc))
         self._broadcast_event({"kind": "settings", **outcome})
         return web.json_response(outcome)
 
     async def _post_restart(self, request: web.Request) -> web.Response:
-        self._backend.restart()
+        try:
+            self._backend.restart(_client(request))
+        except SettingsLockedError as exc:
+            return _error(409, str(exc))
         return web.json_response({"restarting": True})
 
     def _broadcast_event(self, payload: dict[str, Any]) -> None:
@@ -531,6 +580,40 @@ class WebPage(Generic[R]):
     async def _post_calibration(self, request: web.Request) -> web.Response:
         if not request.content_type.startswith("multipart/"):
             return _error(400, "upload the calibration file as multipart/form-data (field file)")
+        try:
+            upload = await asyncio.wait_for(self._read_calibration(request), BODY_DEADLINE_S)
+        except TimeoutError:
+            return _slow_body()
+        if isinstance(upload, web.Response):
+            return upload
+        data, filename, suffix = upload
+        ident = uuid.uuid4().hex[:12]
+        path = self._tmp / f"{ident}{suffix}"
+        path.write_bytes(data)
+        try:
+            pending = await self._in_files(self._check_calibration, path, filename)
+        except NetposeError as exc:
+            path.unlink(missing_ok=True)
+            return _error(400, f"camera.calibration: {exc}")
+        self._calibrations[ident] = pending
+        while len(self._calibrations) > PENDING_CALIBRATIONS:
+            oldest = min(self._calibrations, key=lambda k: self._calibrations[k].created)
+            self._calibrations.pop(oldest).path.unlink(missing_ok=True)
+        cam = pending.camera
+        k1 = cam.distortion[0] if cam.distortion else 0.0
+        unchecked = "" if pending.checked else (
+            "; not checked against the camera (no frame yet): the daemon checks it when "
+            "the camera runs")
+        return web.json_response({
+            "id": ident, "file": filename, "preview": f"api/calibration/{ident}/preview.jpg",
+            "summary": f"{cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} px, "
+                       f"centre ({cam.cx:.1f}, {cam.cy:.1f}), k1 {k1:+.3f}{unchecked}",
+            "checked": pending.checked,
+        })
+
+    async def _read_calibration(self, request: web.Request
+                                ) -> tuple[bytes, str, str] | web.Response:
+        """The upload's file: (content, file name, suffix), or the answer that refuses it."""
         # Counted here: aiohttp 3.8 (Debian bookworm's, the BlueOS image's) bounds a body by
         # client_max_size only when it states its length, and a chunked upload of 1.5 GB went
         # to memory and disk (4.7 GB RSS, a daemon that no longer stopped). The parts skipped
@@ -563,30 +646,7 @@ class WebPage(Generic[R]):
             if size > limit:
                 return too_large
             chunks.append(bytes(chunk))
-        data = b"".join(chunks)
-        ident = uuid.uuid4().hex[:12]
-        path = self._tmp / f"{ident}{suffix}"
-        path.write_bytes(data)
-        try:
-            pending = await self._in_files(self._check_calibration, path, part.filename)
-        except NetposeError as exc:
-            path.unlink(missing_ok=True)
-            return _error(400, f"camera.calibration: {exc}")
-        self._calibrations[ident] = pending
-        while len(self._calibrations) > PENDING_CALIBRATIONS:
-            oldest = min(self._calibrations, key=lambda k: self._calibrations[k].created)
-            self._calibrations.pop(oldest).path.unlink(missing_ok=True)
-        cam = pending.camera
-        k1 = cam.distortion[0] if cam.distortion else 0.0
-        unchecked = "" if pending.checked else (
-            "; not checked against the camera (no frame yet): the daemon checks it when "
-            "the camera runs")
-        return web.json_response({
-            "id": ident, "file": part.filename, "preview": f"api/calibration/{ident}/preview.jpg",
-            "summary": f"{cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} px, "
-                       f"centre ({cam.cx:.1f}, {cam.cy:.1f}), k1 {k1:+.3f}{unchecked}",
-            "checked": pending.checked,
-        })
+        return b"".join(chunks), part.filename, suffix
 
     def _check_calibration(self, path: Path, filename: str) -> _PendingCalibration:
         try:
@@ -624,7 +684,10 @@ class WebPage(Generic[R]):
         if pending is None:
             return _error(404, "no such calibration upload: upload the file again")
         try:
-            outcome = await self._in_files(self._backend.install_calibration, pending.path)
+            outcome = await self._in_files(self._backend.install_calibration, pending.path,
+                                           _client(request))
+        except SettingsLockedError as exc:
+            return _error(409, str(exc))
         except NetposeError as exc:
             return _error(400, _config_text(exc))
         self._broadcast_event({"kind": "settings", **outcome})
@@ -668,6 +731,7 @@ class WebPage(Generic[R]):
             size = await self._in_files(recorder.delete, name)
         except RecorderError as exc:  # being recorded, or the card refused
             return _error(409, str(exc))
+        log.info("recording %s deleted from the web page by %s", name, _client(request))
         return web.json_response({"deleted": name, "bytes": size})
 
     async def _get_recording_tar(self, request: web.Request) -> web.StreamResponse:
@@ -951,6 +1015,18 @@ async def _json_body(request: web.Request) -> dict[str, Any]:
         raise web.HTTPBadRequest(text='{"error": "expected a JSON object"}',
                                  content_type="application/json")
     return body
+
+
+def _slow_body() -> web.Response:
+    return _error(408, f"the request's body did not arrive within {BODY_DEADLINE_S:.0f} s")
+
+
+def _client(request: web.Request) -> str:
+    """Who sent a request, for the log: its address, and the one a proxy (BlueOS's nginx) says
+    it forwarded."""
+    forwarded = request.headers.get("X-Forwarded-For", "").split(",")[0].strip()
+    peer = request.remote or "?"
+    return f"{peer} (for {forwarded[:64]!r})" if forwarded else peer
 
 
 def _loopback(host: str) -> bool:

@@ -1,6 +1,6 @@
 """Who may change what: the page is reachable by anyone on the vehicle's network.
 
-- Reading (GET) is open.
+- Reading (GET) is open, by a trusted name (below) for the page's data.
 - A request that changes something (any other method) or opens the live WebSocket must come
   from the page's own origin, or from one listed in `web.allowed_origins`. Browsers always
   send `Origin` with those requests, so a page of another site cannot drive this one; tools
@@ -11,7 +11,8 @@
   `.localdomain`), or the host of an origin listed in `web.allowed_origins`. Otherwise a site
   the topside browser visits could resolve its own name to the vehicle (DNS rebinding) and be
   "the page's own origin"; with no token set (BlueOS's default) it could then rewrite the
-  settings. Reading, the live WebSocket included, stays open by any name.
+  settings. The page's data (the live WebSocket, /api/...) is read by such a name only, too:
+  a rebound site would read the cage's video and the recordings (the pages answer any name).
 - A browser's change (one that sends `Origin`) must carry the `X-Netpose-Change` header, as
   the page's own requests do. A page of another site can send a "simple" cross-origin POST
   (a form, or JSON labelled text/plain) with no preflight, and behind BlueOS's proxy the Origin

@@ -16,6 +16,10 @@ class ConfigError(NetposeError):
         self.problem = problem
 
 
+class SettingsLockedError(NetposeError):
+    """A change from the web page that must wait: the vehicle is armed."""
+
+
 class CalibrationError(NetposeError):
     """A camera calibration file cannot be read or describes an impossible camera."""
 

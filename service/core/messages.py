@@ -227,6 +227,9 @@ class AutopilotHealth:
         "the rangefinder's maximum the autopilot is told (DISTANCE_SENSOR.max_distance)", None)
     sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
                                   "applet) is being sent right now", False)
+    armed: bool | None = doc(
+        "the autopilot's HEARTBEAT says it is armed (the web page's settings and restart wait "
+        "for it to be disarmed); null while no heartbeat is current", None)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -31,7 +31,7 @@ import tomlkit
 from tomlkit.items import Table
 
 from service.config import Config
-from service.core.errors import CalibrationError, ConfigError
+from service.core.errors import CalibrationError, ConfigError, SettingsLockedError
 from service.core.files import write_atomically
 from service.core.redact import REDACTED, redact_config
 from service.daemon.loop import ReloadOutcome
@@ -55,6 +55,13 @@ OFFERED = frozenset(key for _, keys in GROUPS for key in keys)
 # Changed only in the file: the page's own access and address.
 LOCKED_SECTIONS = frozenset({"web"})
 RELOAD_TIMEOUT_S = 15.0
+# Every setting the page offers changes what the autopilot is told or where it goes (the mesh
+# size scales every distance; the camera, the link and the sensor's orientation replace them),
+# and a restart stops the distances for seconds: none of that mid-dive. The pilot disarms first,
+# as ArduPilot itself asks for some of its own parameters. Whoever reaches the page (BlueOS
+# ships it without a token) can no longer change the rangefinder of a vehicle in use.
+ARMED = ("the vehicle is armed: settings, calibration and restarts from the page wait until it "
+         "is disarmed (a change mid-dive changes the distance the autopilot steers by)")
 # How often a wait for the daemon's reload looks whether it is stopping instead.
 _STOP_POLL_S = 0.1
 
@@ -107,6 +114,21 @@ def _texts_in(value: Any) -> list[str]:
     return []
 
 
+def _shown(doc: tomlkit.TOMLDocument, key: str) -> str:
+    """A key's value in a parsed file, as the log shows it (a secret left out)."""
+    section, _, name = key.partition(".")
+    table = doc.get(section)
+    value = table.get(name) if isinstance(table, Table | dict) else None
+    if value is None:
+        return "(default)"
+    plain = value.unwrap() if hasattr(value, "unwrap") else value
+    return repr(redact_config({name: plain})[name])
+
+
+def _by(client: str) -> str:
+    return f" by {client}" if client else ""
+
+
 class SettingsEditor:
     """Validate-and-apply for the page; one per `netpose run` (it outlives restarts)."""
 
@@ -115,11 +137,13 @@ class SettingsEditor:
                  request_restart: Callable[[], None],
                  load_incomplete: Loader | None = None,
                  stopping: Callable[[], bool] = lambda: False,
-                 load_shown: Loader | None = None) -> None:
+                 load_shown: Loader | None = None,
+                 armed: Callable[[], bool | None] = lambda: None) -> None:
         """`load` checks a file as `netpose run` does; `load_incomplete` as set-up mode may save
         it (what set-up is there to finish may still be missing), used while `setting_up`.
         `stopping` says that the daemon is stopping (a signal, a restart): it reloads nothing
-        then, and a saved change is not waited for."""
+        then, and a saved change is not waited for. `armed`: whether the autopilot says it is
+        armed now (None: no autopilot heard), which locks every change (ARMED)."""
         self.path = path
         self._overridden = {text.partition("=")[0].strip() for text in overrides}
         self._load = load
@@ -131,6 +155,7 @@ class SettingsEditor:
         self._request_reload = request_reload
         self._request_restart = request_restart
         self._stopping = stopping
+        self._armed = armed
         self._lock = threading.Lock()  # one change at a time
         self._outcomes = threading.Condition()
         self._reloads = 0
@@ -161,6 +186,8 @@ class SettingsEditor:
     # -- the page's side -------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
         editable, reason = self._editable()
+        if editable and self._armed():
+            editable, reason = False, ARMED
         values: dict[str, Any] = {}
         config: Config | None = None
         problem = ""
@@ -196,7 +223,9 @@ class SettingsEditor:
                 "reason": reason, "problem": problem, "groups": groups, "values": values,
                 "restart_pending": sorted(self.restart_pending)}
 
-    def apply(self, changes: Mapping[str, Any]) -> dict[str, Any]:
+    def apply(self, changes: Mapping[str, Any], client: str = "") -> dict[str, Any]:
+        """`client`: who asked (the page's peer address), for the log."""
+        self._check_disarmed()
         editable, reason = self._editable()
         if not editable:
             raise ConfigError("configuration", reason)
@@ -231,6 +260,7 @@ class SettingsEditor:
                 doc = tomlkit.parse(old_text)
             except tomlkit.exceptions.ParseError as exc:
                 raise ConfigError(str(self.path), f"invalid TOML: {exc}") from None
+            said = {key: _shown(doc, key) for key in changes}
             for key, value in changes.items():
                 section, _, name = key.partition(".")
                 table = doc.get(section)
@@ -248,8 +278,11 @@ class SettingsEditor:
                 return {"saved": False, "message": "nothing to change", "changed": [],
                         "restart_needed": sorted(self.restart_pending)}
             write_atomically(self.path, new_text.encode("utf-8"), check=self._validate)
-            log.info("configuration changed from the web page: %s",
-                     ", ".join(sorted(changes)))
+            # Who changed what, from what: the page is open to the vehicle's network, and an
+            # unexpected distance is traced to its cause here.
+            log.info("configuration changed from the web page%s: %s", _by(client),
+                        "; ".join(f"{key} {said[key]} -> {_shown(doc, key)}"
+                                  for key in sorted(changes)))
             outcome = self._reload()
         if outcome is None:
             # A restart (or a stop) came while the change was saved: the restarted daemon
@@ -268,8 +301,9 @@ class SettingsEditor:
         return {"saved": True, "message": message, "changed": list(outcome.changed),
                 "restart_needed": needs, "digest": outcome.digest}
 
-    def install_calibration(self, path: Path) -> dict[str, Any]:
+    def install_calibration(self, path: Path, client: str = "") -> dict[str, Any]:
         """Copy an uploaded calibration (already checked by the page) next to the file."""
+        self._check_disarmed()
         editable, reason = self._editable()
         if not editable:
             raise ConfigError("camera.calibration", reason)
@@ -280,17 +314,22 @@ class SettingsEditor:
         if created:
             write_atomically(target, path.read_bytes())
         try:
-            return self.apply({"camera.calibration": target.name})
+            return self.apply({"camera.calibration": target.name}, client)
         except ConfigError:
             if created:
                 target.unlink(missing_ok=True)
             raise
 
-    def restart(self) -> None:
-        log.info("restart requested from the web page")
+    def restart(self, client: str = "") -> None:
+        self._check_disarmed()
+        log.info("restart requested from the web page%s", _by(client))
         self._request_restart()
 
     # -- internals -------------------------------------------------------------------------
+
+    def _check_disarmed(self) -> None:
+        if self._armed():
+            raise SettingsLockedError(ARMED)
 
     def _editable(self) -> tuple[bool, str]:
         if self.path is None:

@@ -33,7 +33,7 @@ from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError, ConfigError
 from service.daemon.loop import Daemon, DaemonParts
 from service.daemon.outputs import PreviewSettings
-from service.daemon.ports import FrameObserver, FrameSource, Notifier
+from service.daemon.ports import AutopilotLink, FrameObserver, FrameSource, Notifier
 from service.daemon.settings_editor import (
     RECORDED_SECTIONS,
     SET_UP_MESH_KEY,
@@ -329,13 +329,16 @@ def main(
                 restart.set()
                 flags.request_stop(RESTART)
 
+            # The link of the daemon running now (none in set-up mode, between restarts).
+            linked: list[AutopilotLink] = []
             editor = SettingsEditor(
                 config.path, overrides, lambda path: checked_config(str(path), overrides),
                 flags.reload.set, request_restart,
                 load_incomplete=lambda path: checked_config(str(path), overrides,
                                                             incomplete_ok=True),
                 stopping=flags.stop.is_set,
-                load_shown=lambda path: _load_or_setup(str(path), overrides)[0])
+                load_shown=lambda path: _load_or_setup(str(path), overrides)[0],
+                armed=lambda: linked[-1].status().armed if linked else None)
             running: list[Daemon] = []
             started = time.monotonic()
             controls = WebControls(editor, lambda: running[-1].config if running else config,
@@ -378,7 +381,11 @@ def main(
                                 load_config=lambda: checked_config(config_path, overrides),
                                 on_reload=editor.reloaded)
                 running[:] = [daemon]
-                status = daemon.run(duration_s)
+                linked[:] = [parts.link]
+                try:
+                    status = daemon.run(duration_s)
+                finally:
+                    linked.clear()
                 if not restart.is_set() or flags.signalled.is_set():
                     _say_late_signal(flags, daemon.stopped_for)
                     return status
