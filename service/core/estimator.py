@@ -476,9 +476,10 @@ class NetEstimator:
         self, cam: CameraModel, corners: list[tuple[int, int]], n: int, level: int
     ) -> list[_Geometry]:
         scale = 2**level
+        # cv2.pyrDown centres a level's pixel q on the full frame's pixel q * 2**level (its
+        # kernel sits on 2q), not on the middle of the pixels it averages.
         centres = np.array(
-            [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
-              + (scale - 1) / 2) for x, y in corners]
+            [((x + n / 2 - 0.5) * scale, (y + n / 2 - 0.5) * scale) for x, y in corners]
         )
         base = self._centre_geometries(cam, centres)
         return [replace(g, x0=x, y0=y, size=n) for g, (x, y) in zip(base, corners, strict=True)]
@@ -947,8 +948,8 @@ class NetEstimator:
         scale = 2**level
         w, h = layout.camera.width, layout.camera.height
         lw, lh = _level_size(w, level), _level_size(h, level)
-        x = round((geom.center_full[0] + 0.5) / scale - n / 2)
-        y = round((geom.center_full[1] + 0.5) / scale - n / 2)
+        x = round(geom.center_full[0] / scale - n / 2 + 0.5)  # _geometries' centre, inverted
+        y = round(geom.center_full[1] / scale - n / 2 + 0.5)
         x, y = min(max(x, 0), lw - n), min(max(y, 0), lh - n)
         return self._geometries(layout.camera, [(x, y)], n, level)[0]
 
@@ -1279,10 +1280,7 @@ class NetEstimator:
         for (full, _, step, _, _), patch in zip(maps, patches, strict=True):
             level = min(max(math.floor(math.log2(max(step, 1.0))), 0), s.levels - 1)
             scale = 2**level
-            to_level = np.array(
-                [[1 / scale, 0, -(scale - 1) / (2 * scale)],
-                 [0, 1 / scale, -(scale - 1) / (2 * scale)], [0, 0, 1]]
-            )
+            to_level = np.array([[1 / scale, 0, 0], [0, 1 / scale, 0], [0, 0, 1]])  # pyrDown's
             cv2.warpPerspective(
                 frame.image(level), to_level @ full, (n, n), dst=patch,
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,
@@ -1551,6 +1549,17 @@ class NetEstimator:
         sigma_n = math.hypot(sigma_n, pull_n)
         too_uncertain = (sigma_r > s.max_sigma_range_fraction * range_m
                          or sigma_n > s.max_sigma_normal_deg)
+        # The bars are what a net keeps; its opening angle is how it hangs (a diamond net at
+        # 60-85 deg by its load, a square one sheared by the current). The rectified view is a
+        # similarity of the net, whose angle it shows to about 0.1 deg: the cell's area is
+        # L^2 sin(measured angle), and the configured angle only tells a net from other grids
+        # (_mesh_check). The plane was fitted with the configured area, so every length scales
+        # by the root of the areas' ratio (the normal does not change). Near 90 deg sin is
+        # flat: a square net loses nothing to an angle measured a little off.
+        scale = 1.0 if opening is None else math.sqrt(
+            math.sin(math.radians(opening)) / math.sin(math.radians(self._mesh_opening)))
+        d_new, range_m, sigma_d, sigma_r = (scale * d_new, scale * range_m, scale * sigma_d,
+                                            scale * sigma_r)
         if too_uncertain or not settled:
             # Every proof passed: it is the net, at a range known only roughly. Said so (for
             # the pilot), never given as a distance.
