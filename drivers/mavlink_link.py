@@ -883,6 +883,7 @@ class RecordingAutopilotLink(AutopilotLink):
         self.planes: list[NetPlane] = []
         self.texts: list[tuple[int, str]] = []
         self.texts_dropped = 0  # a test sets it: texts a real link dropped as stale
+        self.armed: bool | None = None  # a test sets it: what the autopilot's heartbeat says
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -912,6 +913,7 @@ class RecordingAutopilotLink(AutopilotLink):
             transport="fake",
             messages_sent=len(self.ranges),
             texts_dropped=self.texts_dropped,
+            armed=self.armed,
         )
 
     def close(self) -> None:

@@ -93,6 +93,41 @@ def test_dead_camera_withdraws_the_distance_within_the_coasting_time(
     assert [t for _, t in h.link.texts] == ["netpose: camera lost: no distance"]
 
 
+def test_a_flapping_camera_is_said_to_flap_not_to_be_back() -> None:
+    """A stream 4 s on, 4 s off: the loss was said once per 30 s and each said loss's return
+    too, so the pilot read "camera back" as the last word for 27 s of every 30 while the camera
+    dropped out three more times, and 8 of 11 outages were never mentioned (field review).
+    Every outage is now accounted for in a text, at the same rate of at most one warning per
+    interval, and once the camera holds, the last word is that it is back."""
+    import re as regex
+
+    from drivers.mavlink_link import RecordingAutopilotLink
+    from service.daemon.service_notices import ServiceNotices
+
+    link = RecordingAutopilotLink()
+    notices = ServiceNotices(link, interval_s=30.0)
+    outages, was_up = 0, True
+    for tick in range(1000):  # 100 s at 10 passes a second
+        t = tick / 10
+        up = (t % 8.0) < 4.0 or t < 1.0
+        outages += int(was_up and not up)
+        was_up = up
+        notices.camera(up, t)
+    for tick in range(400):  # then it holds for 40 s
+        notices.camera(True, 100.0 + tick / 10)
+    texts = [text for _, text in link.texts]
+    warnings = [text for severity, text in link.texts if severity <= 4]
+    counted = 0
+    for text in warnings:
+        found = regex.search(r"\((\d+)x in|lost (\d+)x in", text)
+        counted += int(next(g for g in found.groups() if g)) if found else 1
+    assert counted == outages == 12, (outages, texts)
+    assert len(warnings) <= 140 // 30 + 1, texts
+    assert any(t.startswith("netpose: camera unstable: lost") for t in texts), texts
+    assert texts[-1] == "netpose: camera back", texts
+    assert all(len(text) <= 50 for text in texts)
+
+
 def test_the_pilot_hears_the_camera_come_back_and_netpose_stop(frames: list[Frame]) -> None:
     """The camera's return is said once its loss was; netpose stopping (a signal, the page's
     Restart, an update) is said before the link closes, not left as a silent rangefinder."""
@@ -400,6 +435,37 @@ def test_a_mesh_change_sends_no_distance_on_the_old_scale(
     after = [r.distance_m for r in h.link.ranges[sent:] if r.status is RangeStatus.GOOD]
     assert after, "the new scale's track is confirmed within 15 frames"
     assert all(d == pytest.approx(RANGE_M * scale, rel=0.02) for d in after), after
+
+
+def test_a_mesh_edit_is_not_applied_while_the_vehicle_is_armed(
+    tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A digit dropped in a hand edit (bar_length_m = 0.25 for 0.025) passes every check, and
+    `systemctl reload` mid-dive sent the autopilot ten times the distance about a second later,
+    with one INFO line to say so. While the autopilot says armed, a reload that changes the
+    mesh is rejected (the running configuration kept, the pilot told); disarmed, it is applied
+    and the pilot is told what it does to every distance."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(15)
+    h.link.armed = True
+    path.write_text(base.replace("bar_length_m = 0.025", "bar_length_m = 0.25"))
+    caplog.set_level(logging.INFO, logger="netpose.daemon")
+    assert not h.daemon.reload()
+    assert h.daemon.config.mesh.bar_length_m == 0.025
+    assert "not changed while the vehicle is armed (every distance x10.00)" in caplog.text
+    assert h.link.texts[-1][1] == "netpose: mesh change refused: vehicle armed"
+    sent = len(h.link.ranges)
+    h.iterate(10)
+    kept = [r.distance_m for r in h.link.ranges[sent:] if r.status is RangeStatus.GOOD]
+    assert kept and all(d == pytest.approx(RANGE_M, rel=0.02) for d in kept), kept
+    h.link.armed = False
+    assert h.daemon.reload()
+    assert h.daemon.config.mesh.bar_length_m == 0.25
+    assert h.link.texts[-1][1] == "netpose: mesh 25->250 mm: dist x10.00"
 
 
 def test_a_calibration_scaled_to_the_frames_says_so_once(

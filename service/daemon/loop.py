@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from service.config import Config, config_digest
 from service.core.budget import BudgetController
 from service.core.camera import CameraModel
 from service.core.damage_track import NetInspector
-from service.core.errors import CalibrationError, NetposeError
+from service.core.errors import CalibrationError, ConfigError, NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import RangeReading
 from service.core.redact import redact_text
@@ -371,12 +372,27 @@ class Daemon:
         try:
             new = self._load_config()
             changed = self.config.changed_sections(new)
+            scale = _distance_scale(self.config, new) if "mesh" in changed else 1.0
+            if "mesh" in changed and self.parts.link.status().armed:
+                # A digit dropped in the file (0.25 for 0.025) passes every check and sent the
+                # autopilot ten times the distance a second later, mid-dive. The page refuses
+                # every change while armed (settings_editor.ARMED); so does a hand edit.
+                self.parts.link.notify_pilot("netpose: mesh change refused: vehicle armed")
+                raise ConfigError("mesh", f"not changed while the vehicle is armed (every "
+                                  f"distance x{scale:.2f}): disarm, then reload")
             if "mesh" in changed or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera),
                                                 new_scale="mesh" in changed)
                 if "mesh" in changed:
-                    log.info("mesh changed: the net is tracked anew, no distance until the new "
-                             "scale is confirmed")
+                    log.warning("mesh changed: bar %.1f -> %.1f mm, opening %.0f -> %.0f deg: "
+                                "every distance x%.2f; the net is tracked anew, no distance "
+                                "until the new scale is confirmed",
+                                1e3 * self.config.mesh.bar_length_m,
+                                1e3 * new.mesh.bar_length_m, self.config.mesh.opening_angle_deg,
+                                new.mesh.opening_angle_deg, scale)
+                    self.parts.link.notify_pilot(
+                        f"netpose: mesh {1e3 * self.config.mesh.bar_length_m:g}->"
+                        f"{1e3 * new.mesh.bar_length_m:g} mm: dist x{scale:.2f}")
                 self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
             if "mesh" in changed or "damage" in changed:
                 self.pipeline.replace_inspector(make_inspector(new, self.parts.camera),
@@ -444,3 +460,8 @@ def _file_digest(path: Path | None) -> str | None:
         return hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError:
         return None
+
+
+def _distance_scale(old: Config, new: Config) -> float:
+    """What a change of mesh does to every distance: they scale with the cell's side."""
+    return math.sqrt(new.mesh.cell_area_m2 / old.mesh.cell_area_m2)

@@ -7,7 +7,9 @@ that rangefinder just falls silent, which reads the same as open water; a ground
 indicator may even keep the last number on screen. Each of these costs the autopilot its
 distance for a reason the pilot can act on, so each is said as a STATUSTEXT when it happens:
 the camera's loss once per `interval_s` at most (a camera that flaps does not flood the
-screen), its return only after its loss was said.
+screen), its return only after its loss was said. The outages held back by that interval are
+counted and said when it allows, so a flapping camera's last word on the pilot's screen is not
+"camera back" (it was, for 27 of every 30 s, while the camera dropped out 3 more times).
 """
 
 from __future__ import annotations
@@ -30,22 +32,47 @@ class ServiceNotices:
         self._loss_said = False
         self._last_loss_text_at = -float("inf")
         self._had_frames = False
+        self._down = False
+        self._held = 0  # outages not said (the interval held them back) since the last text
         # The last texts said (tests and a debugger read them): a daemon runs for months.
         self.sent: collections.deque[str] = collections.deque(maxlen=32)
 
     def camera(self, up: bool | None, now: float) -> None:
         """The frame source's state on this pass (SourceWatch.up: None before any frame)."""
+        allowed = now - self._last_loss_text_at >= self.interval_s
         if up:
             self._had_frames = True
+            self._down = False
             if self._loss_said:
                 self._loss_said = False
                 self._say("netpose: camera back", MAV_SEVERITY_INFO)
+            elif self._held and allowed:
+                # Back now, but it kept dropping out: the distance comes and goes.
+                self._say(f"netpose: camera unstable: lost {self._held}x in "
+                          f"{now - self._last_loss_text_at:.0f} s", MAV_SEVERITY_WARNING)
+                self._last_loss_text_at = now
+                self._held = 0
             return
-        if up is False and not self._loss_said and (
-                now - self._last_loss_text_at >= self.interval_s):
+        if up is not False:
+            return
+        began = not self._down
+        self._down = True
+        if self._loss_said:
+            return
+        if allowed:
+            text = self._loss_text()
+            # This outage, and those held back since the last text (this one among them if
+            # it began while held back).
+            count = self._held + int(began)
+            if count > 1:
+                text = text.replace(": no distance", f" ({count}x in "
+                                    f"{now - self._last_loss_text_at:.0f} s): no distance")
             self._loss_said = True
             self._last_loss_text_at = now
-            self._say(self._loss_text(), MAV_SEVERITY_WARNING)
+            self._held = 0
+            self._say(text, MAV_SEVERITY_WARNING)
+        elif began:
+            self._held += 1
 
     def repeat(self) -> None:
         """The link dropped pilot texts that waited out its outage: a camera loss that was said
