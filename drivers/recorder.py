@@ -29,8 +29,10 @@ state depends on every frame).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
+import os
 import re
 import shutil
 import threading
@@ -62,7 +64,10 @@ FRAMES_DIR = "frames"
 CAMERA_FILE = "camera.yaml"
 TUNING_FILE = "netpose.toml"
 STATE_FILE = "pipeline_state.json"
-NAME_PATTERN = re.compile(r"^netpose-[A-Za-z0-9_.-]+-\d{8}T\d{6}Z(-\d+)?$")
+# netpose-<vehicle>-<number>-<UTC start>: the number orders them (a Pi without a clock names
+# its first recordings 1970..., and an NTP step mid-dive puts later ones before earlier ones);
+# recordings of netpose before it have none.
+NAME_PATTERN = re.compile(r"^netpose-[A-Za-z0-9_.-]+?(-(?P<number>\d{4,}))?-\d{8}T\d{6}Z(-\d+)?$")
 # PNG level 1: a 640x360 grey frame in about 3 ms; the higher levels cost several times more
 # for 10-20 % less disk.
 PNG_LEVEL = 1
@@ -135,7 +140,11 @@ class _Session:
     """One recording in progress: its folder, its writer thread and its counters."""
 
     def __init__(self, folder: Path, max_bytes: int,
-                 on_stop: Callable[[_Session, str], None]) -> None:
+                 on_stop: Callable[[_Session, str], None],
+                 on_full: Callable[[_Session], None] = lambda _session: None) -> None:
+        """`on_stop`: the writer stopped by itself (a broken card, little space left);
+        `on_full`: it reached `max_bytes` and goes on writing what it is given until closed
+        (the recorder rolls over to a new one)."""
         self.folder = folder
         self.max_bytes = max_bytes
         self.started_unix = time.time()
@@ -144,6 +153,8 @@ class _Session:
         self.bytes = 0
         self.error = ""
         self._on_stop = on_stop
+        self._on_full = on_full
+        self._full = False
         self._queue: deque[_Item | _State] = deque()
         self.needs_state = True  # the first observed frame gives the pipeline state
         self._cond = threading.Condition()
@@ -188,9 +199,9 @@ class _Session:
             except Exception as exc:  # a full or broken disk ends the recording, not the daemon
                 self._stop_by_itself(f"writing failed: {exc}")
                 return
-            if self.bytes >= self.max_bytes:
-                self._stop_by_itself(f"reached web.max_recording_mb ({self.max_bytes >> 20} MB)")
-                return
+            if self.bytes >= self.max_bytes and not self._full:
+                self._full = True
+                self._on_full(self)
             if self.frames % 50 == 0 and shutil.disk_usage(self.folder).free < MIN_FREE_BYTES:
                 self._stop_by_itself("less than 200 MB free on the data volume")
                 return
@@ -206,7 +217,15 @@ class _Session:
                                 [int(cv2.IMWRITE_PNG_COMPRESSION), PNG_LEVEL])
         if not ok:
             raise RecorderError(f"OpenCV cannot encode frame {item.index} as PNG")
-        path.write_bytes(data.tobytes())
+        # Written whole or not at all: a card that fills mid-frame left a truncated PNG that
+        # no line names, and no room for the manifest that says why the recording ended.
+        partial = path.with_name(path.name + ".part")
+        try:
+            partial.write_bytes(data.tobytes())
+            os.replace(partial, path)
+        except OSError:
+            partial.unlink(missing_ok=True)
+            raise
         line = json.dumps({"frame": name, "index": item.index, "t_mono": item.t_monotonic,
                            "t_unix": item.t_wall, "estimate": to_json(item.estimate)},
                           separators=(",", ":"), allow_nan=False)
@@ -223,6 +242,12 @@ class _Session:
         self.error = why
         log.warning("recording %s stopped: %s", self.folder.name, why)
         self._on_stop(self, why)
+
+
+def _number(name: str) -> int:
+    """A recording's number (0: none, a recording of an older netpose, or not a recording)."""
+    match = NAME_PATTERN.match(name)
+    return int(match["number"]) if match and match["number"] else 0
 
 
 def _contents_of(folder: Path) -> dict[str, int]:
@@ -298,17 +323,25 @@ class Recorder(Closeable):
         on a thread of the recorder's own, which `stop` waits for."""
         if self._recorded_sections is not None and not changed & self._recorded_sections:
             return
+        self._roll_over(None, f"settings changed ({', '.join(sorted(changed))})")
+
+    def _roll_over(self, full: _Session | None, why: str) -> None:
+        """End the recording in progress (only if it is `full`, when given) and begin the
+        next at once; the old one's files are finished on a thread of the recorder's own,
+        which `stop` waits for."""
         with self._lock:  # one hold: a stop from the page sees the old or the new, not none
             old, setup = self._session, self._session_setup
-            if old is None or setup is None:
+            if old is None or setup is None or (full is not None and old is not full):
                 return
-            self._session = None
-            log.info("recording %s ends here: settings changed (%s); a new one starts",
-                     old.folder.name, ", ".join(sorted(changed)))
+            log.info("recording %s ends here: %s; a new one starts", old.folder.name, why)
             try:
-                self._begin_locked()
+                # The old one takes the frames until the new one takes over (a roll-over off
+                # the frame loop lost the frames that came while the new folder was made).
+                self._begin_locked(replacing=old)
             except RecorderError as exc:
-                log.warning("recording after the settings changed: %s", exc)
+                self._session = None
+                log.warning("recording after %s: %s", why, exc)
+                self._last = dataclasses.replace(self._last, error=str(exc))
             self._closing.add(old.folder)
             finishing = threading.Thread(target=self._finish, args=(old, setup),
                                          name="recorder finish", daemon=True)
@@ -323,8 +356,8 @@ class Recorder(Closeable):
         with self._lock:
             return self._begin_locked()
 
-    def _begin_locked(self) -> RecorderStatus:
-        if self._session is not None:
+    def _begin_locked(self, replacing: _Session | None = None) -> RecorderStatus:
+        if self._session is not None and self._session is not replacing:
             raise RecorderError(f"already recording {self._session.folder.name}")
         try:
             self.root.mkdir(parents=True, exist_ok=True)
@@ -342,7 +375,8 @@ class Recorder(Closeable):
             # frame loop when a reload rolls the recording over.
             save_camera(setup.camera, folder / CAMERA_FILE, durable=False)
             (folder / TUNING_FILE).write_text(setup.tuning_toml, encoding="utf-8")
-            session = _Session(folder, self._max_bytes, self._stopped_by_itself)
+            session = _Session(folder, self._max_bytes, self._stopped_by_itself,
+                               self._full_by_itself)
         except OSError as exc:
             shutil.rmtree(folder, ignore_errors=True)
             raise RecorderError(f"cannot write in {self.root}: {exc.strerror or exc}") from None
@@ -412,7 +446,8 @@ class Recorder(Closeable):
         out: list[dict[str, Any]] = []
         if not self.root.is_dir():
             return out
-        for folder in sorted(self.root.iterdir(), reverse=True):
+        for folder in sorted(self.root.iterdir(), key=lambda f: (_number(f.name), f.name),
+                             reverse=True):
             if not (NAME_PATTERN.match(folder.name) and (folder / MANIFEST).is_file()):
                 continue
             try:
@@ -462,12 +497,21 @@ class Recorder(Closeable):
     # -- internals -------------------------------------------------------------------------
     def _new_folder(self) -> Path:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        base = f"netpose-{self._vehicle}-{stamp}"
+        numbers = [_number(folder.name) for folder in self.root.iterdir()]
+        base = f"netpose-{self._vehicle}-{max(numbers, default=0) + 1:04d}-{stamp}"
         folder, n = self.root / base, 1
         while folder.exists():
             n += 1
             folder = self.root / f"{base}-{n}"
         return folder
+
+    def _full_by_itself(self, session: _Session) -> None:
+        # On the writer thread: a long dive goes on in the next recording (one recording
+        # stopped at web.max_recording_mb, 7.5 minutes of 640x360 at 30 frames/s, and nothing
+        # recorded the rest of the dive); only the card's free space ends recording.
+        threading.Thread(target=self._roll_over, name="recorder roll-over", daemon=True,
+                         args=(session, f"it reached web.max_recording_mb "
+                                        f"({session.max_bytes >> 20} MB)")).start()
 
     def _stopped_by_itself(self, session: _Session, why: str) -> None:
         # Called on the writer thread: finish the recording from another one (stop() joins

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import logging
 import math
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -1141,6 +1143,110 @@ def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     assert len(good) >= 10
 
 
+def test_a_long_dive_is_recorded_whole_in_numbered_parts(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """A recording stopped at web.max_recording_mb (7.5 minutes of 640x360 at 30 frames/s with
+    the default 2000 MB) and nothing recorded the rest of the dive. At the size it goes on in
+    the next recording, numbered after it; each part is finished and replays."""
+    from drivers.recorder import Recorder
+
+    holder: list[Any] = []
+    template = _recorder(tmp_path, holder)
+    recorder = Recorder(template.root, "test", template._setup, 400_000,
+                        template._pipeline_state)
+    h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames, FPS, 100.0)],
+                     observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    for _ in range(len(frames)):
+        h.iterate(1)
+        time.sleep(0.01)  # the writer keeps up, as on a card that is not full
+    assert recorder.status().active
+    recorder.stop()
+    parts = recorder.recordings()
+    names = [p["name"] for p in parts]
+    assert len(parts) >= 3, names
+    numbers = [int(n.split("-")[2]) for n in names]
+    assert numbers == sorted(numbers, reverse=True) == list(range(len(parts), 0, -1)), names
+    assert all(p["finished"] and not p["interrupted"] for p in parts), parts
+    # Each part begins with the frame after its pipeline state: one frame per part is not kept.
+    assert sum(p["frames"] for p in parts) >= len(frames) - len(parts)
+    assert all(p["bytes"] < 400_000 + 64 * 200_000 for p in parts)
+    rows = _replayed_rows(tmp_path, names[-1])
+    assert len(rows) == parts[-1]["frames"]
+
+
+def test_a_card_that_fills_mid_frame_keeps_no_cut_frame_and_says_why(
+    frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The card filled while a frame was written: the cut PNG stayed beside the frames (no
+    line named it), and with no room left the manifest could not say why the recording ended,
+    so it was listed as interrupted and replay blamed the daemon. A frame is written whole or
+    not at all, and the space the cut one took lets the manifest say why."""
+    import errno
+
+    from drivers.recorder import MANIFEST
+
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(demo_config(), steps(frames[:20]), observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.iterate(8)
+    deadline = time.monotonic() + 10.0
+    while recorder.status().frames < 5 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    real_write = Path.write_bytes
+
+    def fills(self: Path, data: Any) -> int:
+        if self.name.endswith(".png.part"):
+            real_write(self, bytes(data)[: len(data) // 2])  # what fitted
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", fills)
+    h.run_script()
+    while recorder.status().active and time.monotonic() < deadline:
+        time.sleep(0.05)
+    monkeypatch.undo()
+    status = recorder.stop()
+    assert "No space left on device" in status.error
+    folder = tmp_path / "rec" / status.name
+    assert not list((folder / "frames").glob("*.part"))
+    logged = (folder / "frames.jsonl").read_text().splitlines()
+    assert len(list((folder / "frames").glob("*.png"))) == len(logged) >= 5
+    (entry,) = recorder.recordings()
+    assert entry["finished"] and not entry["interrupted"]
+    manifest = json.loads((folder / MANIFEST).read_text())
+    assert "No space left on device" in manifest["stopped_because"]
+
+
+def test_recordings_are_listed_newest_first_whatever_the_clock_said(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Pi without a real-time clock names its first recordings 1970..., and NTP steps the
+    clock mid-dive: listed by name, "newest first" put the newest second and the first last.
+    They are numbered, and listed by number."""
+    from drivers import recorder as recorder_module
+
+    real_gmtime = time.gmtime
+
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    holder.append(make_harness(demo_config(), []))
+    stamps = [86408.0, 1795777402.0, 1795773832.0]  # 1970, then NTP, then 1 h back
+    for stamp in stamps:
+        monkeypatch.setattr(recorder_module.time, "gmtime",
+                            lambda _s=None, stamp=stamp: real_gmtime(stamp))
+        recorder.begin()
+        recorder.stop()
+    names = [r["name"] for r in recorder.recordings()]
+    assert [n.split("-")[2:4] for n in names] == [
+        ["0003", "20261127T100352Z"], ["0002", "20261127T110322Z"], ["0001", "19700102T000008Z"]
+    ], names
+
+
 def test_a_stall_of_the_camera_replays_to_the_same_filter_state() -> None:
     """A recording keeps frames, not the loop's ticks. A stalled camera makes the loop tick
     (the filter coasts for the autopilot's sake); the frames after the stall must still meet
@@ -1424,7 +1530,7 @@ def test_a_card_that_stalls_does_not_hold_the_stop_past_systemds_budget(
     real_write_bytes = Path.write_bytes
 
     def stalled(self: Path, data: Any) -> int:
-        if self.suffix == ".png":
+        if self.name.endswith((".png", ".png.part")):
             released.wait(30.0)
         return real_write_bytes(self, data)
 

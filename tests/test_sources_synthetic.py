@@ -3,6 +3,7 @@ recovering that truth within the estimator's own accuracy targets."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 
@@ -51,6 +52,26 @@ def test_same_seed_same_frames_other_seed_other_frames() -> None:
         assert np.array_equal(x.image, y.image)
         assert not np.array_equal(x.image, z.image)
         assert truth_of(x).range_m == truth_of(z).range_m  # same trajectory, other noise
+
+
+def test_frames_carry_the_wall_clock_as_it_is_set_mid_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A Pi without a real-time clock starts in 1970; NTP sets the clock mid-run. Frames of a
+    file, image or rendered source kept the wall time of the source's open() plus the media
+    offset: 56 years off every message's time to the end of the run (field review). They say
+    the wall clock of now, as live cameras' frames do."""
+    real_time = time.time
+    shift = {"s": -1_795_000_000.0}  # 1970-ish, at open
+    monkeypatch.setattr(time, "time", lambda: real_time() + shift["s"])
+    with open_source(f"synthetic:?{SMALL}&seed=4") as source:
+        before = read_frames(source, 3)
+        shift["s"] = 0.0  # NTP steps the clock
+        after = read_frames(source, 3)
+    assert all(f.t_wall < 1e8 for f in before)
+    assert all(abs(f.t_wall - real_time()) < 60.0 for f in after), [f.t_wall for f in after]
+    gaps = [b.t_monotonic - a.t_monotonic for a, b in itertools.pairwise(after)]
+    assert all(g > 0 for g in gaps)  # the monotonic clock is untouched
 
 
 def test_approach_trajectory_truth_follows_the_script() -> None:

@@ -29,6 +29,7 @@ from drivers.sources.base import (
     SourceState,
     SourceStats,
     split_gray_color,
+    wall_time_of,
 )
 from service.core.backoff import Backoff
 from service.core.redact import redact_text
@@ -77,7 +78,6 @@ class PacedSource(FrameSource):
         self.realtime = realtime
         self._state = SourceState.OPENING
         self._t0_mono = 0.0
-        self._t0_wall = 0.0
         self._loop_time_s = 0.0  # media time added per completed loop
         self._loop_index = 0  # frame numbers added per completed loop
         self._highest_number = -1  # of the current pass, decodable or not
@@ -150,7 +150,6 @@ class PacedSource(FrameSource):
         self._backoff.reset()
         self._error = ""
         self._t0_mono = time.monotonic()
-        self._t0_wall = time.time()
         self._state = SourceState.UP
         log.info(
             "frame source %s up: %.4g fps%s%s",
@@ -321,7 +320,10 @@ class PacedSource(FrameSource):
                 image=converted[0],
                 index=self._loop_index + media.number,
                 t_monotonic=self._t0_mono + offset,
-                t_wall=media.wall_s if media.wall_s is not None else self._t0_wall + offset,
+                # The wall clock of now, as live sources say it: one read at open() kept a
+                # Pi's 1970 clock for the whole run after NTP had set it (field review).
+                t_wall=media.wall_s if media.wall_s is not None else wall_time_of(
+                    self._t0_mono + offset),
                 color=converted[1],
                 truth=media.truth,
                 budget=media.budget,

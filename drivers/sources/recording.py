@@ -86,9 +86,10 @@ class RecordingSource(PacedSource):
     def open(self) -> None:
         super().open()
         if not self.realtime and self._entries:
-            # The recorded clocks, not the clocks of this open(): media time is measured from
-            # the first frame, so frame i gets t0 + (t_i - t_first) = its recorded time.
-            self._t0_mono, self._t0_wall = self._entries[0][2], self._entries[0][3]
+            # The recorded clock, not the clock of this open(): media time is measured from
+            # the first frame, so frame i gets t0 + (t_i - t_first) = its recorded time (and
+            # its recorded wall time, which each frame carries).
+            self._t0_mono = self._entries[0][2]
 
     def _start(self) -> None:
         if not is_recording(self.path):

@@ -459,7 +459,8 @@ def _recording_word(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     if word["dropped"]:
         problems.append(f"its writer dropped {word['dropped']} frames")
     if not word["finished"]:
-        problems.append("it was never finished (the daemon stopped before it did)")
+        problems.append("it was never finished (the daemon stopped, the power went or the "
+                        "card filled before its manifest was written)")
     if word["stopped_because"]:
         problems.append(f"it stopped because {word['stopped_because']}")
     if problems:
