@@ -79,9 +79,15 @@ class FilteredView:
         "fate of this frame's measurement: `accepted`, `rejected`, `none` or `reset`"
     )
     distance_m: float | None = doc("filtered perpendicular distance to the net plane", None)
-    sigma_distance_m: float | None = doc("its one-sigma uncertainty", None)
+    sigma_distance_m: float | None = doc(
+        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
+        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
+        None)
     range_m: float | None = doc("filtered distance along the optical axis", None)
-    sigma_range_m: float | None = doc("its one-sigma uncertainty", None)
+    sigma_range_m: float | None = doc(
+        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
+        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
+        None)
     normal: Vec3 | None = doc("filtered plane normal [x, y, z]", None)
     closing_speed_mps: float | None = doc(
         "rate at which the distance shrinks (positive = approaching the net)", None
@@ -136,9 +142,15 @@ class EstimateMessage(Message):
     detected: bool = doc("a net lattice was found in this frame", False)
     confidence: float = doc("detection confidence 0..1", 0.0)
     range_m: float | None = doc("distance to the net plane along the optical axis", None)
-    sigma_range_m: float | None = doc("its one-sigma uncertainty", None)
+    sigma_range_m: float | None = doc(
+        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
+        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
+        None)
     distance_m: float | None = doc("perpendicular distance from the camera to the plane", None)
-    sigma_distance_m: float | None = doc("its one-sigma uncertainty", None)
+    sigma_distance_m: float | None = doc(
+        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
+        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
+        None)
     normal: Vec3 | None = doc(
         "unit normal of the net plane [x, y, z], from the net to the camera (camera frame)", None
     )
