@@ -29,7 +29,6 @@ state depends on every frame).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import os
@@ -341,12 +340,15 @@ class Recorder(Closeable):
             except RecorderError as exc:
                 self._session = None
                 log.warning("recording after %s: %s", why, exc)
-                self._last = dataclasses.replace(self._last, error=str(exc))
+                # Said by the recording that ended (its manifest, the page's status): recording
+                # stopped for the rest of the dive.
+                old.error = f"no next recording after {why}: {exc}"
             self._closing.add(old.folder)
             finishing = threading.Thread(target=self._finish, args=(old, setup),
                                          name="recorder finish", daemon=True)
+            # Started under the lock: a stop that finds it in the list joins a started thread.
+            finishing.start()
             self._finishing.append(finishing)
-        finishing.start()
 
     def close(self) -> None:
         self.stop()

@@ -205,6 +205,34 @@ def _bare_page(tmp_path: Path) -> tuple[Any, int]:
     return page, port
 
 
+def test_a_change_the_daemon_refuses_leaves_the_file_as_it_was(tmp_path: Path) -> None:
+    """The vehicle armed between the page's check and the daemon's reload: the daemon refused
+    the new mesh, but the file kept it, and the next restart applied it unannounced. The file
+    goes back and the page is told nothing changed."""
+    import threading
+
+    from service.daemon.loop import ReloadOutcome
+    from service.daemon.settings_editor import SettingsEditor
+    from service.daemon.wiring import load_daemon_config
+
+    config = tmp_path / "netpose.toml"
+    config.write_text((REPO / "config" / "demo.toml").read_text())
+    before = config.read_bytes()
+    holder: list[SettingsEditor] = []
+
+    def refuse() -> None:
+        outcome = ReloadOutcome(ok=False, error="mesh: not changed while the vehicle is armed")
+        threading.Timer(0.05, holder[0].reloaded, [outcome]).start()
+
+    editor = SettingsEditor(config, (), lambda p: load_daemon_config(str(p)), refuse,
+                            lambda: None)
+    holder.append(editor)
+    with pytest.raises(ConfigError, match="not changed: the daemon refused it: mesh: not "
+                       "changed while the vehicle is armed"):
+        editor.apply({"mesh.bar_length_m": 0.25})
+    assert config.read_bytes() == before
+
+
 def test_live_pages_are_capped_and_a_closed_one_makes_room(tmp_path: Path) -> None:
     """Each live page takes about 1.6 Mbit/s; 200 of them took 789 MB in 20 s, a tether's
     worth. Past MAX_LIVE_CLIENTS a page is refused (503) with the reason; one closed makes
@@ -356,8 +384,12 @@ def test_connections_that_never_send_a_request_cannot_lock_the_pilot_out(
     assert oldest_gone and live_open
 
 
-@pytest.mark.parametrize("kind", ["application/json", "multipart/form-data; boundary=b"])
-def test_a_body_sent_a_byte_at_a_time_is_cut_off(tmp_path: Path, kind: str,
+@pytest.mark.parametrize(("kind", "path"), [
+    ("application/json", "/api/settings"),
+    ("multipart/form-data; boundary=b", "/api/calibration"),
+    ("multipart/form-data; boundary=b", "/api/settings"),  # labelled so to slip the deadline
+])
+def test_a_body_sent_a_byte_at_a_time_is_cut_off(tmp_path: Path, kind: str, path: str,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     """A change whose body trickled in (a byte every few seconds) held its connection for as
     long as it went on, and 64 of them every connection the page has (aiohttp reads a body
@@ -368,7 +400,6 @@ def test_a_body_sent_a_byte_at_a_time_is_cut_off(tmp_path: Path, kind: str,
     page, port = _bare_page(tmp_path)
     page.start()
     s = socket.create_connection(("127.0.0.1", port), timeout=10.0)
-    path = "/api/calibration" if kind.startswith("multipart") else "/api/settings"
     try:
         s.sendall(f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {kind}\r\n"
                   "Content-Length: 200\r\n\r\n--b\r\n".encode())

@@ -343,8 +343,8 @@ class WebPage(Generic[R]):
                 return _error(413, f"request of {request.content_length} bytes refused: at "
                               f"most {self.settings.max_upload_kb} KB (web.max_upload_kb)")
         try:
-            if changes and not request.content_type.startswith("multipart/"):
-                # Read whole before the handler, in time (an upload's handler bounds its own).
+            if changes and request.path != "/api/calibration":
+                # Read whole before the handler, in time (the upload's handler bounds its own).
                 try:
                     await asyncio.wait_for(request.read(), BODY_DEADLINE_S)
                 except TimeoutError:

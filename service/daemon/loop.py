@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -372,8 +371,8 @@ class Daemon:
         try:
             new = self._load_config()
             changed = self.config.changed_sections(new)
-            scale = _distance_scale(self.config, new) if "mesh" in changed else 1.0
-            if "mesh" in changed and self.parts.link.status().armed:
+            scale = _distance_scale(self.config, new)
+            if scale != 1.0 and self.parts.link.status().armed:
                 # A digit dropped in the file (0.25 for 0.025) passes every check and sent the
                 # autopilot ten times the distance a second later, mid-dive. The page refuses
                 # every change while armed (settings_editor.ARMED); so does a hand edit.
@@ -383,7 +382,7 @@ class Daemon:
             if "mesh" in changed or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera),
                                                 new_scale="mesh" in changed)
-                if "mesh" in changed:
+                if scale != 1.0:
                     log.warning("mesh changed: bar %.1f -> %.1f mm, opening %.0f -> %.0f deg: "
                                 "every distance x%.2f; the net is tracked anew, no distance "
                                 "until the new scale is confirmed",
@@ -463,5 +462,7 @@ def _file_digest(path: Path | None) -> str | None:
 
 
 def _distance_scale(old: Config, new: Config) -> float:
-    """What a change of mesh does to every distance: they scale with the cell's side."""
-    return math.sqrt(new.mesh.cell_area_m2 / old.mesh.cell_area_m2)
+    """What a change of mesh does to every distance: they scale with the bar's length (the
+    cell's angle is the one measured, so the configured one changes only what passes as the
+    net: estimator.py)."""
+    return new.mesh.bar_length_m / old.mesh.bar_length_m

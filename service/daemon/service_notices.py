@@ -50,7 +50,8 @@ class ServiceNotices:
                 # Back now, but it kept dropping out: the distance comes and goes.
                 self._say(f"netpose: camera unstable: lost {self._held}x in "
                           f"{now - self._last_loss_text_at:.0f} s", MAV_SEVERITY_WARNING)
-                self._last_loss_text_at = now
+                # Not a loss said: a camera that dies for good right after is said at once
+                # (counting this as one held the next loss back another interval).
                 self._held = 0
             return
         if up is not False:

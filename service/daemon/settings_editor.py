@@ -281,9 +281,15 @@ class SettingsEditor:
             # Who changed what, from what: the page is open to the vehicle's network, and an
             # unexpected distance is traced to its cause here.
             log.info("configuration changed from the web page%s: %s", _by(client),
-                        "; ".join(f"{key} {said[key]} -> {_shown(doc, key)}"
-                                  for key in sorted(changes)))
+                     "; ".join(f"{key} {said[key]} -> {_shown(doc, key)}"
+                               for key in sorted(changes)))
             outcome = self._reload()
+            if outcome is not None and not outcome.ok:
+                # The daemon refused what the file now says (the vehicle armed between the
+                # check above and the reload): the file goes back, or the next restart would
+                # apply it unannounced.
+                write_atomically(self.path, old_text.encode("utf-8"))
+                log.info("configuration change from the web page undone: %s", outcome.error)
         if outcome is None:
             # A restart (or a stop) came while the change was saved: the restarted daemon
             # starts from the file, so the change applies then. Waiting for a reload that a
@@ -291,8 +297,9 @@ class SettingsEditor:
             return {"saved": True, "message": "saved; applies as the service restarts",
                     "changed": [], "restart_needed": [], "digest": ""}
         if not outcome.ok:
-            # Validated a moment ago: only a file changed under us gets here.
-            raise ConfigError("configuration", f"saved, but the reload failed: {outcome.error}")
+            # Validated a moment ago: the vehicle armed meanwhile, or a file changed under us.
+            raise ConfigError("configuration", f"not changed: the daemon refused it: "
+                              f"{outcome.error}")
         needs = sorted(self.restart_pending)
         message = "saved and applied" if not needs else (
             f"saved; changes to {', '.join(needs)} take effect after a restart")

@@ -58,7 +58,16 @@ function onMessage(msg) {
       break;
     case "history": page.points = msg.points; drawPlots(); break;
     case "estimate": onEstimate(msg); break;
-    case "status": onStatus(msg); break;
+    case "status":
+      onStatus(msg);
+      // The form is locked while the vehicle is armed (settings_editor.ARMED): shown as it
+      // changes, not at the next page load.
+      if (view === "full" && page.settings && msg.autopilot
+          && (msg.autopilot.armed === true) !== (page.armedShown === true)) {
+        page.armedShown = msg.autopilot.armed === true;
+        loadSettings().catch((e) => { $("config-path").textContent = "cannot load settings: " + e.message; });
+      }
+      break;
     case "recording": onRecording(msg); break;
     case "damage": onDamage(msg.holes || []); break;
     case "settings": if (view === "full") loadSettings(); break;
@@ -398,7 +407,10 @@ function say(el, text, ok) { el.textContent = text; el.className = "message " + 
 // -- set-up ------------------------------------------------------------------------------------
 async function loadSettings() {
   const response = await fetch("api/settings");
-  const s = await response.json();
+  let s = {};
+  try { s = await response.json(); } catch (e) { s = {}; }
+  // A refusal (the page reached by a name it does not trust: docs/blueos.md) says why.
+  if (!response.ok) throw new Error(s.error || `HTTP ${response.status}`);
   page.settings = s;
   $("config-path").textContent = s.path ? `Configuration file: ${s.path}${s.editable ? "" : " — " + s.reason}`
                                         : s.reason;
