@@ -423,9 +423,7 @@ def test_open_gross_errors_give_no_distance_or_an_honest_one(
 _OPEN_TRACKED = "open gross error of a tracked frame (integrity run)"
 OPEN_TRACKED_GROSS_CASES = [
     pytest.param(1, 689, 5, marks=open_case(_OPEN_TRACKED, fails_on_bookworm=False)),
-    # Mended on bookworm's stack by pyrDown's pixel centres (2026-11-28), open on the newest.
-    pytest.param(1, 715, 18, marks=open_case(_OPEN_TRACKED, fails_on_bookworm=False)),
-    # Mended on the newest stack by pyrDown's pixel centres, open on bookworm's.
+    pytest.param(1, 715, 18, marks=open_case(_OPEN_TRACKED, fails_on_bookworm=True)),
     pytest.param(1, 77, 19, marks=open_case(_OPEN_TRACKED, fails_on_bookworm=True)),
 ]
 

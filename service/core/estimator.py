@@ -476,10 +476,9 @@ class NetEstimator:
         self, cam: CameraModel, corners: list[tuple[int, int]], n: int, level: int
     ) -> list[_Geometry]:
         scale = 2**level
-        # cv2.pyrDown centres a level's pixel q on the full frame's pixel q * 2**level (its
-        # kernel sits on 2q), not on the middle of the pixels it averages.
         centres = np.array(
-            [((x + n / 2 - 0.5) * scale, (y + n / 2 - 0.5) * scale) for x, y in corners]
+            [((x + n / 2 - 0.5) * scale + (scale - 1) / 2, (y + n / 2 - 0.5) * scale
+              + (scale - 1) / 2) for x, y in corners]
         )
         base = self._centre_geometries(cam, centres)
         return [replace(g, x0=x, y0=y, size=n) for g, (x, y) in zip(base, corners, strict=True)]
@@ -948,8 +947,8 @@ class NetEstimator:
         scale = 2**level
         w, h = layout.camera.width, layout.camera.height
         lw, lh = _level_size(w, level), _level_size(h, level)
-        x = round(geom.center_full[0] / scale - n / 2 + 0.5)  # _geometries' centre, inverted
-        y = round(geom.center_full[1] / scale - n / 2 + 0.5)
+        x = round((geom.center_full[0] + 0.5) / scale - n / 2)
+        y = round((geom.center_full[1] + 0.5) / scale - n / 2)
         x, y = min(max(x, 0), lw - n), min(max(y, 0), lh - n)
         return self._geometries(layout.camera, [(x, y)], n, level)[0]
 
@@ -1280,7 +1279,10 @@ class NetEstimator:
         for (full, _, step, _, _), patch in zip(maps, patches, strict=True):
             level = min(max(math.floor(math.log2(max(step, 1.0))), 0), s.levels - 1)
             scale = 2**level
-            to_level = np.array([[1 / scale, 0, 0], [0, 1 / scale, 0], [0, 0, 1]])  # pyrDown's
+            to_level = np.array(
+                [[1 / scale, 0, -(scale - 1) / (2 * scale)],
+                 [0, 1 / scale, -(scale - 1) / (2 * scale)], [0, 0, 1]]
+            )
             cv2.warpPerspective(
                 frame.image(level), to_level @ full, (n, n), dst=patch,
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT,

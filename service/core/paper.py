@@ -79,8 +79,10 @@ class PaperEstimator:
                 )
                 if period_ok:
                     scale = 2**level
-                    # cv2.pyrDown centres level pixel q on full pixel q * scale.
-                    centre = np.array([(x0 + (n - 1) / 2) * scale, (y0 + (n - 1) / 2) * scale])
+                    centre = np.array(
+                        [(x0 + (n - 1) / 2) * scale + (scale - 1) / 2,
+                         (y0 + (n - 1) / 2) * scale + (scale - 1) / 2]
+                    )
                     reciprocal = fit.basis / (n * scale)
                     return self._pose(camera, centre, reciprocal, fit.inlier_weight_fraction,
                                       level, t0)
