@@ -131,8 +131,8 @@ def test_a_fouled_patch_that_dims_the_bars_around_it_is_not_a_hole() -> None:
     estimate = NetEstimator(case.camera, case.mesh).estimate(image)
     assert estimate.detected, estimate.reason
     # Where a lenient judge finds a hole in this frame (the benchmark confirmed one at (973,
-    # 240) before the estimator sampled pyramid levels at pyrDown's centres and used the
-    # measured opening angle, 2026-11-28; the same fouled patches, judged at another place).
+    # 240) before the estimator used the measured opening angle, 2026-11-28: the same fouled
+    # patches, judged at another place).
     patch = (412.0, 345.0)
 
     def near(p: tuple[float, float]) -> bool:
