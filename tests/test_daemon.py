@@ -958,7 +958,7 @@ def test_a_slow_search_before_the_net_is_found_does_not_cut_the_tracking_work(
     assert h.daemon.budget.cost_s(0) == pytest.approx(0.2 / FPS, rel=0.3)
 
 
-def _recorder(tmp_path: Path, holder: list[Any]) -> Any:
+def _recorder(tmp_path: Path, holder: list[Any], max_bytes: int = 1 << 30) -> Any:
     """The web page's recorder into tmp_path/rec, taking the settings in force and the filter
     state from the harness that `holder` will hold."""
     from drivers.recorder import Recorder, RecordingSetup
@@ -969,7 +969,7 @@ def _recorder(tmp_path: Path, holder: list[Any]) -> Any:
         return RecordingSetup(builtin_camera(640, 360), tuning_toml(config),
                               config.mesh.bar_length_m, config.mesh.opening_angle_deg)
 
-    return Recorder(tmp_path / "rec", "test", setup, 1 << 30,
+    return Recorder(tmp_path / "rec", "test", setup, max_bytes,
                     lambda: holder[0].daemon.pipeline.snapshot())
 
 
@@ -1172,12 +1172,8 @@ def test_a_long_dive_is_recorded_whole_in_numbered_parts(
     """A recording stopped at web.max_recording_mb (7.5 minutes of 640x360 at 30 frames/s with
     the default 2000 MB) and nothing recorded the rest of the dive. At the size it goes on in
     the next recording, numbered after it; each part is finished and replays."""
-    from drivers.recorder import Recorder
-
     holder: list[Any] = []
-    template = _recorder(tmp_path, holder)
-    recorder = Recorder(template.root, "test", template._setup, 400_000,
-                        template._pipeline_state)
+    recorder = _recorder(tmp_path, holder, max_bytes=400_000)
     h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames, FPS, 100.0)],
                      observers=(recorder,))
     holder.append(h)
@@ -1252,12 +1248,10 @@ def test_a_roll_over_with_no_room_for_the_next_part_says_so(
     import shutil
 
     from drivers import recorder as recorder_module
-    from drivers.recorder import MANIFEST, Recorder
+    from drivers.recorder import MANIFEST
 
     holder: list[Any] = []
-    template = _recorder(tmp_path, holder)
-    recorder = Recorder(template.root, "test", template._setup, 400_000,
-                        template._pipeline_state)
+    recorder = _recorder(tmp_path, holder, max_bytes=400_000)
     h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames, FPS, 100.0)],
                      observers=(recorder,))
     holder.append(h)

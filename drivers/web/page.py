@@ -45,6 +45,7 @@ from drivers.web.security import (
     TOKEN_HEADER,
     host_trusted,
     origin_allowed,
+    split_host,
     token_ok,
 )
 from drivers.web.settings import WebSettings
@@ -356,7 +357,7 @@ class WebPage(Generic[R]):
 
     def _frame_ancestors(self, host: str) -> str:
         sources = ["'self'"]
-        name = host.strip().lower().rpartition(":")[0] if ":" in host else host.strip().lower()
+        name, _ = split_host(host)
         if _PLAIN_NAME.fullmatch(name):  # not an IPv6 literal, nor anything odd
             sources += [f"http://{name}:*", f"https://{name}:*"]
         sources += [o for o in self.settings.allowed_origins if _PLAIN_ORIGIN.fullmatch(o)]

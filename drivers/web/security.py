@@ -42,7 +42,7 @@ PRIVATE_SUFFIXES = (".local", ".home.arpa", ".internal", ".lan", ".home", ".loca
 DEFAULT_PORTS = {"http": 80, "https": 443}
 
 
-def _split_host(host: str) -> tuple[str, int | None]:
+def split_host(host: str) -> tuple[str, int | None]:
     """'Host' header -> (lower-case name, port or None)."""
     host = host.strip().lower()
     if host.startswith("["):  # [::1]:8780
@@ -69,7 +69,7 @@ def origin_allowed(origin: str | None, host: str, allowed: Iterable[str] = ()) -
         origin_port = parts.port or DEFAULT_PORTS[parts.scheme]
     except ValueError:
         return False
-    name, port = _split_host(host)
+    name, port = split_host(host)
     if parts.hostname.lower() != name:
         return False
     return port is None or port == origin_port
@@ -78,7 +78,7 @@ def origin_allowed(origin: str | None, host: str, allowed: Iterable[str] = ()) -
 def host_trusted(host: str, allowed: Iterable[str] = ()) -> bool:
     """Whether the name a browser reached the page by (the `Host` header) is one no other
     website can be served under (module docstring)."""
-    name, _ = _split_host(host)
+    name, _ = split_host(host)
     if not name:
         return False
     try:
