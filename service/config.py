@@ -37,6 +37,7 @@ from service.core.estimator import EstimatorSettings
 from service.core.files import read_small
 from service.core.mesh import MeshGeometry
 from service.core.redact import redact_config
+from service.core.scale import DEFAULT_FOCAL_TOLERANCE, check_tolerance, scale_sigma_fraction
 from service.core.tracking import FilterSettings
 
 T = TypeVar("T")
@@ -58,6 +59,11 @@ class CameraSettings:
     # aspect ratio; relative paths are relative to the configuration file. "builtin" means the
     # source describes its own camera (only the synthetic source does).
     calibration: str = BUILTIN_CALIBRATION
+    # How well the calibration's focal length is known in water, one sigma as a fraction of it:
+    # an underwater calibration is good to 0.5-1 %, and salinity and temperature move the water's
+    # refraction by ~0.3 %. Like the mesh's bar length it scales every distance alike; see
+    # mesh.bar_length_tolerance.
+    focal_tolerance: float = DEFAULT_FOCAL_TOLERANCE
     # How long one read waits for a frame; also bounds how fast the daemon reacts to a stop.
     read_timeout_s: float = 0.2
     # No frame for this long: the source is reported down and re-opened.
@@ -68,6 +74,7 @@ class CameraSettings:
             raise ConfigError("camera.url", "must not be empty")
         if not self.calibration.strip():
             raise ConfigError("camera.calibration", "must be a file path or 'builtin'")
+        check_tolerance("camera.focal_tolerance", self.focal_tolerance)
         if not 0.01 <= self.read_timeout_s <= 0.5:
             raise ConfigError(
                 "camera.read_timeout_s",
@@ -160,6 +167,12 @@ class Config:
     @property
     def budget(self) -> BudgetSettings:
         return self.section("budget", BudgetSettings)
+
+    @property
+    def scale_sigma_fraction(self) -> float:
+        """The relative one-sigma error every distance carries from the mesh's bar length and
+        the camera's focal length (`service.core.scale`)."""
+        return scale_sigma_fraction(self.mesh.bar_length_tolerance, self.camera.focal_tolerance)
 
     def calibration_path(self) -> Path | None:
         """The calibration file to load, or None for a source that describes its own camera."""

@@ -29,6 +29,7 @@ from service.core.errors import NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import DistanceAlong, NetPlane, RangeReading, RangeStatus
 from service.core.results import NetEstimate
+from service.core.scale import total_sigma
 from service.core.state_io import from_plain, to_plain
 from service.core.tracking import NetTracker, Outcome, TrackOutput, TrackState
 
@@ -67,6 +68,9 @@ class PipelineResult:
     unmeasured: str = ""
     # The estimator tracked the last detected net (no scale search ran on this frame).
     tracked: bool = False
+    # The relative one-sigma error of every distance from the mesh's and the calibration's
+    # scale (service.core.scale): in the reading's sigma, not in the estimate's or the track's.
+    scale_sigma_fraction: float = 0.0
 
     @property
     def error(self) -> str:
@@ -106,8 +110,13 @@ class Pipeline:
         tracker: NetTracker,
         autopilot_distance: AutopilotDistance = "optical_axis",
         inspector: NetInspector | None = None,
+        scale_sigma_fraction: float = 0.0,
     ) -> None:
+        """`scale_sigma_fraction`: how well the image's metric scale is known (the mesh's bar
+        and the focal length, `Config.scale_sigma_fraction`); 0 counts only the image's
+        precision."""
         self._estimator = estimator
+        self._scale_sigma_fraction = scale_sigma_fraction
         self._tracker = tracker
         self._inspector = inspector
         self._autopilot_distance: AutopilotDistance = autopilot_distance
@@ -161,6 +170,9 @@ class Pipeline:
 
     def set_autopilot_distance(self, which: AutopilotDistance) -> None:
         self._autopilot_distance = which
+
+    def set_scale_sigma_fraction(self, fraction: float) -> None:
+        self._scale_sigma_fraction = fraction
 
     def snapshot(self) -> dict[str, Any]:
         """What the next frame's result depends on besides the frame: the filter's state, the
@@ -235,6 +247,7 @@ class Pipeline:
             reading=self._reading(track, estimate, t), failure=failure, estimate_ms=estimate_ms,
             plane=net_plane_of(track, t), budget=budget,
             tracked=estimate is not None and not estimate.searched,
+            scale_sigma_fraction=self._scale_sigma_fraction,
         )
 
     def inspect(self, image: npt.NDArray[Any], measured: PipelineResult,
@@ -263,13 +276,15 @@ class Pipeline:
         measurement, as for `tick`."""
         track = self._tracker.step(t, None)
         return PipelineResult(t=t, index=index, estimate=None, track=track,
-                              reading=self._reading(track, None, t), unmeasured=why)
+                              reading=self._reading(track, None, t), unmeasured=why,
+                              scale_sigma_fraction=self._scale_sigma_fraction)
 
     def tick(self, t: float) -> PipelineResult:
         """No frame by `t`: time passes for the filter, so coasting ends in LOST."""
         track = self._tracker.step(t, None)
         return PipelineResult(t=t, index=None, estimate=None, track=track,
-                              reading=self._reading(track, None, t))
+                              reading=self._reading(track, None, t),
+                              scale_sigma_fraction=self._scale_sigma_fraction)
 
     def _reading(
         self, track: TrackOutput, estimate: NetEstimate | None, t: float
@@ -302,6 +317,10 @@ class Pipeline:
             distance, sigma = track.range_m, sigma / cos_tilt
         if not (math.isfinite(distance) and distance >= 0.0):
             return RangeReading.none(t)
+        # The autopilot's covariance is the distance's whole uncertainty: the filter's sigma
+        # shrinks as frames agree, the scale's error is in all of them.
+        total = total_sigma(distance, sigma, self._scale_sigma_fraction)
+        sigma = total if total is not None else math.nan
         # A coasting prediction is not a measurement: half the last one's quality, so the
         # autopilot (RNGFND_SQ_MIN) and a reader of its log can tell them apart.
         quality = self._last_quality * (1.0 if track.state is TrackState.TRACKING else 0.5)

@@ -108,6 +108,10 @@ def test_a_file_with_a_byte_order_mark_reads_like_one_without(tmp_path: Path) ->
          "camera.stale_after_s", "at most 3600"),
         ("[telemetry]\nretry_initial_s = 0\n", "telemetry.retry_initial_s", "> 0"),
         ("[mavlink]\nmax_age_s = 0.001\n", "mavlink.max_age_s", "0.1..2"),
+        ("[camera]\nurl = 'synthetic:'\nfocal_tolerance = -0.01\n[mesh]\nbar_length_m = 0.025\n",
+         "camera.focal_tolerance", "fraction 0..0.25"),
+        ("[camera]\nurl = 'synthetic:'\n[mesh]\nbar_length_m = 0.025\nbar_length_tolerance = 2\n",
+         "mesh.bar_length_tolerance", "(0.02 = 2 %)"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, key: str, words: str) -> None:

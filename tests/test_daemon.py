@@ -455,6 +455,40 @@ def test_a_mesh_change_sends_no_distance_on_the_old_scale(
     assert all(d == pytest.approx(RANGE_M * scale, rel=0.02) for d in after), after
 
 
+def test_a_new_bar_tolerance_changes_the_sigma_sent_not_the_track(
+    tmp_path: Path, frames: list[Frame]
+) -> None:
+    """`mesh.bar_length_tolerance` says how well the scale is known, not what it is: a reload
+    of it keeps the track (a bar change restarts it, and the autopilot waits for a confirmed
+    distance) and changes DISTANCE_SENSOR's sigma by the scale's share, at once."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(15)
+    before = h.link.ranges[-1]
+    assert before.status is RangeStatus.GOOD
+    focal = h.daemon.config.camera.focal_tolerance
+    assert before.sigma_m >= math.hypot(0.02, focal) * before.distance_m
+    sent = len(h.link.ranges)
+    path.write_text(base.replace("bar_length_m = 0.025",
+                                 "bar_length_m = 0.025\nbar_length_tolerance = 0.1", 1))
+    assert h.daemon.reload()
+    h.iterate(1)
+    after = h.link.ranges[sent:]
+    # No gap: the track went on (a new one would send nothing until confirmed).
+    assert after and all(r.status is RangeStatus.GOOD for r in after)
+    track = h.daemon.last
+    assert track is not None and track.normal is not None
+    assert track.range_m is not None and track.sigma_distance_m is not None
+    assert after[-1].distance_m == track.range_m  # demo.toml: along the optical axis
+    image_sigma = track.sigma_distance_m / abs(track.normal[2])
+    assert after[-1].sigma_m == pytest.approx(
+        math.hypot(image_sigma, math.hypot(0.1, focal) * track.range_m), rel=1e-9)
+    assert after[-1].sigma_m > 0.1 * track.range_m
+
+
 def test_a_mesh_edit_is_not_applied_while_the_vehicle_is_armed(
     tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -193,6 +193,12 @@ def test_uncertainty_and_closing_speed_read_as_what_they_are() -> None:
     assert "+/-0.00 m" not in screen and "+/- 0.00 m" not in screen
     assert "0.002 m" in screen
     assert "closing 0.16 m/s" in screen and "rate 0.16" not in screen
+    # With the scale's error (service/core/scale.py) the monitor shows the total.
+    message["sigma_distance_total_m"] = 0.0345
+    message["filtered"]["sigma_distance_total_m"] = 0.0336
+    state.ingest(f"netpose/{VEHICLE}/estimate", encode(message), 100.1)
+    screen = "\n".join(state.render(100.1))
+    assert "+/-0.035 m" in screen and "+/- 0.034 m" in screen and "0.002 m" not in screen
 
 
 def test_a_net_seen_without_a_distance_is_shown_as_such() -> None:

@@ -311,14 +311,20 @@ def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> N
     acquire_count = 5 the first valid output comes two frames later than with the default 3.
     The configuration names neither a mesh nor a calibration that exists here: not needed."""
     config = tmp_path / "netpose.toml"
-    config.write_text('[camera]\ncalibration = "/nowhere/camera.yaml"\n'
-                      "[filter]\nacquire_count = 5\n[estimator]\nmin_rois = 5\n")
+    config.write_text('[camera]\ncalibration = "/nowhere/camera.yaml"\nfocal_tolerance = 0.04\n'
+                      "[filter]\nacquire_count = 5\n[estimator]\nmin_rois = 5\n"
+                      "[mesh]\nbar_length_tolerance = 0.03\n")
     out = tmp_path / "out"
     code = main(replay_args(recording, out, "--filter", "--config", str(config), "--no-video",
                             "--max-frames", "6"))
     assert code == 0
-    valid = [r["filter_valid"] for r in read_csv(out / "estimates.csv")]
-    assert valid == ["0", "0", "0", "0", "1", "1"]
+    rows = read_csv(out / "estimates.csv")
+    assert [r["filter_valid"] for r in rows] == ["0", "0", "0", "0", "1", "1"]
+    # The scale's tolerances come from it too (3 % and 4 %: 5 %).
+    for r in rows:
+        if r["detected"] == "1":
+            assert num(r, "sigma_distance_total_m") == pytest.approx(
+                math.hypot(num(r, "sigma_distance_m"), 0.05 * num(r, "distance_m")), rel=1e-9)
 
 
 def test_a_replay_that_inspected_nothing_says_so(

@@ -39,6 +39,11 @@ from service.core.errors import ConfigError, NetposeError
 from service.core.estimator import EstimatorSettings, NetEstimator
 from service.core.mesh import MeshGeometry
 from service.core.redact import redact_text
+from service.core.scale import (
+    DEFAULT_BAR_LENGTH_TOLERANCE,
+    DEFAULT_FOCAL_TOLERANCE,
+    scale_sigma_fraction,
+)
 from service.core.tracking import FilterSettings, NetTracker
 from service.daemon.wiring import load_daemon_config
 from service.pipeline import AutopilotDistance, Pipeline
@@ -478,12 +483,14 @@ class Tuning:
     filter: FilterSettings | None = None
     autopilot_distance: AutopilotDistance = "optical_axis"
     damage: DamageSettings | None = None
+    scale_sigma_fraction: float = scale_sigma_fraction(DEFAULT_BAR_LENGTH_TOLERANCE,
+                                                       DEFAULT_FOCAL_TOLERANCE)
 
 
 def _tuning(path: Path | None, mesh_size: float) -> Tuning:
-    """[estimator], [filter] and service.autopilot_distance of a daemon configuration file (the
-    rest is not used: the mesh and the calibration come from the command line, the source
-    from INPUT)."""
+    """[estimator], [filter], service.autopilot_distance and the scale's tolerances of a daemon
+    configuration file (the rest is not used: the mesh and the calibration come from the
+    command line, the source from INPUT)."""
     if path is None:
         return Tuning()
     # A configuration may leave the mesh or the camera to be set, or name a calibration file of
@@ -491,7 +498,7 @@ def _tuning(path: Path | None, mesh_size: float) -> Tuning:
     config = load_daemon_config(str(path), [f"mesh.bar_length_m={mesh_size!r}",
                                             "camera.url=replay-input"], check_files=False)
     return Tuning(config.estimator, config.filter, config.service.autopilot_distance,
-                  config.damage)
+                  config.damage, config.scale_sigma_fraction)
 
 
 def _replay(
@@ -512,7 +519,8 @@ def _replay(
     # written with --filter), so the estimates are the ones the vehicle would have made.
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
                         NetTracker(tuning.filter or FilterSettings()),
-                        tuning.autopilot_distance, _inspector(args, camera, mesh, tuning))
+                        tuning.autopilot_distance, _inspector(args, camera, mesh, tuning),
+                        scale_sigma_fraction=tuning.scale_sigma_fraction)
     state = getattr(args, "pipeline_state", None)
     if state is not None:
         # A recording started mid-dive: continue from the daemon's filter and prior.

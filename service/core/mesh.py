@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 from service.core.errors import ConfigError
+from service.core.scale import DEFAULT_BAR_LENGTH_TOLERANCE, check_tolerance
 
 
 @dataclass(frozen=True)
@@ -18,6 +19,11 @@ class MeshGeometry:
 
     bar_length_m: float
     opening_angle_deg: float = 90.0
+    # How well `bar_length_m` is known, one sigma as a fraction of it: a used net's bars stretch,
+    # shrink and thicken with fouling by 2-3 %. Every distance scales 1:1 with the bar, in every
+    # frame alike, so this is reported beside the image's own sigma (`service.core.scale`),
+    # never averaged away by the filter. 0: measured on this net, in water.
+    bar_length_tolerance: float = DEFAULT_BAR_LENGTH_TOLERANCE
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.bar_length_m) or not 0.001 <= self.bar_length_m <= 1.0:
@@ -26,6 +32,13 @@ class MeshGeometry:
             raise ConfigError(
                 "mesh.opening_angle_deg", f"must be 20..160 degrees, got {self.opening_angle_deg}"
             )
+        check_tolerance("mesh.bar_length_tolerance", self.bar_length_tolerance)
+
+    @property
+    def geometry(self) -> tuple[float, float]:
+        """What the image is measured against (bar and angle): a change of it rescales every
+        distance; a change of the tolerance only says how well that scale is known."""
+        return (self.bar_length_m, self.opening_angle_deg)
 
     @property
     def cell_area_m2(self) -> float:

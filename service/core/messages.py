@@ -80,14 +80,22 @@ class FilteredView:
     )
     distance_m: float | None = doc("filtered perpendicular distance to the net plane", None)
     sigma_distance_m: float | None = doc(
-        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
-        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
-        None)
+        "its one-sigma uncertainty from the image alone (its precision; the mesh size's and "
+        "the calibration's errors are not in it)", None)
+    sigma_distance_total_m: float | None = doc(
+        "one sigma of `distance_m` as a measurement of the world: `sigma_distance_m` with the "
+        "scale's error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`), which is the "
+        "same in every frame and does not shrink as the filter averages them; "
+        "DISTANCE_SENSOR's covariance carries it", None)
     range_m: float | None = doc("filtered distance along the optical axis", None)
     sigma_range_m: float | None = doc(
-        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
-        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
-        None)
+        "its one-sigma uncertainty from the image alone (its precision; the mesh size's and "
+        "the calibration's errors are not in it)", None)
+    sigma_range_total_m: float | None = doc(
+        "one sigma of `range_m` as a measurement of the world: `sigma_range_m` with the scale's "
+        "error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`), which is the same in "
+        "every frame and does not shrink as the filter averages them; DISTANCE_SENSOR's "
+        "covariance carries it", None)
     normal: Vec3 | None = doc("filtered plane normal [x, y, z]", None)
     closing_speed_mps: float | None = doc(
         "rate at which the distance shrinks (positive = approaching the net)", None
@@ -143,14 +151,20 @@ class EstimateMessage(Message):
     confidence: float = doc("detection confidence 0..1", 0.0)
     range_m: float | None = doc("distance to the net plane along the optical axis", None)
     sigma_range_m: float | None = doc(
-        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
-        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
-        None)
+        "its one-sigma uncertainty from the image alone (its precision; the mesh size's and "
+        "the calibration's errors are not in it)", None)
+    sigma_range_total_m: float | None = doc(
+        "one sigma of `range_m` as a measurement of the world: `sigma_range_m` with the scale's "
+        "error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`: docs/estimator.md, "
+        "Limits)", None)
     distance_m: float | None = doc("perpendicular distance from the camera to the plane", None)
     sigma_distance_m: float | None = doc(
-        "its one-sigma uncertainty from the image (the mesh size's and the calibration's own "
-        "errors scale every distance alike and are not in it: docs/estimator.md, Limits)",
-        None)
+        "its one-sigma uncertainty from the image alone (its precision; the mesh size's and "
+        "the calibration's errors are not in it)", None)
+    sigma_distance_total_m: float | None = doc(
+        "one sigma of `distance_m` as a measurement of the world: `sigma_distance_m` with the "
+        "scale's error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`: "
+        "docs/estimator.md, Limits)", None)
     normal: Vec3 | None = doc(
         "unit normal of the net plane [x, y, z], from the net to the camera (camera frame)", None
     )

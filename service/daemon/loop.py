@@ -30,6 +30,7 @@ from service.core.errors import CalibrationError, ConfigError, NetposeError
 from service.core.estimator import NetEstimator
 from service.core.readings import RangeReading
 from service.core.redact import redact_text
+from service.core.scale import scale_sigma_fraction
 from service.core.state_log import StateLog
 from service.core.tracking import NetTracker, TrackOutput
 from service.daemon.damage_outputs import DamageOutputs
@@ -134,7 +135,8 @@ class Daemon:
         self._calibration_digest = _file_digest(config.calibration_path())
         self.pipeline = Pipeline(make_estimator(config, parts.camera), NetTracker(config.filter),
                                  config.service.autopilot_distance,
-                                 make_inspector(config, parts.camera))
+                                 make_inspector(config, parts.camera),
+                                 scale_sigma_fraction=config.scale_sigma_fraction)
         self.stats = LoopStats()
         self.budget = BudgetController(config.budget)
         self.search = SearchPacer(config.budget.search_hz)
@@ -379,9 +381,12 @@ class Daemon:
                 self.parts.link.notify_pilot("netpose: mesh change refused: vehicle armed")
                 raise ConfigError("mesh", f"not changed while the vehicle is armed (every "
                                   f"distance x{scale:.2f}): disarm, then reload")
-            if "mesh" in changed or "estimator" in changed:
+            # A new tolerance says how well the scale is known, not what it is: the estimator,
+            # the track and the holes being followed stay.
+            geometry = new.mesh.geometry != self.config.mesh.geometry
+            if geometry or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera),
-                                                new_scale="mesh" in changed)
+                                                new_scale=geometry)
                 if scale != 1.0:
                     log.warning("mesh changed: bar %.1f -> %.1f mm, opening %.0f -> %.0f deg: "
                                 "every distance x%.2f; the net is tracked anew, no distance "
@@ -393,9 +398,9 @@ class Daemon:
                         f"netpose: mesh {1e3 * self.config.mesh.bar_length_m:g}->"
                         f"{1e3 * new.mesh.bar_length_m:g} mm: dist x{scale:.2f}")
                 self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
-            if "mesh" in changed or "damage" in changed:
+            if geometry or "damage" in changed:
                 self.pipeline.replace_inspector(make_inspector(new, self.parts.camera),
-                                                keep_holes="mesh" not in changed)
+                                                keep_holes=not geometry)
                 if self.outputs.damage is not None:
                     self.outputs.damage.notices.interval_s = new.damage.notify_interval_s
             if "filter" in changed:
@@ -409,6 +414,9 @@ class Daemon:
             if _file_digest(new.calibration_path()) != self._calibration_digest:
                 changed.add("camera")
             needs_restart = sorted(changed & RESTART_SECTIONS)
+            # (The focal tolerance is the camera section's, which a restart changes.)
+            self.pipeline.set_scale_sigma_fraction(scale_sigma_fraction(
+                new.mesh.bar_length_tolerance, self.config.camera.focal_tolerance))
         except NetposeError as exc:
             log.error("configuration reload rejected, keeping the running one: %s", exc)
             self.parts.notifier.ready(status="reload rejected: " + str(exc))

@@ -19,6 +19,7 @@ from service.core.messages import (
     TruthView,
 )
 from service.core.readings import NetPlane, RangeReading, RangeStatus
+from service.core.scale import total_sigma
 from service.core.tracking import TrackOutput
 from service.daemon.damage_outputs import DamageOutputs
 from service.daemon.events import OnceLogger
@@ -34,11 +35,14 @@ class PreviewSettings:
     quality: int = 70
 
 
-def filtered_view(track: TrackOutput, sent: RangeReading) -> FilteredView:
+def filtered_view(track: TrackOutput, sent: RangeReading,
+                  scale_sigma_fraction: float = 0.0) -> FilteredView:
     """The filter's view with what the autopilot was given (`sent`): a reader shows that
-    distance as the autopilot's, never re-derives it from the setting."""
+    distance as the autopilot's, never re-derives it from the setting. `scale_sigma_fraction`:
+    the scale's share of the total sigmas (service.core.scale)."""
     rate = track.distance_rate_mps
     good = sent.status is RangeStatus.GOOD
+    sigma_range = sigma_range_of(track)
     return FilteredView(
         valid=track.valid,
         autopilot=sent.status.value,
@@ -48,8 +52,11 @@ def filtered_view(track: TrackOutput, sent: RangeReading) -> FilteredView:
         measurement=track.measurement.value,
         distance_m=track.distance_m,
         sigma_distance_m=track.sigma_distance_m,
+        sigma_distance_total_m=total_sigma(track.distance_m, track.sigma_distance_m,
+                                           scale_sigma_fraction),
         range_m=track.range_m,
-        sigma_range_m=sigma_range_of(track),
+        sigma_range_m=sigma_range,
+        sigma_range_total_m=total_sigma(track.range_m, sigma_range, scale_sigma_fraction),
         normal=track.normal,
         closing_speed_mps=None if rate is None else -rate,
         age_s=track.since_accepted_s,
@@ -72,6 +79,7 @@ def estimate_message(
     """The telemetry message of one processed frame; `sent` is what the autopilot was given
     (the pipeline's reading unless the outputs withheld it)."""
     est = result.estimate
+    scale = result.scale_sigma_fraction
     stages = dict(est.timings_ms) if est is not None else {}
     total = stages.pop("total", None)
     latency = EstimateLatency(
@@ -86,8 +94,12 @@ def estimate_message(
         confidence=est.confidence if est is not None else 0.0,
         range_m=est.range_m if est is not None else None,
         sigma_range_m=est.sigma_range_m if est is not None else None,
+        sigma_range_total_m=None if est is None else total_sigma(est.range_m,
+                                                                 est.sigma_range_m, scale),
         distance_m=est.distance_m if est is not None else None,
         sigma_distance_m=est.sigma_distance_m if est is not None else None,
+        sigma_distance_total_m=None if est is None else total_sigma(est.distance_m,
+                                                                    est.sigma_distance_m, scale),
         normal=est.normal if est is not None else None,
         tilt_deg=est.tilt_deg if est is not None else None,
         sigma_normal_deg=est.sigma_normal_deg if est is not None else None,
@@ -97,7 +109,8 @@ def estimate_message(
         net_seen=est is not None and est.net_seen,
         approx_range_m=est.approx_range_m if est is not None else None,
         approx_sigma_range_m=est.approx_sigma_range_m if est is not None else None,
-        filtered=filtered_view(result.track, sent or result.reading), latency_ms=latency,
+        filtered=filtered_view(result.track, sent or result.reading, scale),
+        latency_ms=latency,
         truth=truth_view(frame.truth), budget_level=result.budget,
         measured=not result.unmeasured,
         inspected=None if result.damage is None else result.damage.searched,

@@ -92,11 +92,12 @@ RECORDED_SECTIONS = ("mesh", "estimator", "filter", "service", "damage")
 
 
 def tuning_toml(config: Config) -> str:
-    """[mesh], [estimator], [filter], [service] and [damage] in force, as TOML (for
-    recordings)."""
+    """[mesh], [estimator], [filter], [service] and [damage] in force, and the camera's focal
+    tolerance (the sigmas sent count it), as TOML (for recordings)."""
     doc = tomlkit.document()
     doc.add(tomlkit.comment("The settings in force when this recording started (netpose "
                             "replay --config)."))
+    doc.add("camera", {"focal_tolerance": config.camera.focal_tolerance})
     for name in RECORDED_SECTIONS:
         values = {k: v for k, v in config.effective[name].items() if v is not None}
         doc.add(name, values)

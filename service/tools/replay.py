@@ -34,6 +34,7 @@ from service.core.errors import NetposeError
 from service.core.files import write_atomically
 from service.core.messages import json_value
 from service.core.results import NetEstimate, RoiResult
+from service.core.scale import total_sigma
 from service.core.tracking import TrackOutput
 from service.pipeline import Pipeline, PipelineResult
 
@@ -354,6 +355,8 @@ CSV_COLUMNS = (
     "source_file",
     # net inspection searched the frame for holes (empty: inspection off)
     "inspected",
+    # the sigmas with the scale's error (mesh.bar_length_tolerance, camera.focal_tolerance)
+    "sigma_distance_total_m", "filtered_sigma_distance_total_m",
 )
 
 
@@ -375,6 +378,7 @@ def csv_row(result: FrameResult, timing: bool = True) -> list[str]:
     """The CSV_COLUMNS cells of one frame (`timing` False: `process_ms` left empty, the one
     cell that differs from run to run)."""
     e, k, t = result.estimate, result.track, result.truth
+    scale = result.result.scale_sigma_fraction
     normal = e.normal if e is not None and e.normal is not None else (None, None, None)
     # The filter's values only where it gives them (filter_valid): a tentative track's are
     # not out yet, a lost track's are its last ones, frozen.
@@ -420,6 +424,8 @@ def csv_row(result: FrameResult, timing: bool = True) -> list[str]:
         result.filtered_distance_error_m(),
         result.frame.source_file,
         None if result.result.damage is None else result.result.damage.searched,
+        None if e is None else total_sigma(e.distance_m, e.sigma_distance_m, scale),
+        None if kv is None else total_sigma(kv.distance_m, kv.sigma_distance_m, scale),
     ]
     return [_cell(v) for v in values]
 
