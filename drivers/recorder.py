@@ -141,7 +141,8 @@ class _Session:
     def __init__(self, folder: Path, max_bytes: int,
                  on_stop: Callable[[_Session, str], None],
                  on_full: Callable[[_Session], None] = lambda _session: None) -> None:
-        """`on_stop`: the writer stopped by itself (a broken card, little space left);
+        """`on_stop`: the writer stopped by itself (a broken card, little space left), with
+        the reason in a few words (for the pilot's 50-character STATUSTEXT);
         `on_full`: it reached `max_bytes` and goes on writing what it is given until closed
         (the recorder rolls over to a new one)."""
         self.folder = folder
@@ -196,13 +197,13 @@ class _Session:
             try:
                 self._write(item)
             except Exception as exc:  # a full or broken disk ends the recording, not the daemon
-                self._stop_by_itself(f"writing failed: {exc}")
+                self._stop_by_itself(f"writing failed: {exc}", "write failed")
                 return
             if self.bytes >= self.max_bytes and not self._full:
                 self._full = True
                 self._on_full(self)
             if self.frames % 50 == 0 and shutil.disk_usage(self.folder).free < MIN_FREE_BYTES:
-                self._stop_by_itself("less than 200 MB free on the data volume")
+                self._stop_by_itself("less than 200 MB free on the data volume", "card full")
                 return
 
     def _write(self, item: _Item | _State) -> None:
@@ -233,14 +234,14 @@ class _Session:
         self.frames += 1
         self.bytes += len(data) + len(line) + 1
 
-    def _stop_by_itself(self, why: str) -> None:
+    def _stop_by_itself(self, why: str, briefly: str) -> None:
         with self._cond:
             self._closing = True
             self.dropped += len(self._queue)
             self._queue.clear()
         self.error = why
         log.warning("recording %s stopped: %s", self.folder.name, why)
-        self._on_stop(self, why)
+        self._on_stop(self, briefly)
 
 
 def _number(name: str) -> int:
@@ -274,10 +275,14 @@ class Recorder(Closeable):
 
     def __init__(self, root: Path, vehicle: str, setup: Callable[[], RecordingSetup],
                  max_bytes: int, pipeline_state: Callable[[], dict[str, Any]] | None = None,
-                 recorded_sections: frozenset[str] | None = None) -> None:
+                 recorded_sections: frozenset[str] | None = None,
+                 tell_pilot: Callable[[str], None] | None = None) -> None:
         """`recorded_sections`: the configuration sections its replay depends on (a reload
-        that changes one rolls the recording over); None: any change does."""
+        that changes one rolls the recording over); None: any change does. `tell_pilot`: a
+        recording that stops by itself is said there (the autopilot link's STATUSTEXT), from
+        the writer's thread."""
         self.root = root
+        self._tell_pilot = tell_pilot
         self._recorded_sections = recorded_sections
         self._finishing: list[threading.Thread] = []  # recordings ended by a reload
         # Folders whose files are being finished (a stop, a reload's roll-over): not to be
@@ -343,6 +348,7 @@ class Recorder(Closeable):
                 # Said by the recording that ended (its manifest, the page's status): recording
                 # stopped for the rest of the dive.
                 old.error = f"no next recording after {why}: {exc}"
+                self._said_to_pilot("next part failed")
             self._closing.add(old.folder)
             finishing = threading.Thread(target=self._finish, args=(old, setup),
                                          name="recorder finish", daemon=True)
@@ -515,10 +521,19 @@ class Recorder(Closeable):
                          args=(session, f"it reached web.max_recording_mb "
                                         f"({session.max_bytes >> 20} MB)")).start()
 
-    def _stopped_by_itself(self, session: _Session, why: str) -> None:
+    def _said_to_pilot(self, briefly: str) -> None:
+        # A pilot who started a recording of an inspection dive watches the video, not the
+        # page: a recording that ended is the evidence of the rest of the dive missing.
+        if self._tell_pilot is not None:
+            self._tell_pilot(f"netpose: recording stopped: {briefly}")
+
+    def _stopped_by_itself(self, session: _Session, briefly: str) -> None:
         # Called on the writer thread: finish the recording from another one (stop() joins
         # it). Only that recording: one that filled up while a roll-over finished it must not
         # stop the next.
+        if self._session is session:
+            self._said_to_pilot(briefly)
+
         def stop_it() -> None:
             if self._session is session:
                 self.stop()

@@ -994,7 +994,7 @@ def test_a_slow_search_before_the_net_is_found_does_not_cut_the_tracking_work(
 
 def _recorder(tmp_path: Path, holder: list[Any], max_bytes: int = 1 << 30) -> Any:
     """The web page's recorder into tmp_path/rec, taking the settings in force and the filter
-    state from the harness that `holder` will hold."""
+    state from the harness that `holder` will hold, and telling its link's pilot."""
     from drivers.recorder import Recorder, RecordingSetup
     from service.daemon.settings_editor import tuning_toml
 
@@ -1004,7 +1004,8 @@ def _recorder(tmp_path: Path, holder: list[Any], max_bytes: int = 1 << 30) -> An
                               config.mesh.bar_length_m, config.mesh.opening_angle_deg)
 
     return Recorder(tmp_path / "rec", "test", setup, max_bytes,
-                    lambda: holder[0].daemon.pipeline.snapshot())
+                    lambda: holder[0].daemon.pipeline.snapshot(),
+                    tell_pilot=lambda text: holder[0].link.notify_pilot(text))
 
 
 def _replay(tmp_path: Path, recording: str, out: str = "replay",
@@ -1198,6 +1199,9 @@ def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     assert recorder.stop() == status  # a Stop from the page after it: the same answer
     good = [r for r in h.link.ranges[8:] if r.status is RangeStatus.GOOD]
     assert len(good) >= 10
+    # The pilot, who watches the video and not the page, is told once.
+    said = [text for _t, text in h.link.texts if "recording" in text]
+    assert said == ["netpose: recording stopped: write failed"], h.link.texts
 
 
 def test_a_long_dive_is_recorded_whole_in_numbered_parts(
@@ -1228,6 +1232,8 @@ def test_a_long_dive_is_recorded_whole_in_numbered_parts(
     assert all(p["bytes"] < 400_000 + 64 * 200_000 for p in parts)
     rows = _replayed_rows(tmp_path, names[-1])
     assert len(rows) == parts[-1]["frames"]
+    # Parts handed over and a Stop from the page are no news for the pilot.
+    assert not [text for _severity, text in h.link.texts if "recording" in text]
 
 
 def test_a_stop_while_a_recording_rolls_over_stops_it(tmp_path: Path) -> None:
@@ -1308,6 +1314,8 @@ def test_a_roll_over_with_no_room_for_the_next_part_says_so(
     assert "200 MB needed" in status.error
     manifest = json.loads((tmp_path / "rec" / status.name / MANIFEST).read_text())
     assert "no next recording" in manifest["stopped_because"]
+    said = [text for _severity, text in h.link.texts if "recording" in text]
+    assert said == ["netpose: recording stopped: next part failed"], h.link.texts
 
 
 def test_a_card_that_fills_mid_frame_keeps_no_cut_frame_and_says_why(

@@ -189,9 +189,11 @@ def recordings_root(config: Config, web: WebSettings) -> Path:
     return config.file_path(web.recordings_dir)
 
 
-def build_observers(config: Config, camera: CameraModel,
-                    controls: WebControls | None) -> tuple[FrameObserver, ...]:
-    """The web page and its recorder, when `web.enabled`."""
+def build_observers(config: Config, camera: CameraModel, controls: WebControls | None,
+                    tell_pilot: Callable[[str], None] | None = None,
+                    ) -> tuple[FrameObserver, ...]:
+    """The web page and its recorder, when `web.enabled`; `tell_pilot`: where the recorder
+    says a recording stopped by itself (the link's STATUSTEXT)."""
     web = config.section("web", WebSettings)
     if not web.enabled or controls is None:
         return ()
@@ -206,7 +208,7 @@ def build_observers(config: Config, camera: CameraModel,
 
     recorder = Recorder(recordings_root(config, web), vehicle, setup,
                         web.max_recording_mb * 1024 * 1024, controls.pipeline_state,
-                        frozenset(RECORDED_SECTIONS))
+                        frozenset(RECORDED_SECTIONS), tell_pilot)
     page = WebPage[PipelineResult](web, LiveView(camera, web.live_width), controls.editor,
                                    recorder, vehicle)
     return (recorder, page)
@@ -221,9 +223,10 @@ def build_parts(config: Config, notifier: Notifier,
     camera = resolve_camera(config, source)
     mavlink = config.section("mavlink", MavlinkSettings)
     telemetry = config.section("telemetry", TelemetrySettings)
+    link = MavlinkLink(mavlink)  # reads and checks the signing key
     return DaemonParts(
         source=source,
-        link=MavlinkLink(mavlink),  # reads and checks the signing key
+        link=link,
         telemetry=make_publisher(telemetry),  # builds the Zenoh configuration
         notifier=notifier,
         camera=camera,
@@ -231,7 +234,7 @@ def build_parts(config: Config, notifier: Notifier,
         preview=PreviewSettings(width=telemetry.preview_width,
                                 quality=telemetry.preview_quality),
         telemetry_enabled=telemetry.enabled,
-        observers=build_observers(config, camera, controls),
+        observers=build_observers(config, camera, controls, link.notify_pilot),
     )
 
 
