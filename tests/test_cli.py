@@ -7,7 +7,9 @@ whole command group with a TypeError; nothing but formatting every parser finds 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -99,6 +101,13 @@ def test_estimate_reads_the_images_of_a_folder_in_name_order(tmp_path: Path) -> 
     lines = done.stdout.splitlines()
     assert [line.split(":")[0] for line in lines] == [str(frames / "a.jpg"), str(frames / "b.png")]
     assert all("net detected" in line for line in lines)
+    # The range's sigma counts the scale's error (2 % bar and 1 % focal by default), beside
+    # the image's own: a used net's bar is known to a few per cent, whatever the image says.
+    for line in lines:
+        found = re.search(r"range ([\d.]+) m \+- ([\d.]+) \(image ([\d.]+), scale 2\.2 %\)", line)
+        assert found is not None, line
+        range_m, total, image = (float(v) for v in found.groups())
+        assert total == pytest.approx(math.hypot(image, 0.02236 * range_m), abs=0.001)
     empty = subprocess.run(
         [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
          "--mesh-size", "0.025", str(tmp_path / "empty")], capture_output=True, text=True,
@@ -138,6 +147,14 @@ def test_estimate_json_says_too_close_and_keeps_its_keys_in_order(tmp_path: Path
     assert far["too_close"] is False and far["detected"] and far["level"] in (0, 1, 2), far
     for message in (near, far):
         assert list(message["timings_ms"]) == sorted(message["timings_ms"])
+    assert far["sigma_distance_total_m"] == pytest.approx(
+        math.hypot(far["sigma_distance_m"], 0.02236 * far["distance_m"]), abs=2e-5)
+    assert near["sigma_distance_total_m"] is None
+    bad = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
+         "--mesh-size", "0.025", "--focal-tolerance", "1.5", str(tmp_path / "b_far.png")],
+        capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 78 and "--focal-tolerance" in bad.stderr, bad.stderr
 
 
 _FIRST_NUMPY_IMPORT = """

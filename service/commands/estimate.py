@@ -11,6 +11,13 @@ from typing import Any
 from service.core.errors import ConfigError
 from service.core.grey import IMAGE_SUFFIXES, is_image_name
 from service.core.results import NetEstimate
+from service.core.scale import (
+    DEFAULT_BAR_LENGTH_TOLERANCE,
+    DEFAULT_FOCAL_TOLERANCE,
+    check_tolerance,
+    scale_sigma_fraction,
+    total_sigma,
+)
 
 
 def add_parser(subparsers: Any) -> None:
@@ -28,12 +35,21 @@ def add_parser(subparsers: Any) -> None:
                    help="bar length of the mesh, knot to knot (side of a square mesh), in metres")
     p.add_argument("--opening-angle", type=float, default=90.0, metavar="DEG",
                    help="mesh opening angle in degrees (90 = square, default)")
+    p.add_argument("--bar-tolerance", type=float, default=DEFAULT_BAR_LENGTH_TOLERANCE,
+                   metavar="FRACTION",
+                   help="how well --mesh-size is known, one sigma as a fraction (default "
+                   f"{DEFAULT_BAR_LENGTH_TOLERANCE:g}: a used net's bars stretch and foul)")
+    p.add_argument("--focal-tolerance", type=float, default=DEFAULT_FOCAL_TOLERANCE,
+                   metavar="FRACTION",
+                   help="how well the calibration's focal length is known in water, one sigma "
+                   f"as a fraction (default {DEFAULT_FOCAL_TOLERANCE:g})")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
     p.set_defaults(handler=run)
 
 
-def describe(name: str, est: NetEstimate) -> str:
-    """The human-readable line for one image."""
+def describe(name: str, est: NetEstimate, scale: float = 0.0) -> str:
+    """The human-readable line for one image; `scale`: the relative sigma of the image's
+    metric scale (service.core.scale), in the range's sigma beside the image's own."""
     if est.too_close:
         return f"{name}: net too close ({est.reason}); no distance"
     if (seen := est.seen_text()) is not None:
@@ -41,7 +57,9 @@ def describe(name: str, est: NetEstimate) -> str:
     if not est.detected or est.range_m is None or est.normal is None:
         return f"{name}: no net ({est.reason or 'not detected'}; confidence {est.confidence:.2f})"
     nx, ny, nz = est.normal
-    sigma = f" +- {est.sigma_range_m:.3f}" if est.sigma_range_m is not None else ""
+    total = total_sigma(est.range_m, est.sigma_range_m, scale)
+    sigma = "" if total is None or est.sigma_range_m is None else (
+        f" +- {total:.3f} (image {est.sigma_range_m:.3f}, scale {100 * scale:.1f} %)")
     return (
         f"{name}: net detected, confidence {est.confidence:.2f}: range {est.range_m:.3f} m{sigma}"
         f", distance {est.distance_m:.3f} m, tilt {est.tilt_deg:.1f} deg "
@@ -72,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
         raise ConfigError(option, exc.problem) from None
+    check_tolerance("--bar-tolerance", args.bar_tolerance)
+    check_tolerance("--focal-tolerance", args.focal_tolerance)
+    scale = scale_sigma_fraction(args.bar_tolerance, args.focal_tolerance)
     camera = load_camera(args.calibration)
     estimator = NetEstimator(camera, mesh)
     failures = 0
@@ -96,9 +117,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"netpose: warning: {name}: {exc}; no estimate", file=sys.stderr, flush=True)
             continue
         if args.json:
-            print(json.dumps({"image": name, **est.to_json_dict()}), flush=True)
+            totals = {f"sigma_{q}_total_m": None if total is None else round(total, 5)
+                      for q, total in (
+                          ("range", total_sigma(est.range_m, est.sigma_range_m, scale)),
+                          ("distance", total_sigma(est.distance_m, est.sigma_distance_m, scale)))}
+            print(json.dumps({"image": name, **est.to_json_dict(), **totals}), flush=True)
         else:
-            print(describe(name, est), flush=True)
+            print(describe(name, est, scale), flush=True)
     if failures:
         print(f"netpose: {failures} of {len(images)} images could not be processed",
               file=sys.stderr)
