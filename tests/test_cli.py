@@ -106,8 +106,8 @@ def test_estimate_reads_the_images_of_a_folder_in_name_order(tmp_path: Path) -> 
     for line in lines:
         found = re.search(r"range ([\d.]+) m \+- ([\d.]+) \(image ([\d.]+), scale 2\.2 %\)", line)
         assert found is not None, line
-        range_m, total, image = (float(v) for v in found.groups())
-        assert total == pytest.approx(math.hypot(image, 0.02236 * range_m), abs=0.001)
+        range_m, total, image_sigma = (float(v) for v in found.groups())
+        assert total == pytest.approx(math.hypot(image_sigma, 0.02236 * range_m), abs=0.001)
     empty = subprocess.run(
         [sys.executable, "-m", "service.cli", "estimate", "-c", str(tmp_path / "camera.yaml"),
          "--mesh-size", "0.025", str(tmp_path / "empty")], capture_output=True, text=True,
