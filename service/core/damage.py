@@ -242,6 +242,15 @@ class NetFrame:
         return float(rel @ self.horizontal), float(rel @ self.vertical)
 
 
+def net_frame_of(estimate: NetEstimate) -> NetFrame | None:
+    """The net plane of a frame's estimate (None without a detection)."""
+    if not estimate.detected or estimate.normal is None or estimate.distance_m is None:
+        return None
+    normal = np.asarray(estimate.normal, dtype=np.float64)
+    horizontal, vertical = plane_axes(normal)
+    return NetFrame(normal, float(estimate.distance_m), horizontal, vertical)
+
+
 @dataclass(frozen=True)
 class _Lattice:
     """The net's lattice on the plane, in the virtual camera that faces it."""
@@ -315,9 +324,8 @@ class DamageDetector:
         if found_region is None:
             return DamageScan(reason="no part of the view shows the mesh resolved")
         region, seen = found_region
-        normal = np.asarray(estimate.normal, dtype=np.float64)
-        horizontal, vertical = plane_axes(normal)
-        net = NetFrame(normal, float(estimate.distance_m), horizontal, vertical)
+        net = net_frame_of(estimate)
+        assert net is not None  # detected, with a normal and a distance (above)
         window = self._window(lattice, net, region, seen, revisit)
         i0, j0 = region[0] + window.i0, region[1] + window.j0
         n1, n2 = window.n1, window.n2

@@ -121,7 +121,8 @@ def write_contact_sheet(holes: Sequence[tuple[ConfirmedHole, int]], out_dir: Pat
 def draw_damage(image: BGR, report: DamageReport | None, scale: float, font: float,
                 thick: int) -> None:
     """Marks on an annotated frame (drawn in place): the part of the frame inspected in this
-    frame, candidates being followed (yellow) and confirmed holes (red, with their size)."""
+    frame, candidates being followed (yellow) and confirmed holes (red, with their size), with
+    a thinner line where one not sighted in this frame is predicted."""
     if report is None:
         return
     scan = report.scan
@@ -136,7 +137,9 @@ def draw_damage(image: BGR, report: DamageReport | None, scale: float, font: flo
         p0 = (round(x0 - pad), round(y0 - pad))
         p1 = (round(x1 + pad), round(y1 + pad))
         colour = CONFIRMED if track.confirmed else CANDIDATE
-        cv2.rectangle(image, p0, p1, colour, thick + (1 if track.confirmed else 0), cv2.LINE_AA)
+        # Not sighted in this frame (drawn where the net's motion puts it): a thinner line.
+        weight = thick + (1 if track.confirmed else 0) - (0 if track.seen else 1)
+        cv2.rectangle(image, p0, p1, colour, max(1, weight), cv2.LINE_AA)
         if track.confirmed:
             text = (f"hole {track.hole_id}: {max(1, round(track.width_m * 100))}x"
                     f"{max(1, round(track.height_m * 100))} cm")
