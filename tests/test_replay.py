@@ -777,7 +777,7 @@ def test_damage_csv_says_when_a_hole_was_seen_by_the_vehicles_clock(tmp_path: Pa
         width_m=0.05, height_m=0.04, cells=4, missing_bars=4, centre_px=(1.0, 2.0),
         box_px=(0.0, 0.0, 3.0, 4.0), plane_xy_m=(0.1, 0.2), point_m=(0.1, 0.2, 1.0),
         range_m=1.03, confidence=0.87)
-    out = DamageCsv(tmp_path)
+    out = DamageCsv(tmp_path, 0.0275)
     out.write(hole, 5, 0.5, 1_764_300_000.25)
     out.write(hole, 6, 0.6, None)
     out.close()
@@ -785,3 +785,42 @@ def test_damage_csv_says_when_a_hole_was_seen_by_the_vehicles_clock(tmp_path: Pa
         rows = list(csv.DictReader(fh))
     assert tuple(rows[0]) == DAMAGE_COLUMNS
     assert [r["time_unix"] for r in rows] == ["1764300000.250", ""]
+    # The bar the sizes are counted in goes with every row: a CSV handed on keeps its scale
+    # (--mesh-size 0.04 for 0.02 doubles every size, with nothing to tell).
+    assert [r["bar_length_m"] for r in rows] == ["0.0275", "0.0275"]
+
+
+def test_a_replay_says_each_hole_as_it_confirms_it_with_its_scale(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A replay of a long dive said its holes only in the files at its end; the daemon says
+    each as it is confirmed. And damage.csv, handed on, lost its scale: `--mesh-size 0.04` for
+    0.02 doubles every size with nothing in the file to tell (inspection report review)."""
+    from drivers.synthetic_damage import NetDamage, missing_knot
+    from service.benchmarks.scenes import bench_camera
+
+    camera = bench_camera(960, 540)
+    mesh = MeshGeometry(bar_length_m=0.02)
+    save_camera(camera, tmp_path / "camera.yaml")
+    damage = NetDamage([missing_knot((20, -8), np.random.default_rng(3))])
+    renderer = NetRenderer(camera, mesh)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(16):  # the vehicle drifts along the net, the hole in view throughout
+        image, _ = renderer.render(NetPose(1.0, 10.0, 90.0, 0.0, (0.2 * k, 0.0)),
+                                   np.random.default_rng([5, k]), SceneStyle(), damage=damage)
+        cv2.imwrite(str(frames / f"{k:03d}.png"), image)
+    caplog.set_level(logging.INFO)
+    code = main(["replay", str(frames), "--calibration", str(tmp_path / "camera.yaml"),
+                 "--mesh-size", "0.02", "--out", str(tmp_path / "out"), "--fps", "10",
+                 "--no-video"])
+    assert code == 0
+    with (tmp_path / "out" / "damage.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 1, rows
+    assert rows[0]["bar_length_m"] == "0.02"
+    assert (float(rows[0]["width_cm"]), float(rows[0]["height_cm"])) == (4.0, 4.0)  # 2x2 cells
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("replay: hole")]
+    assert said == [f"replay: hole 1: 4x4 cm (4 cells), {rows[0]['bearing']} at "
+                    f"{float(rows[0]['range_m']):.2f} m, frame {rows[0]['frame']} "
+                    f"({float(rows[0]['time_s']):.1f} s), confidence {rows[0]['confidence']}"]

@@ -54,6 +54,7 @@ from service.tools.damage_report import (
     CROPS_DIR,
     DAMAGE_CSV,
     DamageCsv,
+    hole_label,
     write_contact_sheet,
 )
 from service.tools.replay import (
@@ -556,13 +557,19 @@ def _replay(
                     csv_file = EstimatesCsv(out_dir / "estimates.csv", timing=not args.no_timing)
                     video = None if annotator is None else AnnotatedVideo(out_dir, fps)
                     if pipeline.inspector is not None:
-                        damage_csv = DamageCsv(out_dir)
+                        damage_csv = DamageCsv(out_dir, mesh.bar_length_m)
                 report = result.result.damage
                 if report is not None and report.inspected:
                     outcome.inspected_frames += 1
                     outcome.judged_cells += report.scan.inspected_cells if report.scan else 0
                 if damage_csv is not None and report is not None:
                     for hole in report.confirmed:
+                        # Said as it is found, as the daemon says it: a long replay's holes
+                        # were known only from the files at its end.
+                        log.info("replay: %s (%d cells), %s at %.2f m, frame %d (%.1f s), "
+                                 "confidence %.2f", hole_label(hole), hole.cells, hole.bearing,
+                                 hole.range_m, result.frame.index, result.frame.time_s,
+                                 hole.confidence)
                         damage_csv.write(hole, result.frame.index, result.frame.time_s,
                                          result.frame.t_unix)
                 if video is not None and annotator is not None:

@@ -31,6 +31,8 @@ DAMAGE_COLUMNS = (
     # the frame's capture time as the vehicle's clock said it (a recording's), to join a hole
     # with the dive's log; empty where the input does not keep it (a video, a folder)
     "time_unix",
+    # the bar length the sizes are counted in (--mesh-size): a CSV handed on keeps its scale
+    "bar_length_m",
 )
 
 
@@ -44,8 +46,9 @@ class DamageCsv:
     """damage.csv and the crops: one row and one PNG per confirmed hole, written as they come
     (a replay that is interrupted keeps what it found)."""
 
-    def __init__(self, out_dir: Path) -> None:
+    def __init__(self, out_dir: Path, bar_length_m: float) -> None:
         self.out_dir = out_dir
+        self.bar_length_m = bar_length_m
         self.path = out_dir / DAMAGE_CSV
         self._file: IO[str] = self.path.open("w", newline="", encoding="utf-8")
         self._writer = csv.writer(self._file)
@@ -67,7 +70,7 @@ class DamageCsv:
             f"{hole.centre_px[0]:.1f}", f"{hole.centre_px[1]:.1f}", f"{hole.plane_xy_m[0]:.3f}",
             f"{hole.plane_xy_m[1]:.3f}", f"{hole.range_m:.3f}", hole.bearing,
             f"{hole.confidence:.2f}", hole.detections, hole.looks, f"{first:.3f}", crop_name,
-            "" if time_unix is None else f"{time_unix:.3f}",
+            "" if time_unix is None else f"{time_unix:.3f}", f"{self.bar_length_m:g}",
         ])
         self._file.flush()
         self.holes.append((hole, frame))
