@@ -73,6 +73,11 @@ from service.tools.replay import (
 
 log = logging.getLogger(__name__)
 
+# What a replay that found no hole must say beside its count: "0 holes" went into a farm's
+# report as "net inspected, no holes" for a fouled net whose four holes were all missed.
+NO_PROOF = ("no hole found is no proof of an intact net: holes are missed, most on fouled "
+            "twine (docs/inspection.md, Limits)")
+
 EXIT_INTERRUPTED = 130
 DEFAULT_VIDEO_WIDTH = 1280
 DEFAULT_IMAGE_FPS = 10.0
@@ -377,6 +382,13 @@ class ReplayRun:
     # were judged in them (with overlaps): no hole reported is no proof of an intact net.
     inspected_frames: int = 0
     judged_cells: int = 0
+    # Bars sampled in the inspected frames, and those clear enough to show a missing one.
+    bars_sampled: int = 0
+    bars_judgeable: int = 0
+
+    @property
+    def judgeable_share(self) -> float | None:
+        return self.bars_judgeable / self.bars_sampled if self.bars_sampled else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -561,7 +573,10 @@ def _replay(
                 report = result.result.damage
                 if report is not None and report.inspected:
                     outcome.inspected_frames += 1
-                    outcome.judged_cells += report.scan.inspected_cells if report.scan else 0
+                    if report.scan is not None:
+                        outcome.judged_cells += report.scan.inspected_cells
+                        outcome.bars_sampled += report.scan.bars_sampled
+                        outcome.bars_judgeable += report.scan.bars_judgeable
                 if damage_csv is not None and report is not None:
                     for hole in report.confirmed:
                         # Said as it is found, as the daemon says it: a long replay's holes
@@ -721,7 +736,9 @@ def _finish(
         "source": {"corrupt_frames": source_stats.corrupt, "dropped_frames": source_stats.drops},
         "damage_holes": outcome.holes,
         "damage_inspection": None if outcome.holes is None else {
-            "inspected_frames": outcome.inspected_frames, "judged_cells": outcome.judged_cells},
+            "inspected_frames": outcome.inspected_frames, "judged_cells": outcome.judged_cells,
+            "judgeable_bar_share": outcome.judgeable_share,
+            "caveat": NO_PROOF},
         **stats.summary(),
     }
     if args.no_timing:
@@ -746,7 +763,11 @@ def _finish(
              summary.get("net_seen_frames", 0), out_dir)
     if outcome.holes is not None:
         # "No rows" must not read as "no holes": say how much of the net was looked at.
-        log.info("replay: net inspection: %d holes in %d inspected frames (%d cells judged)%s",
-                 outcome.holes, outcome.inspected_frames, outcome.judged_cells,
-                 "" if outcome.inspected_frames else
-                 ": nothing was inspected, so no hole found says nothing of the net")
+        share = outcome.judgeable_share
+        clear = "" if share is None else (f"; {100 * share:.0f} % of their bars clear enough "
+                                          "for a missing one to show")
+        log.info("replay: net inspection: %d holes in %d inspected frames (%d cells judged%s)%s",
+                 outcome.holes, outcome.inspected_frames, outcome.judged_cells, clear,
+                 ": nothing was inspected, so no hole found says nothing of the net"
+                 if not outcome.inspected_frames else f": {NO_PROOF}" if not outcome.holes
+                 else "")

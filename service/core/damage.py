@@ -195,6 +195,9 @@ class DamageScan:
 
     candidates: tuple[HoleCandidate, ...] = ()
     inspected_cells: int = 0  # cells whose bars were judged
+    # Bars sampled, and those clear enough against their neighbours to show a missing one.
+    bars_sampled: int = 0
+    bars_judgeable: int = 0
     levels: tuple[int, ...] = ()  # pyramid levels read (each cell from the one that suits it)
     reason: str = ""  # why nothing was inspected ("" when something was)
     timings_ms: dict[str, float] = field(default_factory=dict)
@@ -363,6 +366,7 @@ class DamageDetector:
             (_cell_pixel(coarse, cells), len(cells), reason) for cells, reason in rejected
             if len(cells) <= 4 * self.settings.max_cells)
         return DamageScan(candidates=candidates, inspected_cells=int(bars.inspected),
+                          bars_sampled=bars.bars_sampled, bars_judgeable=bars.bars_judgeable,
                           levels=used, timings_ms=timings, outline_px=_outline(coarse, w, h),
                           geometry=net, rejected=why, windows=window.windows,
                           revisits=window.revisits,
@@ -753,6 +757,10 @@ class _Bars:
     cell: F64
     cell_ok: npt.NDArray[np.bool_]
     inspected: int
+    # Bars sampled (both families), and those among them whose neighbours stand out clearly
+    # enough (min_lattice_snr) for a missing middle third to show: on fouled twine far fewer.
+    bars_sampled: int = 0
+    bars_judgeable: int = 0
 
     def reference(self, fam: int, i: int, j: int) -> float:
         """The contrast of the bar's neighbours (its family, within 3 cells)."""
@@ -900,7 +908,9 @@ def _bar_statistics(lat: F32, valid: npt.NDArray[np.bool_], n1: int, n2: int, s:
                  sigma=(whole[0][1], whole[1][1]), usable=(whole[0][2], whole[1][2]),
                  gap=(gaps[0], gaps[1]), gap_ref=(middle[0][0], middle[1][0]),
                  gap_sigma=(middle[0][1], middle[1][1]), gap_usable=(middle[0][2], middle[1][2]),
-                 cell=cell, cell_ok=okc, inspected=int(okc.sum()))
+                 cell=cell, cell_ok=okc, inspected=int(okc.sum()),
+                 bars_sampled=int(ok1.sum() + ok2.sum()),
+                 bars_judgeable=int(usable[..., 2:4].sum()))
 
 
 def _judged_against_neighbours(c: F64, ok: npt.NDArray[np.bool_], step: F64, min_snr: float
