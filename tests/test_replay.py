@@ -820,6 +820,25 @@ def test_a_replay_says_each_hole_as_it_confirms_it_with_its_scale(
     assert len(rows) == 1, rows
     assert rows[0]["bar_length_m"] == "0.02"
     assert (float(rows[0]["width_cm"]), float(rows[0]["height_cm"])) == (4.0, 4.0)  # 2x2 cells
+    # The evidence for a report: 71-148 px crops with nothing on them did not go into one.
+    crop = cv2.imread(str(tmp_path / "out" / rows[0]["crop"]), cv2.IMREAD_GRAYSCALE)
+    evidence = cv2.imread(str(tmp_path / "out" / rows[0]["evidence"]))
+    assert crop is not None and evidence is not None
+    assert evidence.shape[1] >= 480 and evidence.shape[1] % crop.shape[1] == 0
+    k = evidence.shape[1] // crop.shape[1]
+    red = (evidence[..., 2] > 200) & (evidence[..., 1] < 60) & (evidence[..., 0] < 60)
+    ys, xs = np.nonzero(red[: crop.shape[0] * k])
+    # The mark is around the middle of the crop (the crop is centred on the hole), about the
+    # hole's 2x2 cells plus a margin, and leaves the camera's pixels inside it as they were.
+    box_w, box_h = xs.max() - xs.min(), ys.max() - ys.min()
+    middle = (crop.shape[1] * k / 2, crop.shape[0] * k / 2)
+    assert abs((xs.min() + xs.max()) / 2 - middle[0]) < 0.1 * crop.shape[1] * k
+    assert abs((ys.min() + ys.max()) / 2 - middle[1]) < 0.1 * crop.shape[0] * k
+    assert 0.2 < box_w / (crop.shape[1] * k) < 0.7 and 0.2 < box_h / (crop.shape[0] * k) < 0.7
+    inner = evidence[ys.min() + 2 * k: ys.max() - 2 * k: k, xs.min() + 2 * k: xs.max() - 2 * k: k,
+                     0]
+    y0, x0 = (ys.min() + 2 * k) // k, (xs.min() + 2 * k) // k
+    assert np.array_equal(inner, crop[y0: y0 + inner.shape[0], x0: x0 + inner.shape[1]])
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("replay: hole")]
     assert said == [f"replay: hole 1: 4x4 cm (4 cells), {rows[0]['bearing']} at "
                     f"{float(rows[0]['range_m']):.2f} m, frame {rows[0]['frame']} "

@@ -180,6 +180,8 @@ class HoleCandidate:
     significance: float  # how far its bars fall short of their neighbours together (spreads)
     ring_intact: float  # share of the bars around it that are intact
     crop: npt.NDArray[np.uint8] | None = field(default=None, repr=False)  # evidence
+    # The hole's knots' box in the crop's pixels (to mark it on the evidence).
+    crop_box_px: tuple[float, float, float, float] | None = None
     stats: Any = field(default=None, repr=False)
 
     @property
@@ -710,14 +712,14 @@ class DamageDetector:
         c_px = cam.project_normalized(centre[:2] / centre[2])
         box = (float(px[:, 0].min()), float(px[:, 1].min()), float(px[:, 0].max()),
                float(px[:, 1].max()))
-        crop = _crop(gray, box, self.settings)
+        crop, crop_box = _crop(gray, box, self.settings)
         return HoleCandidate(
             centre_px=(float(c_px[0]), float(c_px[1])), box_px=box, cells=len(cells),
             missing_bars=hole.missing_bars, width_m=width, height_m=height,
             plane_xy_m=net.plane_xy(centre),
             point_m=(float(centre[0]), float(centre[1]), float(centre[2])),
             range_m=float(np.linalg.norm(centre)), significance=hole.significance,
-            ring_intact=hole.ring_intact, crop=crop, stats=hole,
+            ring_intact=hole.ring_intact, crop=crop, stats=hole, crop_box_px=crop_box,
         )
 
 
@@ -1119,9 +1121,9 @@ def _outline(coarse: F64, w: int, h: int, cells: npt.NDArray[np.bool_] | None = 
 
 
 def _crop(gray: Image, box: tuple[float, float, float, float], st: DamageSettings
-          ) -> npt.NDArray[np.uint8]:
+          ) -> tuple[npt.NDArray[np.uint8], tuple[float, float, float, float]]:
     """The frame around the hole: `crop_scale` times its size (at least 48 px), at most
-    `crop_max_px` on a side (shrunk to that)."""
+    `crop_max_px` on a side (shrunk to that); and the hole's box in the crop's pixels."""
     import cv2
 
     h, w = gray.shape[:2]
@@ -1135,11 +1137,13 @@ def _crop(gray: Image, box: tuple[float, float, float, float], st: DamageSetting
     if crop.dtype != np.uint8:
         crop = np.clip(crop, 0, 255).astype(np.uint8)
     big = max(crop.shape[:2])
+    f = 1.0
     if big > st.crop_max_px:
         f = st.crop_max_px / big
         crop = cv2.resize(crop, (max(1, round(crop.shape[1] * f)), max(1, round(
             crop.shape[0] * f))), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(crop)
+    inside = ((box[0] - x0) * f, (box[1] - y0) * f, (box[2] - x0) * f, (box[3] - y0) * f)
+    return np.ascontiguousarray(crop), inside
 
 
 def _reduce(basis: F64) -> F64:

@@ -91,6 +91,7 @@ class ConfirmedHole:
     range_m: float  # camera to the hole
     confidence: float  # 0..1
     crop: npt.NDArray[np.uint8] | None = field(default=None, repr=False)  # best evidence
+    crop_box_px: tuple[float, float, float, float] | None = None  # the hole in the crop
 
     @property
     def bearing(self) -> str:
@@ -427,7 +428,7 @@ class HoleTracker:
             missing_bars=int(round(float(np.median([c.missing_bars for c in tr.hits])))),
             centre_px=last.centre_px, box_px=last.box_px, plane_xy_m=last.plane_xy_m,
             point_m=last.point_m, range_m=last.range_m, confidence=min(1.0, confidence),
-            crop=best.crop,
+            crop=best.crop, crop_box_px=best.crop_box_px,
         )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO
@@ -33,7 +34,12 @@ DAMAGE_COLUMNS = (
     "time_unix",
     # the bar length the sizes are counted in (--mesh-size): a CSV handed on keeps its scale
     "bar_length_m",
+    # the crop for a report: enlarged, the hole marked, captioned, with a scale bar of one bar
+    "evidence",
 )
+# An evidence image is at least this wide: a 71-148 px crop does not go into a report.
+EVIDENCE_MIN_PX = 480
+EVIDENCE_MARK = (0, 0, 255)  # BGR red, as the annotated video's confirmed holes
 
 
 def hole_label(hole: ConfirmedHole) -> str:
@@ -63,6 +69,11 @@ class DamageCsv:
             crops.mkdir(exist_ok=True)
             crop_name = f"{CROPS_DIR}/hole_{hole.hole_id:03d}.png"
             cv2.imwrite(str(self.out_dir / crop_name), hole.crop)
+        marked = evidence_image(hole, frame, time_s, time_unix, self.bar_length_m)
+        evidence_name = ""
+        if marked is not None:
+            evidence_name = f"{CROPS_DIR}/hole_{hole.hole_id:03d}_evidence.png"
+            cv2.imwrite(str(self.out_dir / evidence_name), marked)
         first = time_s - (hole.t_confirmed - hole.t_first)
         self._writer.writerow([
             hole.hole_id, frame, f"{time_s:.3f}", f"{hole.width_m * 100:.1f}",
@@ -71,12 +82,56 @@ class DamageCsv:
             f"{hole.plane_xy_m[1]:.3f}", f"{hole.range_m:.3f}", hole.bearing,
             f"{hole.confidence:.2f}", hole.detections, hole.looks, f"{first:.3f}", crop_name,
             "" if time_unix is None else f"{time_unix:.3f}", f"{self.bar_length_m:g}",
+            evidence_name,
         ])
         self._file.flush()
         self.holes.append((hole, frame))
 
     def close(self) -> None:
         self._file.close()
+
+
+def evidence_image(hole: ConfirmedHole, frame: int, time_s: float, time_unix: float | None,
+                   bar_length_m: float) -> BGR | None:
+    """A hole's crop as a report takes it: enlarged by whole pixels (each one kept as the camera
+    gave it), the hole's knots boxed, a scale bar one bar long at the hole, and a caption with
+    its number, size, place, frame and time. None without a crop."""
+    crop = hole.crop
+    if crop is None or not crop.size:
+        return None
+    grey = crop if crop.ndim == 2 else cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY)
+    k = max(1, math.ceil(EVIDENCE_MIN_PX / grey.shape[1]))
+    image = cv2.cvtColor(cv2.resize(grey, (grey.shape[1] * k, grey.shape[0] * k),
+                                    interpolation=cv2.INTER_NEAREST), cv2.COLOR_GRAY2BGR)
+    thick = max(2, k // 2)
+    box = hole.crop_box_px
+    if box is not None and all(math.isfinite(v) for v in box):
+        x0, y0, x1, y1 = (v * k for v in box)
+        pad = 0.15 * max(x1 - x0, y1 - y0) + 2 * thick
+        cv2.rectangle(image, (round(x0 - pad), round(y0 - pad)),
+                      (round(x1 + pad), round(y1 + pad)), EVIDENCE_MARK, thick, cv2.LINE_AA)
+        # Pixels per metre at the hole, from its knots' box and its size on the net.
+        spans = [(x1 - x0) / hole.width_m if hole.width_m > 0 else math.nan,
+                 (y1 - y0) / hole.height_m if hole.height_m > 0 else math.nan]
+        per_m = float(np.nanmean(spans)) if any(math.isfinite(v) for v in spans) else math.nan
+        if math.isfinite(per_m):
+            bar_px = round(bar_length_m * per_m)
+            h = image.shape[0]
+            x, y = 12, h - 14
+            cv2.line(image, (x, y), (x + bar_px, y), (255, 255, 255), thick + 2, cv2.LINE_AA)
+            cv2.line(image, (x, y), (x + bar_px, y), (0, 0, 0), max(1, thick - 1), cv2.LINE_AA)
+            cv2.putText(image, f"1 bar = {bar_length_m * 100:g} cm", (x, y - 10),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    when = f"frame {frame}, {time_s:.1f} s"
+    if time_unix is not None and math.isfinite(time_unix):
+        when += ", " + time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(time_unix))
+    lines = [f"{hole_label(hole)} ({hole.cells} cells, {hole.missing_bars} bars missing)",
+             f"{hole.bearing} at {hole.range_m:.2f} m, confidence {hole.confidence:.2f}", when]
+    caption = np.zeros((22 * len(lines) + 8, image.shape[1], 3), np.uint8)
+    for i, text in enumerate(lines):
+        cv2.putText(caption, text, (8, 20 + 22 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return np.asarray(np.vstack([image, caption]), dtype=np.uint8)
 
 
 def contact_sheet(holes: Sequence[tuple[ConfirmedHole, int]], tile: int = 160,
