@@ -153,6 +153,38 @@ def test_corrupt_buffers_are_counted_and_skipped() -> None:
         assert later is not None and read_pattern_number(later.image) == later.index
 
 
+def test_a_failed_read_keeps_its_number_in_the_next_frames_index() -> None:
+    """A frame the decoder refused (read returns False) is counted as corrupt only once the
+    next good frame had been published with the refused frame's number: the gap showed one
+    frame late (new-driver review). The frame after it has its own number."""
+    camera = FakeCamera(MODES)
+    with fast_source(camera) as source:
+        first = source.read(1.0)
+        assert first is not None
+        camera.fail_next(1)
+        assert wait_for(lambda: source.stats().corrupt == 1)
+        after = source.read(1.0)
+        assert after is not None and read_pattern_number(after.image) == after.index
+        assert source.state is SourceState.UP and source.stats().reconnects == 0
+
+
+def test_reads_that_fail_at_once_before_a_first_frame_do_not_take_a_core() -> None:
+    """A stream joined between key frames (OpenCV 4.6's FFmpeg), or a server that answers and
+    closes, fails every read at once until a frame comes: read back to back, 3 million reads
+    in 2 s took a whole core until the stall time (new-driver review). Paced at 5 ms, half a
+    second holds at most ~100, and those failures are not damage (not counted corrupt)."""
+    camera = FakeCamera(MODES)
+    camera.fail_next(1_000_000)
+    with fast_source(camera, SourceOptions(stall_timeout_s=3.0)) as source:
+        time.sleep(0.5)
+        reads = camera.frames_made
+        assert 10 <= reads <= 200, reads
+        assert source.stats().corrupt == 0
+        camera.stop_failing()  # the key frame comes
+        frame = source.read(2.0)
+        assert frame is not None and source.stats().corrupt == 0
+
+
 def test_unplugged_camera_goes_down_and_comes_back(caplog: pytest.LogCaptureFixture) -> None:
     camera = FakeCamera(MODES)
     with caplog.at_level(logging.INFO, logger="drivers.sources"), fast_source(camera) as source:

@@ -70,6 +70,7 @@ class FakeCamera:
         self._lock = threading.Lock()
         self._plugged = True
         self._corrupt_next = 0
+        self._fail_next = 0
         self.frames_made = 0
         self.opens = 0
 
@@ -90,6 +91,25 @@ class FakeCamera:
         """The next `count` frames come out as the truncated buffers a failing USB link gives."""
         with self._lock:
             self._corrupt_next += count
+
+    def fail_next(self, count: int) -> None:
+        """The next `count` reads fail at once, as OpenCV's decoder returns a frame it cannot
+        decode (a stream joined between key frames): each takes a frame number."""
+        with self._lock:
+            self._fail_next += count
+
+    def stop_failing(self) -> None:
+        """Reads decode again (the stream's key frame came)."""
+        with self._lock:
+            self._fail_next = 0
+
+    def _failing(self) -> bool:
+        with self._lock:
+            if self._fail_next <= 0 or not self._plugged:
+                return False
+            self._fail_next -= 1
+            self.frames_made += 1
+            return True
 
     def open(self, device: str) -> FakeCapture:
         """The capture factory: what cv2.VideoCapture(device, cv2.CAP_V4L2) would return."""
@@ -133,7 +153,7 @@ class FakeCapture:
         self._opened = False
 
     def read(self) -> tuple[bool, npt.NDArray[np.uint8] | None]:
-        if not self._opened:
+        if not self._opened or self._camera._failing():
             return False, None
         now = time.monotonic()
         if self._next_due > now:

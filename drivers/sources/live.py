@@ -38,6 +38,12 @@ log = logging.getLogger(__name__)
 # Consecutive failed reads after which the capture is considered lost. One failed read on its
 # own is a frame the decoder rejected (counted as corrupt once a good frame follows).
 MAX_FAILED_READS = 5
+# A read that fails at once (a stream joined mid-GOP on OpenCV 4.6, a server that answers and
+# closes) is retried after this pause: back to back, 3 million reads in 2 s took a whole core
+# until the stall time, on a Pi whose cores the estimator needs. 200 reads a second still
+# outpace any camera's frames, so a key frame is not waited for longer.
+INSTANT_FAILURE_S = 0.002
+FAILED_READ_PAUSE_S = 0.005
 # How long close() waits for the grabber thread before leaving it to finish on its own.
 CLOSE_WAIT_S = 0.2
 
@@ -265,11 +271,15 @@ class LiveSource(FrameSource):
                     ok, image = False, None
                 now = time.monotonic()
                 if ok and image is not None:
+                    # Failed reads followed by a good frame were frames the decoder refused:
+                    # counted before it, so its index comes after theirs (the gap is where
+                    # they were). Before the first frame after an open they are a stream
+                    # joined mid-GOP, which fails reads up to its next key frame: not damage.
+                    if frames_since_open > 0:
+                        self._count_corrupt(failed_reads)
+                    failed_reads = 0
                     t_capture = self._capture_time(cap, now, now - read_from)
                     if self._publish(image, t_capture, now):
-                        # Failed reads followed by a good frame were frames the decoder refused.
-                        self._count_corrupt(failed_reads)
-                        failed_reads = 0
                         frames_since_open += 1
                         if frames_since_open == 1:
                             self._recovered()
@@ -278,6 +288,8 @@ class LiveSource(FrameSource):
                     self._count_corrupt(1)
                 else:
                     failed_reads += 1
+                    if now - read_from < INSTANT_FAILURE_S:
+                        self._stop.wait(FAILED_READ_PAUSE_S)
                 with self._cond:
                     silent_for = now - self._last_frame_mono
                 # Right after an open, a stream joined mid-GOP fails reads until its next key
