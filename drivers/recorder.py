@@ -6,9 +6,10 @@ A recording is a folder that `netpose replay` reads as it is (the `recording:` f
       recording.json   format, version, vehicle, netpose version, frames, dropped, times, and
                        which files below describe the camera and the tuning
       camera.yaml      the calibration in force (ROS camera_info layout)
-      netpose.toml     the [mesh], [estimator], [filter], [service] and [damage] settings in
-                       force (a reload that changes them ends the recording and starts the
-                       next: each recording has one set of settings, so each replays exactly)
+      netpose.toml     the [mesh], [estimator], [filter], [service] and [damage] settings and
+                       camera.focal_tolerance in force (a reload that changes them ends the
+                       recording and starts the next: each recording has one set of settings,
+                       so each replays exactly)
       pipeline_state.json  the filter's state and the estimator's prior just before the
                        first recorded frame (exact JSON values, service/pipeline.py)
       frames.jsonl     one line per frame, in order: the PNG's name, the source's frame number,
@@ -101,7 +102,8 @@ class RecordingSetup:
     """What a replay needs besides the frames: the camera and the tuning, as in force."""
 
     camera: CameraModel
-    tuning_toml: str  # [mesh], [estimator], [filter], [service], [damage] as TOML
+    tuning_toml: str  # [mesh], [estimator], [filter], [service], [damage] as TOML (and the
+    # camera's focal tolerance)
     mesh_bar_length_m: float
     mesh_opening_angle_deg: float
 

@@ -455,6 +455,94 @@ def test_a_mesh_change_sends_no_distance_on_the_old_scale(
     assert all(d == pytest.approx(RANGE_M * scale, rel=0.02) for d in after), after
 
 
+@pytest.mark.parametrize("along", ["optical_axis", "perpendicular"])
+def test_the_sigma_published_is_the_one_the_autopilot_gets(
+    frames: list[Frame], along: str
+) -> None:
+    """What the daemon publishes and what DISTANCE_SENSOR carries are one total (the image's
+    sigma with the scale's 2.24 %), along the distance the autopilot gets: the range by default
+    (optical_axis), the perpendicular distance otherwise; and the raw estimate's totals are
+    its sigmas with the same share (docs/telemetry.md)."""
+    h = make_harness(demo_config(f"service.autopilot_distance={along}",
+                                 "mesh.bar_length_tolerance=0.03",
+                                 "camera.focal_tolerance=0.04"), steps(frames))
+    h.run_script()
+    fraction = 0.05  # hypot(3 %, 4 %)
+    # The link gets a reading per frame and per tick; each frame's is the one its message
+    # says the autopilot was handed.
+    handed = {r.distance_m: r for r in h.link.ranges if r.status is RangeStatus.GOOD}
+    sent = [m for m in h.telemetry.estimates
+            if m.filtered is not None and m.filtered.autopilot == "good"]
+    assert len(sent) >= 20
+    for message in sent:
+        f = message.filtered
+        assert f is not None and f.autopilot_along == along
+        assert f.autopilot_distance_m is not None
+        reading = handed[f.autopilot_distance_m]
+        value, image, total = ((f.range_m, f.sigma_range_m, f.sigma_range_total_m)
+                               if along == "optical_axis" else
+                               (f.distance_m, f.sigma_distance_m, f.sigma_distance_total_m))
+        assert value is not None and image is not None and total is not None
+        assert reading.distance_m == pytest.approx(value, rel=1e-12)
+        assert reading.sigma_m == pytest.approx(total, rel=1e-12)
+        assert total == pytest.approx(math.hypot(image, fraction * value), rel=1e-12)
+        for raw, raw_sigma, raw_total in (
+                (message.range_m, message.sigma_range_m, message.sigma_range_total_m),
+                (message.distance_m, message.sigma_distance_m, message.sigma_distance_total_m)):
+            assert raw is not None and raw_sigma is not None and raw_total is not None
+            assert raw_total == pytest.approx(math.hypot(raw_sigma, fraction * raw), rel=1e-12)
+
+
+def test_a_focal_tolerance_edit_waits_for_a_restart(
+    tmp_path: Path, frames: list[Frame]
+) -> None:
+    """`camera.focal_tolerance` is the camera section's, which a restart changes: a reload
+    says so and the sigma sent keeps the running value (as the configuration in force says)."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(12)
+    assert "[camera]\n" in base
+    path.write_text(base.replace("[camera]\n", "[camera]\nfocal_tolerance = 0.2\n", 1))
+    assert h.daemon.reload()
+    assert h.daemon.config.camera.focal_tolerance == 0.01
+    h.iterate(1)
+    reading, track = h.link.ranges[-1], h.daemon.last
+    assert track is not None and track.range_m is not None and track.normal is not None
+    assert track.sigma_distance_m is not None
+    image = track.sigma_distance_m / abs(track.normal[2])
+    assert reading.sigma_m == pytest.approx(
+        math.hypot(image, math.hypot(0.02, 0.01) * track.range_m), rel=1e-9)
+
+
+def test_an_opening_angle_edit_keeps_the_track_and_the_distance(
+    tmp_path: Path, frames: list[Frame]
+) -> None:
+    """The distance uses the opening angle measured in the image, so a configured angle
+    scales nothing (it says which lattice is the net): a reload of it restarted the track,
+    and the autopilot got no distance for two frames, with no word to the pilot (scale
+    review). It goes on, at the same distance."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    h.iterate(15)
+    before = h.link.ranges[-1]
+    assert before.status is RangeStatus.GOOD
+    sent = len(h.link.ranges)
+    assert "opening_angle_deg = 90.0" in base
+    path.write_text(base.replace("opening_angle_deg = 90.0", "opening_angle_deg = 85.0", 1))
+    assert h.daemon.reload()
+    h.iterate(3)
+    after = h.link.ranges[sent:]
+    assert after and all(r.status is RangeStatus.GOOD for r in after)
+    assert all(r.distance_m == pytest.approx(before.distance_m, rel=0.01) for r in after)
+    assert not h.link.texts  # nothing to tell the pilot: no distance changed
+
+
 def test_a_new_bar_tolerance_changes_the_sigma_sent_not_the_track(
     tmp_path: Path, frames: list[Frame]
 ) -> None:

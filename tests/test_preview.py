@@ -80,7 +80,9 @@ def test_real_frame_with_caption_and_float_input() -> None:
     estimate = NetEstimate(detected=True, confidence=0.49, normal=(0.0, 0.3, -0.954),
                            distance_m=0.84, sigma_distance_m=0.01, rois=(square_roi(),))
     caption = estimate_caption(estimate)
-    assert caption == ["d 0.84 m +/- 0.01", "tilt 17 deg  conf 0.49"]  # acos(0.954) = 17.4
+    assert caption == ["d 0.84 m +/- 0.010", "tilt 17 deg  conf 0.49"]  # acos(0.954) = 17.4
+    # With the scale's share (the daemon's 2.24 %): hypot(10 mm, 18.8 mm) = 21.3 mm.
+    assert estimate_caption(estimate, 0.02236)[0] == "d 0.84 m +/- 0.021"
     image = render_preview(frame, estimate.rois, caption, width=320)
     plain = render_preview(frame, [], width=320)
     # The downscale itself is faithful: compare with OpenCV's area resampling.

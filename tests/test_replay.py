@@ -320,11 +320,16 @@ def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> N
     assert code == 0
     rows = read_csv(out / "estimates.csv")
     assert [r["filter_valid"] for r in rows] == ["0", "0", "0", "0", "1", "1"]
-    # The scale's tolerances come from it too (3 % and 4 %: 5 %).
-    for r in rows:
-        if r["detected"] == "1":
-            assert num(r, "sigma_distance_total_m") == pytest.approx(
-                math.hypot(num(r, "sigma_distance_m"), 0.05 * num(r, "distance_m")), rel=1e-9)
+    # The scale's tolerances come from it too (3 % and 4 %: 5 %), raw and filtered.
+    detected = [r for r in rows if r["detected"] == "1"]
+    assert len(detected) == 6
+    for r in detected:
+        assert num(r, "sigma_distance_total_m") == pytest.approx(
+            math.hypot(num(r, "sigma_distance_m"), 0.05 * num(r, "distance_m")), rel=1e-9)
+    for r in rows[4:]:
+        assert num(r, "filtered_sigma_distance_total_m") == pytest.approx(math.hypot(
+            num(r, "filtered_sigma_distance_m"), 0.05 * num(r, "filtered_distance_m")),
+            rel=1e-9)
 
 
 def test_a_replay_that_inspected_nothing_says_so(

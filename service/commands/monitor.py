@@ -34,7 +34,7 @@ from service.core.errors import ConfigError, NetposeError
 from service.core.files import write_atomically
 from service.core.messages import ALIVE_SUFFIX, ESTIMATE_SUFFIX, STATE_SUFFIX
 from service.signals import SignalFlags, handle_signals
-from service.tools.monitor_view import MonitorState, Received
+from service.tools.monitor_view import MonitorState, Received, sigma_of
 
 log = logging.getLogger(__name__)
 
@@ -333,7 +333,7 @@ class LivePlot:
         self.samples.append((
             t,
             number(payload.get("distance_m")) if detected else math.nan,
-            number(payload.get("sigma_distance_m")) if detected else math.nan,
+            number(sigma_of(payload, "distance")) if detected else math.nan,
             number(filtered.get("distance_m")) if filtered.get("valid") else math.nan,
             number(payload.get("confidence")),
         ))
@@ -351,7 +351,7 @@ class LivePlot:
         ax = self.distance_axes
         ax.clear()
         ax.fill_between(t, distance - sigma, distance + sigma, color="tab:blue", alpha=0.2,
-                        label="+/- 1 sigma")
+                        label="+/- 1 sigma (with the scale's)")
         ax.plot(t, distance, ".", color="tab:blue", markersize=3, label="estimate")
         ax.plot(t, filtered, "-", color="tab:orange", label="filtered")
         ax.set_ylabel("distance to net [m]")

@@ -128,7 +128,8 @@ def add_parser(subparsers: Any) -> None:
                    help=f"frame rate of an image folder (default {DEFAULT_IMAGE_FPS:g}), or of a "
                    "video that does not state one")
     p.add_argument("--config", type=Path, default=None, metavar="FILE",
-                   help="netpose configuration whose [estimator] and [filter] tuning to use")
+                   help="netpose configuration whose [estimator], [filter] and [damage] "
+                   "tuning, autopilot distance and scale tolerances to use")
     p.add_argument("--video-width", type=int, default=DEFAULT_VIDEO_WIDTH, metavar="PX",
                    help=f"annotated video at most this wide (default {DEFAULT_VIDEO_WIDTH})")
     p.add_argument("--no-video", action="store_true", help="do not write the annotated video")

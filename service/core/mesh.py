@@ -36,8 +36,9 @@ class MeshGeometry:
 
     @property
     def geometry(self) -> tuple[float, float]:
-        """What the image is measured against (bar and angle): a change of it rescales every
-        distance; a change of the tolerance only says how well that scale is known."""
+        """What the image is measured against: the bar scales every distance, the angle says
+        which lattice is the net (the distance uses the one measured); a change of the
+        tolerance only says how well the scale is known."""
         return (self.bar_length_m, self.opening_angle_deg)
 
     @property

@@ -86,7 +86,8 @@ class FilteredView:
         "one sigma of `distance_m` as a measurement of the world: `sigma_distance_m` with the "
         "scale's error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`), which is the "
         "same in every frame and does not shrink as the filter averages them; "
-        "DISTANCE_SENSOR's covariance carries it", None)
+        "DISTANCE_SENSOR's covariance carries the one of the distance `autopilot_along` "
+        "names", None)
     range_m: float | None = doc("filtered distance along the optical axis", None)
     sigma_range_m: float | None = doc(
         "its one-sigma uncertainty from the image alone (its precision; the mesh size's and "
@@ -95,7 +96,7 @@ class FilteredView:
         "one sigma of `range_m` as a measurement of the world: `sigma_range_m` with the scale's "
         "error (`mesh.bar_length_tolerance`, `camera.focal_tolerance`), which is the same in "
         "every frame and does not shrink as the filter averages them; DISTANCE_SENSOR's "
-        "covariance carries it", None)
+        "covariance carries the one of the distance `autopilot_along` names", None)
     normal: Vec3 | None = doc("filtered plane normal [x, y, z]", None)
     closing_speed_mps: float | None = doc(
         "rate at which the distance shrinks (positive = approaching the net)", None

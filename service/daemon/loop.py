@@ -382,11 +382,13 @@ class Daemon:
                 raise ConfigError("mesh", f"not changed while the vehicle is armed (every "
                                   f"distance x{scale:.2f}): disarm, then reload")
             # A new tolerance says how well the scale is known, not what it is: the estimator,
-            # the track and the holes being followed stay.
+            # the track and the holes being followed stay. A new angle rebuilds the estimator
+            # (it says which lattice is the net) but scales no distance: the track stays too
+            # (restarted, it withheld the distance mid-dive with no word to the pilot).
             geometry = new.mesh.geometry != self.config.mesh.geometry
             if geometry or "estimator" in changed:
                 self.pipeline.replace_estimator(make_estimator(new, self.parts.camera),
-                                                new_scale=geometry)
+                                                new_scale=scale != 1.0)
                 if scale != 1.0:
                     log.warning("mesh changed: bar %.1f -> %.1f mm, opening %.0f -> %.0f deg: "
                                 "every distance x%.2f; the net is tracked anew, no distance "

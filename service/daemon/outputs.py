@@ -177,7 +177,8 @@ class FrameOutputs:
         try:
             image = render_preview(frame.color if frame.color is not None else frame.image,
                                    est.rois if est is not None else (),
-                                   estimate_caption(est), width=self._preview.width)
+                                   estimate_caption(est, result.scale_sigma_fraction),
+                                   width=self._preview.width)
             jpeg = encode_jpeg(image, self._preview.quality)
         except NetposeError as exc:
             self._problems.problem("preview", "cannot draw the preview: %s", exc)

@@ -293,7 +293,7 @@ class MonitorState:
                 lines.append(
                     f"  filtered  {filtered.get('state') or '-'}  valid {filtered.get('valid')}"
                     f"  d {_fmt(filtered.get('distance_m'))}"
-                    f" +/- {_fmt(_sigma_of(filtered, 'distance'), 3)} m"
+                    f" +/- {_fmt(sigma_of(filtered, 'distance'), 3)} m"
                     f"  closing {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
                     " (+ toward the net)"
                 )
@@ -337,7 +337,7 @@ def hole_text(hole: Mapping[str, Any]) -> str:
             f"{_fmt(hole.get('range_m'))} m, conf {_fmt(hole.get('confidence'))}")
 
 
-def _sigma_of(message: Mapping[str, Any], quantity: str) -> Any:
+def sigma_of(message: Mapping[str, Any], quantity: str) -> Any:
     """A distance's sigma as a measurement of the world (the scale's error in it), or the
     image's alone from a daemon that does not send that yet."""
     total = message.get(f"sigma_{quantity}_total_m")
@@ -356,7 +356,7 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
                     f"({reason.split(':')[0]})")
         return f"no net ({reason})"
     return (
-        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(_sigma_of(estimate, 'distance'), 3)} m"
+        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(sigma_of(estimate, 'distance'), 3)} m"
         f" range {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
         f" conf {_fmt(estimate.get('confidence'))}"
     )

@@ -18,6 +18,7 @@ import numpy as np
 
 from service.core.errors import NetposeError
 from service.core.results import NetEstimate, RoiResult
+from service.core.scale import total_sigma
 
 USED = (60, 220, 60)  # BGR
 REJECTED = (0, 210, 230)
@@ -28,8 +29,9 @@ TEXT = (255, 255, 255)
 CELLS_EACH_SIDE = 2
 
 
-def estimate_caption(estimate: NetEstimate | None) -> list[str]:
-    """Short text lines for a preview: distance and sigma, tilt and confidence, or why not."""
+def estimate_caption(estimate: NetEstimate | None, scale: float = 0.0) -> list[str]:
+    """Short text lines for a preview: distance and sigma (with the scale's share `scale`,
+    service.core.scale), tilt and confidence, or why not."""
     if estimate is None:
         return []
     if not estimate.detected:
@@ -37,8 +39,10 @@ def estimate_caption(estimate: NetEstimate | None) -> list[str]:
     lines = []
     if estimate.distance_m is not None:
         text = f"d {estimate.distance_m:.2f} m"
-        if estimate.sigma_distance_m is not None:
-            text += f" +/- {estimate.sigma_distance_m:.2f}"
+        total = total_sigma(estimate.distance_m, estimate.sigma_distance_m, scale)
+        if total is not None:
+            # Millimetres: a precision of 3 mm read "+/- 0.00" to two decimals.
+            text += f" +/- {total:.3f}"
         lines.append(text)
     details = []
     if estimate.tilt_deg is not None:
