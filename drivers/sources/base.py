@@ -211,8 +211,10 @@ class SourceOptions:
         open() raising: what a service wants (the camera manager may start after it); tools
         that read one recording want the error at once (the default).
     open_timeout_s: longest single attempt to open a network stream.
-    reconnect_min_s / reconnect_max_s: the backoff between re-open attempts doubles from the
-        minimum up to the maximum while the source stays down.
+    reconnect_min_s / reconnect_max_s: the backoff between re-open attempts while the source
+        stays down (service/core/backoff.py): its first wait (a live source probes every
+        0.25 s while the outage is young instead) and its longest; the waits grow with the
+        outage's age.
     ffmpeg_options: replaces the stream source's low-latency FFmpeg options
         ("key;value|key;value", see docs/sources.md); None keeps the defaults.
     realtime_default: file-like sources (file:, images:, recording:) are paced to their frame
