@@ -334,3 +334,36 @@ def test_close_does_not_wait_for_a_driver_stuck_in_open() -> None:
     release.set()
     assert took < 0.5
     assert source.state is SourceState.CLOSED
+
+
+def test_a_read_that_returns_after_close_is_not_kept() -> None:
+    """close() does not wait for a driver stuck in a read (systemd's stop budget); the frame
+    that read returned was published into the closed source, which held it (a 1080p colour
+    frame) for as long as the source object lived (new-driver review)."""
+    camera = FakeCamera(MODES)
+    blocked, release = threading.Event(), threading.Event()
+
+    class StuckRead:
+        def __init__(self, device: str) -> None:
+            self._capture = camera.open(device)
+            self._reads = 0
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self._capture, name)
+
+        def read(self) -> tuple[bool, object]:
+            self._reads += 1
+            if self._reads == 3:
+                blocked.set()
+                release.wait(5.0)
+            return self._capture.read()
+
+    source = V4l2Source("v4l2:/dev/video0", FAST, capture_factory=StuckRead)  # type: ignore[arg-type]
+    source.open()
+    assert blocked.wait(2.0)
+    source.close()
+    grabber = [t for t in threading.enumerate() if t.name.startswith("frame-source-")]
+    release.set()
+    for thread in grabber:
+        thread.join(2.0)
+    assert source._latest is None and source.read(0.0) is None

@@ -203,6 +203,10 @@ class LiveSource(FrameSource):
             return False
         gray, color = converted
         with self._cond:
+            if self._state is SourceState.CLOSED:
+                # A read that returned after close(): nobody reads it, and it would hold a
+                # frame's memory (a 1080p colour one) in a closed source.
+                return True
             index = self._captured + self._corrupt
             self._captured += 1
             self._rate.tick(now)
