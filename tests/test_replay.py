@@ -873,3 +873,30 @@ def test_a_replay_says_each_hole_as_it_confirms_it_with_its_scale(
     assert last.startswith("replay: net inspection: 0 holes in ") and last.endswith(
         "): no hole found is no proof of an intact net: holes are missed, most on fouled "
         "twine (docs/inspection.md, Limits)"), last
+
+
+def test_the_evidence_scale_bar_is_one_bar_at_the_hole_of_the_crop() -> None:
+    """The scale bar's pixels per metre came from the best sighting's box over the median size
+    of all sightings (another number of cells): 1.49 times too long in the diff review's case.
+    It is the crop's own sighting's: a 40 px box that is 4 cm on the net is 1000 px/m, so a
+    2 cm bar is 20 crop pixels, times the enlargement."""
+    from service.core.damage_track import ConfirmedHole
+    from service.tools.damage_report import evidence_image
+
+    crop = np.full((100, 100), 128, np.uint8)
+    hole = ConfirmedHole(
+        hole_id=1, t_first=0.0, t_confirmed=0.5, frame_index=5, detections=3, looks=3,
+        width_m=0.08, height_m=0.04, cells=4, missing_bars=4, centre_px=(1.0, 2.0),
+        box_px=(0.0, 0.0, 3.0, 4.0), plane_xy_m=(0.1, 0.2), point_m=(0.1, 0.2, 1.0),
+        range_m=1.03, confidence=0.87, crop=crop, crop_box_px=(30.0, 30.0, 70.0, 70.0),
+        crop_px_per_m=1000.0)
+    image = evidence_image(hole, 5, 0.5, None, 0.02)
+    assert image is not None
+    k = image.shape[1] // crop.shape[1]
+    assert k == 5
+    rows = image[: crop.shape[0] * k]
+    # The bar: the darkest-cored line drawn near the bottom-left (black core on a white edge).
+    black = (rows.max(axis=2) < 40)
+    _ys, xs = np.nonzero(black[-40:, : image.shape[1] // 2])
+    assert xs.size, "no scale bar"
+    assert xs.max() - xs.min() == pytest.approx(20 * k, abs=4)

@@ -92,6 +92,9 @@ class ConfirmedHole:
     confidence: float  # 0..1
     crop: npt.NDArray[np.uint8] | None = field(default=None, repr=False)  # best evidence
     crop_box_px: tuple[float, float, float, float] | None = None  # the hole in the crop
+    # The crop's pixels per metre on the net at the hole, from the sighting the crop is of
+    # (the reported size is the median of all sightings: another number of cells).
+    crop_px_per_m: float | None = None
 
     @property
     def bearing(self) -> str:
@@ -429,7 +432,19 @@ class HoleTracker:
             centre_px=last.centre_px, box_px=last.box_px, plane_xy_m=last.plane_xy_m,
             point_m=last.point_m, range_m=last.range_m, confidence=min(1.0, confidence),
             crop=best.crop, crop_box_px=best.crop_box_px,
+            crop_px_per_m=_px_per_m(best.crop_box_px, best.width_m, best.height_m),
         )
+
+
+def _px_per_m(box: tuple[float, float, float, float] | None, width_m: float,
+              height_m: float) -> float | None:
+    """Pixels per metre on the net of a hole's box whose size on the net is known."""
+    if box is None:
+        return None
+    spans = [pixels / metres for pixels, metres in ((box[2] - box[0], width_m),
+                                                    (box[3] - box[1], height_m))
+             if metres > 0 and math.isfinite(pixels / metres) and pixels > 0]
+    return sum(spans) / len(spans) if spans else None
 
 
 @dataclass(frozen=True, eq=False)

@@ -110,12 +110,9 @@ def evidence_image(hole: ConfirmedHole, frame: int, time_s: float, time_unix: fl
         pad = 0.15 * max(x1 - x0, y1 - y0) + 2 * thick
         cv2.rectangle(image, (round(x0 - pad), round(y0 - pad)),
                       (round(x1 + pad), round(y1 + pad)), EVIDENCE_MARK, thick, cv2.LINE_AA)
-        # Pixels per metre at the hole, from its knots' box and its size on the net.
-        spans = [(x1 - x0) / hole.width_m if hole.width_m > 0 else math.nan,
-                 (y1 - y0) / hole.height_m if hole.height_m > 0 else math.nan]
-        per_m = float(np.nanmean(spans)) if any(math.isfinite(v) for v in spans) else math.nan
-        if math.isfinite(per_m):
-            bar_px = round(bar_length_m * per_m)
+        # Pixels per metre at the hole, of the sighting the crop is of.
+        if hole.crop_px_per_m is not None:
+            bar_px = round(bar_length_m * hole.crop_px_per_m * k)
             h = image.shape[0]
             x, y = 12, h - 14
             cv2.line(image, (x, y), (x + bar_px, y), (255, 255, 255), thick + 2, cv2.LINE_AA)
