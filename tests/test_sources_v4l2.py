@@ -171,14 +171,15 @@ def test_a_failed_read_keeps_its_number_in_the_next_frames_index() -> None:
 def test_reads_that_fail_at_once_before_a_first_frame_do_not_take_a_core() -> None:
     """A stream joined between key frames (OpenCV 4.6's FFmpeg), or a server that answers and
     closes, fails every read at once until a frame comes: read back to back, 3 million reads
-    in 2 s took a whole core until the stall time (new-driver review). Paced at 5 ms, half a
-    second holds at most ~100, and those failures are not damage (not counted corrupt)."""
+    in 2 s took a whole core until the stall time (new-driver review). After 200 at full speed
+    (packets buffered at the open) they are paced at 5 ms: half a second holds at most ~300,
+    and those failures are not damage (not counted corrupt)."""
     camera = FakeCamera(MODES)
     camera.fail_next(1_000_000)
     with fast_source(camera, SourceOptions(stall_timeout_s=3.0)) as source:
         time.sleep(0.5)
         reads = camera.frames_made
-        assert 10 <= reads <= 200, reads
+        assert 200 <= reads <= 400, reads
         assert source.stats().corrupt == 0
         camera.stop_failing()  # the key frame comes
         frame = source.read(2.0)

@@ -38,11 +38,13 @@ log = logging.getLogger(__name__)
 # Consecutive failed reads after which the capture is considered lost. One failed read on its
 # own is a frame the decoder rejected (counted as corrupt once a good frame follows).
 MAX_FAILED_READS = 5
-# A read that fails at once (a stream joined mid-GOP on OpenCV 4.6, a server that answers and
-# closes) is retried after this pause: back to back, 3 million reads in 2 s took a whole core
-# until the stall time, on a Pi whose cores the estimator needs. 200 reads a second still
-# outpace any camera's frames, so a key frame is not waited for longer.
+# Reads that fail at once (a stream joined mid-GOP on OpenCV 4.6, a server that answers and
+# closes) are retried after a pause once this many came in a row: back to back, 3 million
+# reads in 2 s took a whole core until the stall time, on a Pi whose cores the estimator
+# needs. The first ones go at full speed: each may be a packet FFmpeg buffered while opening
+# (at most a few seconds of a stream), which a pause would only delay the key frame behind.
 INSTANT_FAILURE_S = 0.002
+INSTANT_FAILURES_BEFORE_PAUSE = 200
 FAILED_READ_PAUSE_S = 0.005
 # How long close() waits for the grabber thread before leaving it to finish on its own.
 CLOSE_WAIT_S = 0.2
@@ -260,6 +262,7 @@ class LiveSource(FrameSource):
                           young_cap_s=min(0.25, opts.reconnect_max_s))
         failed_reads = 0
         frames_since_open = 0
+        instant_failures = 0  # in a row
         try:
             while not self._stop.is_set():
                 if cap is None:
@@ -275,6 +278,7 @@ class LiveSource(FrameSource):
                     ok, image = False, None
                 now = time.monotonic()
                 if ok and image is not None:
+                    instant_failures = 0
                     # Failed reads followed by a good frame were frames the decoder refused:
                     # counted before it, so its index comes after theirs (the gap is where
                     # they were). Before the first frame after an open they are a stream
@@ -292,7 +296,9 @@ class LiveSource(FrameSource):
                     self._count_corrupt(1)
                 else:
                     failed_reads += 1
-                    if now - read_from < INSTANT_FAILURE_S:
+                    instant = now - read_from < INSTANT_FAILURE_S
+                    instant_failures = instant_failures + 1 if instant else 0
+                    if instant_failures >= INSTANT_FAILURES_BEFORE_PAUSE:
                         self._stop.wait(FAILED_READ_PAUSE_S)
                 with self._cond:
                     silent_for = now - self._last_frame_mono
