@@ -401,8 +401,9 @@ class Daemon:
                         f"{1e3 * new.mesh.bar_length_m:g} mm: dist x{scale:.2f}")
                 self.view_notices.configured_opening_deg = new.mesh.opening_angle_deg
             if geometry or "damage" in changed:
+                # Holes are placed on the net and counted in bars: only a new bar moves them.
                 self.pipeline.replace_inspector(make_inspector(new, self.parts.camera),
-                                                keep_holes=not geometry)
+                                                keep_holes=scale == 1.0)
                 if self.outputs.damage is not None:
                     self.outputs.damage.notices.interval_s = new.damage.notify_interval_s
             if "filter" in changed:
