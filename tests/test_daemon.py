@@ -39,6 +39,7 @@ from service.daemon.wiring import load_daemon_config
 from service.signals import RESTART
 from tests.daemon_harness import (
     REPO,
+    Harness,
     RecordingObserver,
     Step,
     demo_config,
@@ -64,6 +65,17 @@ def frames() -> list[Frame]:
 def steps(frames: list[Frame], start: float = 100.0) -> Iterator[Step]:
     for f in frames_at(frames, FPS, start):
         yield Step(frame=f)
+
+
+def _reloadable(tmp_path: Path, frames: list[Frame]) -> tuple[Harness, Path, str]:
+    """A harness on a copy of config/demo.toml that its reload re-reads: the harness, the
+    file and its text as copied."""
+    path = tmp_path / "netpose.toml"
+    base = (REPO / "config" / "demo.toml").read_text()
+    path.write_text(base)
+    h = make_harness(demo_config(path=path), steps(frames),
+                     load_config=lambda: load_daemon_config(str(path)))
+    return h, path, base
 
 
 def test_dead_camera_withdraws_the_distance_within_the_coasting_time(
@@ -404,11 +416,7 @@ def test_reporting_does_not_change_what_it_reports(frames: list[Frame]) -> None:
 def test_reload_applies_filter_and_rejects_a_broken_file(
     tmp_path: Path, frames: list[Frame], caplog: pytest.LogCaptureFixture
 ) -> None:
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames[:5]),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames[:5])
     h.run_script()
     caplog.set_level(logging.INFO, logger="netpose.daemon")
     path.write_text(base + "\n[filter]\ngate_sigma = 6.0\n")
@@ -438,11 +446,7 @@ def test_a_mesh_change_sends_no_distance_on_the_old_scale(
     to the autopilot (3-4 readings of the old distance, then a gap of 1.1 s while the new
     measurements fell outside the gate), and a 10 % change let one blended value through. A
     distance scales with the mesh, so the old track says nothing about the new scale."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames)
     h.iterate(15)
     before = [r.distance_m for r in h.link.ranges if r.status is RangeStatus.GOOD]
     assert before and all(d == pytest.approx(RANGE_M, rel=0.02) for d in before)
@@ -498,11 +502,7 @@ def test_a_focal_tolerance_edit_waits_for_a_restart(
 ) -> None:
     """`camera.focal_tolerance` is the camera section's, which a restart changes: a reload
     says so and the sigma sent keeps the running value (as the configuration in force says)."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames)
     h.iterate(12)
     assert "[camera]\n" in base
     path.write_text(base.replace("[camera]\n", "[camera]\nfocal_tolerance = 0.2\n", 1))
@@ -524,11 +524,7 @@ def test_an_opening_angle_edit_keeps_the_track_and_the_distance(
     scales nothing (it says which lattice is the net): a reload of it restarted the track,
     and the autopilot got no distance for two frames, with no word to the pilot (scale
     review). It goes on, at the same distance."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames)
     h.iterate(15)
     before = h.link.ranges[-1]
     assert before.status is RangeStatus.GOOD
@@ -549,11 +545,7 @@ def test_a_new_bar_tolerance_changes_the_sigma_sent_not_the_track(
     """`mesh.bar_length_tolerance` says how well the scale is known, not what it is: a reload
     of it keeps the track (a bar change restarts it, and the autopilot waits for a confirmed
     distance) and changes DISTANCE_SENSOR's sigma by the scale's share, at once."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames)
     h.iterate(15)
     before = h.link.ranges[-1]
     assert before.status is RangeStatus.GOOD
@@ -585,11 +577,7 @@ def test_a_mesh_edit_is_not_applied_while_the_vehicle_is_armed(
     with one INFO line to say so. While the autopilot says armed, a reload that changes the
     mesh is rejected (the running configuration kept, the pilot told); disarmed, it is applied
     and the pilot is told what it does to every distance."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames)
     h.iterate(15)
     h.link.armed = True
     path.write_text(base.replace("bar_length_m = 0.025", "bar_length_m = 0.25"))
@@ -664,11 +652,7 @@ def test_reload_changes_how_often_the_status_is_published(
 ) -> None:
     """`[service]` intervals reload live (docs/daemon.md): the status comes every 0.3 s of
     the frames' clock after the reload where it came every second before."""
-    path = tmp_path / "netpose.toml"
-    base = (REPO / "config" / "demo.toml").read_text()
-    path.write_text(base)
-    h = make_harness(demo_config(path=path), steps(frames[:30]),
-                     load_config=lambda: load_daemon_config(str(path)))
+    h, path, base = _reloadable(tmp_path, frames[:30])
     h.iterate(10)  # 1 s of frames at 10 per second
     before = len(h.telemetry.statuses)
     path.write_text(base.replace("[service]", "[service]\nstatus_interval_s = 0.3", 1))
