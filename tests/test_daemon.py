@@ -1236,6 +1236,55 @@ def test_a_recordings_pipeline_state_damaged_or_missing_is_said(
         done.stderr)
 
 
+def test_a_recording_replayed_at_another_scale_starts_without_the_vehicles_track(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """"What if the mesh were 10 % larger?": the vehicle's filter track and prior, restored
+    from a recording started mid-dive, are at the recorded scale. They rejected the first
+    measurements at the new scale and kept the old filtered distance valid beside them (one
+    CSV, two scales). Replayed at another mesh or calibration the track starts afresh, and
+    every filtered distance is at the new scale: within 2 % of the raw one on a static net
+    (the old scale is 10 % away)."""
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames[:16], FPS, 100.0)],
+                     observers=(recorder,))
+    holder.append(h)
+    h.iterate(8)  # the vehicle's track is valid when the recording starts
+    assert h.daemon.pipeline.snapshot()["tracker"] is not None
+    recorder.begin()
+    h.run_script()
+    name = recorder.stop().name
+
+    same = _replay(tmp_path, name, "same", "--filter")
+    assert same.returncode == 0, same.stderr
+    assert json.loads((tmp_path / "same" / "summary.json").read_text())["recording"][
+        "state_restored"] is True
+    larger = _replay(tmp_path, name, "larger", "--filter", "--mesh-size", "0.0275")
+    assert larger.returncode == 0, larger.stderr
+    assert "--mesh-size 0.0275 m (recorded 0.025 m)" in larger.stderr
+    assert "starts without them" in larger.stderr
+    summary = json.loads((tmp_path / "larger" / "summary.json").read_text())
+    assert summary["recording"]["state_restored"] is False
+    with (tmp_path / "larger" / "estimates.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    valid = [r for r in rows if r["filtered_distance_m"] and r["distance_m"]]
+    assert len(valid) >= 3, rows
+    for row in valid:
+        assert float(row["filtered_distance_m"]) == pytest.approx(
+            float(row["distance_m"]), rel=0.02), row
+
+    lens = builtin_camera(640, 360)
+    wider = tmp_path / "wider.yaml"
+    save_camera(dataclasses.replace(lens, fx=lens.fx * 1.1, fy=lens.fy * 1.1), wider)
+    refocused = _replay(tmp_path, name, "refocused", "--filter", "--calibration", str(wider))
+    assert refocused.returncode == 0, refocused.stderr
+    assert "--calibration" in refocused.stderr and "starts without them" in refocused.stderr
+    recorded_lens = tmp_path / "rec" / name / "camera.yaml"
+    again = _replay(tmp_path, name, "again", "--filter", "--calibration", str(recorded_lens))
+    assert again.returncode == 0 and "starts without them" not in again.stderr
+
+
 def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

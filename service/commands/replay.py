@@ -408,6 +408,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         option = "--mesh-size" if exc.key.endswith("bar_length_m") else "--opening-angle"
         raise ConfigError(option, exc.problem) from None
+    _forget_state_at_another_scale(args, camera, mesh)
     tuning = _tuning(args.config, mesh.bar_length_m)
     truth = load_truth_csv(args.truth) if args.truth is not None else None
     url = source_url(args.input, args.fps)
@@ -437,6 +438,8 @@ def _recording_defaults(args: argparse.Namespace) -> None:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise NetposeError(f"{folder}: recording.json is damaged ({exc})") from None
         args.recording = _recording_word(folder, manifest)
+        args.recorded_scale = (folder / str(manifest.get("camera", "camera.yaml")),
+                               float(mesh["bar_length_m"]), float(mesh["opening_angle_deg"]))
         if args.calibration is None:
             args.calibration = folder / str(manifest.get("camera", "camera.yaml"))
         if args.mesh_size is None:
@@ -459,11 +462,49 @@ def _recording_defaults(args: argparse.Namespace) -> None:
             print(f"netpose replay: warning: {folder} has no {state.name}: the replay starts "
                   "without the vehicle's filter and prior, so its first frames may differ",
                   file=sys.stderr)
+        args.recording["state_restored"] = getattr(args, "pipeline_state", None) is not None
     for option, value in (("--calibration", args.calibration), ("--mesh-size", args.mesh_size)):
         if value is None:
             raise ConfigError(option, "required (unless INPUT is a netpose recording)")
     if args.opening_angle is None:
         args.opening_angle = 90.0
+
+
+def _forget_state_at_another_scale(args: argparse.Namespace, camera: CameraModel,
+                                   mesh: MeshGeometry) -> None:
+    """A recording's filter track and prior hold distances at the scale the vehicle ran with.
+    Replayed with another mesh or calibration ("what if the mesh were 27.5 mm?"), restoring them
+    rejected the first correct measurements at the new scale and kept the old scale's filtered
+    distance valid beside them: one CSV of two scales. The replay then starts afresh, as the
+    daemon resets its track when the mesh changes (`Pipeline.replace_estimator`)."""
+    recorded = getattr(args, "recorded_scale", None)
+    if recorded is None or getattr(args, "pipeline_state", None) is None:
+        return
+    camera_file, bar_m, angle_deg = recorded
+    changed = []
+    if not math.isclose(mesh.bar_length_m, bar_m, rel_tol=1e-9):
+        changed.append(f"--mesh-size {mesh.bar_length_m:g} m (recorded {bar_m:g} m)")
+    if not math.isclose(mesh.opening_angle_deg, angle_deg, rel_tol=1e-9):
+        changed.append(f"--opening-angle {mesh.opening_angle_deg:g} (recorded {angle_deg:g})")
+    try:
+        same_lens = _same_lens(camera, load_camera(camera_file))
+    except (OSError, NetposeError):  # no readable camera.yaml: the given one is all there is
+        same_lens = True
+    if not same_lens:
+        changed.append(f"--calibration {args.calibration} (not the recording's {camera_file.name})")
+    if not changed:
+        return
+    args.pipeline_state = None
+    args.recording["state_restored"] = False
+    print(f"netpose replay: {'; '.join(changed)}: the vehicle's filter track and prior are at "
+          "the recording's scale, so the replay starts without them", file=sys.stderr)
+
+
+def _same_lens(a: CameraModel, b: CameraModel) -> bool:
+    numbers = (a.fx, a.fy, a.cx, a.cy, *a.distortion), (b.fx, b.fy, b.cx, b.cy, *b.distortion)
+    return ((a.width, a.height) == (b.width, b.height) and len(a.distortion) == len(b.distortion)
+            and all(math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12)
+                    for x, y in zip(*numbers, strict=True)))
 
 
 def _recording_word(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
