@@ -1285,6 +1285,46 @@ def test_a_recording_replayed_at_another_scale_starts_without_the_vehicles_track
     assert again.returncode == 0 and "starts without them" not in again.stderr
 
 
+def test_a_recording_of_a_rendered_source_replays_with_its_ground_truth(
+    frames: list[Frame], tmp_path: Path
+) -> None:
+    """The daemon records the renderer's truth with every estimate, but its replay scored
+    nothing (truth columns empty, no error in the summary) until the truth was extracted by
+    hand. Each recorded frame's truth comes back, and a --truth row still takes precedence."""
+    holder: list[Any] = []
+    recorder = _recorder(tmp_path, holder)
+    h = make_harness(demo_config(), [Step(frame=f) for f in frames_at(frames[:10], FPS, 100.0)],
+                     observers=(recorder,))
+    holder.append(h)
+    recorder.begin()
+    h.run_script()
+    name = recorder.stop().name
+    recorded = {e.seq - 1: e.truth for e in h.telemetry.estimates}
+    done = _replay(tmp_path, name, "scored")
+    assert done.returncode == 0, done.stderr
+    with (tmp_path / "scored" / "estimates.csv").open() as fh:
+        rows = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    assert len(rows) >= 8  # what the recorder took of the 10 frames
+    for index, row in rows.items():
+        truth = recorded[index]
+        assert truth is not None and truth.distance_m is not None
+        assert float(row["true_distance_m"]) == pytest.approx(truth.distance_m, abs=1e-6)
+    summary = json.loads((tmp_path / "scored" / "summary.json").read_text())
+    # The static net at 1.2 m on the axis, measured to well under a centimetre.
+    assert summary["truth"]["distance_error_m"]["count"] >= 8
+    assert abs(summary["truth"]["distance_error_m"]["mean"]) < 0.01
+
+    first, second = sorted(rows)[:2]
+    truth_file = tmp_path / "truth.csv"
+    truth_file.write_text(f"frame,distance_m\n{first},2.5\n")
+    overridden = _replay(tmp_path, name, "overridden", "--truth", str(truth_file))
+    assert overridden.returncode == 0, overridden.stderr
+    with (tmp_path / "overridden" / "estimates.csv").open() as fh:
+        again = {int(r["frame"]): r for r in csv.DictReader(fh)}
+    assert float(again[first]["true_distance_m"]) == 2.5
+    assert again[second]["true_distance_m"] == rows[second]["true_distance_m"]
+
+
 def test_a_card_that_fails_mid_recording_stops_it_with_the_reason(
     frames: list[Frame], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -749,7 +749,8 @@ def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
         walls = [f.t_wall for f in iter(lambda: source.read(1.0), None)]
     assert walls == pytest.approx([1.7e9 + n / FPS for n in range(8)], abs=1e-3)
     assert summary["recording"] == {"dropped": 3, "finished": False,
-                                    "stopped_because": "writing failed: No space left on device"}
+                                    "stopped_because": "writing failed: No space left on device",
+                                    "state_restored": False}  # it has no pipeline_state.json
     assert "dropped 3 frames" in err and "No space left on device" in err
 
 

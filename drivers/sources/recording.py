@@ -7,8 +7,9 @@ Without `realtime` every frame carries the capture times written in frames.jsonl
 and wall clock), so `netpose replay` steps the filter exactly as the daemon did. With
 `realtime` the recorded spacing is kept from the moment of open(), like any paced source.
 `camera` is the recording's own calibration, so a daemon can run on a recording with
-`camera.calibration = "builtin"`. Frame numbers are the daemon's source numbers: the gaps
-are the frames the daemon skipped.
+`camera.calibration = "builtin"`. A recording of a rendered source (`synthetic:`, `sim:`)
+gives each frame its recorded ground truth again. Frame numbers are the daemon's source
+numbers: the gaps are the frames the daemon skipped.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from drivers.sources.paced import EndOfMediaError, MediaFrame, PacedSource
 from drivers.sources.url import parse_source_url, url_error
 from service.core.camera import CameraModel, load_camera
 from service.core.errors import CalibrationError
+from service.core.messages import TruthView
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +54,8 @@ class RecordingSource(PacedSource):
         super().__init__(url, options, realtime=parsed.flag(
             "realtime", (options or SourceOptions()).realtime_default))
         self.path = Path(parsed.path).expanduser()
-        self._entries: list[tuple[str, int, float, float, int | None, bool, bool | None]] = []
+        self._entries: list[tuple[str, int, float, float, int | None, bool, bool | None,
+                                  TruthView | None]] = []
         self._position = 0
         self._camera: CameraModel | None = None
         self._period = 0.1
@@ -112,10 +115,12 @@ class RecordingSource(PacedSource):
                 budget = estimate.get("budget_level") if isinstance(estimate, dict) else None
                 measured = estimate.get("measured") if isinstance(estimate, dict) else None
                 inspected = estimate.get("inspected") if isinstance(estimate, dict) else None
+                truth = estimate.get("truth") if isinstance(estimate, dict) else None
                 entry = (str(row["frame"]), int(row["index"]), float(row["t_mono"]),
                          float(row["t_unix"]), int(budget) if isinstance(budget, int) else None,
                          measured is not False,
-                         inspected if isinstance(inspected, bool) else None)
+                         inspected if isinstance(inspected, bool) else None,
+                         _truth(truth))
             except (ValueError, KeyError, TypeError, AttributeError):
                 damaged.append(number)
                 continue
@@ -146,13 +151,14 @@ class RecordingSource(PacedSource):
     def _next_media(self) -> MediaFrame:
         if self._position >= len(self._entries):
             raise EndOfMediaError
-        name, index, t_mono, t_unix, budget, measured, inspected = self._entries[self._position]
+        name, index, t_mono, t_unix, budget, measured, inspected, truth = (
+            self._entries[self._position])
         self._position += 1
         flags = cv2.IMREAD_COLOR if self._options.keep_color else cv2.IMREAD_GRAYSCALE
         image: Any = cv2.imread(str(self.path / name), flags)
         return MediaFrame(image=image, number=index, media_time_s=t_mono - self._entries[0][2],
                           budget=budget, measured=measured, inspected=inspected,
-                          wall_s=t_unix)
+                          wall_s=t_unix, truth=truth)
 
     def _skip_to(self, number: int) -> int:
         """Skip the frames recorded before `number` frame periods of media time. By time, not
@@ -175,3 +181,26 @@ class RecordingSource(PacedSource):
     def _stop(self) -> None:
         self._entries = []
         self._position = 0
+
+
+def _truth(recorded: object) -> TruthView | None:
+    """A frame's recorded ground truth (the estimate message's `truth`); None where there is
+    none, or where it is not of the schema's shape (it is data to score against, never a
+    reason to refuse the frame)."""
+    if not isinstance(recorded, dict):
+        return None
+    try:
+        normal = recorded.get("normal")
+        return TruthView(
+            net_present=bool(recorded.get("net_present", True)),
+            range_m=_number(recorded.get("range_m")),
+            distance_m=_number(recorded.get("distance_m")),
+            tilt_deg=_number(recorded.get("tilt_deg")),
+            normal=(float(normal[0]), float(normal[1]), float(normal[2]))
+            if isinstance(normal, list) and len(normal) == 3 else None)
+    except (TypeError, ValueError):
+        return None
+
+
+def _number(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None

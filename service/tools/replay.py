@@ -325,7 +325,9 @@ class ReplayRunner:
                             frame.index, result.error)
                 self._refusal_logged = True
         self._processed += 1
-        truth = frame.truth if frame.truth is not None else self._truth.get(frame.index)
+        # A truth file given for the run is what the user asked to be scored against; a
+        # rendered frame's own truth (a synthetic source, a recording of one) otherwise.
+        truth = self._truth.get(frame.index, frame.truth)
         return FrameResult(frame=frame, result=result,
                            process_ms=(time.perf_counter() - t0) * 1e3,
                            keep_track=self._keep_track, truth=truth)
