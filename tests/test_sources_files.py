@@ -581,6 +581,30 @@ def test_a_variable_rate_video_is_numbered_as_it_comes_and_timed_by_its_timestam
     assert (stats.frames, stats.drops, stats.corrupt) == (count, 0, 0)
 
 
+@pytest.mark.parametrize("stall_at", [4.0, 1.0])
+def test_a_constant_rate_video_that_lost_frames_keeps_its_own_rate(
+    tmp_path: Path, stall_at: float
+) -> None:
+    """A 10 fps recording whose camera stalled for a second: its container states the average
+    rate (frames over duration: 9.8 fps here), not the frames' own. Numbered and timed at that
+    rate, every frame before the stall came later than it was presented (0.1 s off at 4 s, and
+    growing with the file), the stall read as 0.2 s and only two of its ten lost frames were
+    missing numbers. The frames' own steps give the rate: each frame at its own time, the
+    stall whole, its ten frames counted as dropped. Also where the stall lies inside the first
+    frames read at open (1.0 s)."""
+    times = [0.1 * i for i in range(int(round(stall_at * 10)) + 1)]
+    times += [times[-1] + 1.1 + 0.1 * i for i in range(50 - len(times))]
+    path = write_timed_video(tmp_path / "stalled.mp4", times, stated_fps=10)
+    with open_source(f"file:{path}") as source:
+        frames = [f for f in iter(lambda: source.read(1.0), None)]
+        stats = source.stats()
+    assert [read_pattern_number(f.image) for f in frames] == list(range(len(times)))
+    assert [f.index for f in frames] == [round(10 * t) for t in times]
+    elapsed = [f.t_monotonic - frames[0].t_monotonic for f in frames]
+    assert elapsed == pytest.approx(times, abs=1.5e-3)  # the container's 1 ms ticks
+    assert (stats.frames, stats.drops, stats.corrupt) == (len(times), 10, 0)
+
+
 def test_a_variable_rate_video_loops_on_in_time(tmp_path: Path) -> None:
     """The next pass starts after the last frame's own time, not after as many stated periods
     as there were frames (1 s for 18 frames stated at 30 fps, of a 2.1 s recording): time

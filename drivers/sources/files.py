@@ -52,6 +52,15 @@ VARIABLE_TYPICAL_STEP = 1.25
 # numbered two ways).
 TIMELINE_PROBE_FRAMES = 90
 TIMELINE_PROBE_S = 3.0
+# A container may state its average rate (frames over duration) rather than its frames' own:
+# a 10 fps recording that lost a second in 25 s states 9.6 fps. When the steps between the
+# first frames are steady (all but a few within STEADY_STEP_SPREAD of their mean, the rest
+# gaps) and that mean says a rate more than STATED_RATE_TOLERANCE from the stated one, the
+# frames' own rate numbers and times them.
+STEADY_STEP_SPREAD = 0.05
+STEADY_STEP_SPREAD_S = 0.002  # ... or the 1 ms ticks of a millisecond time base, and a margin
+STEADY_MIN_STEPS = 8
+STATED_RATE_TOLERANCE = 0.01
 
 
 def _parse(url: str, scheme: str) -> SourceUrl:
@@ -70,6 +79,22 @@ def rate_varies(steps_s: list[float], period_s: float) -> bool:
     if any(step < VARIABLE_SHORT_STEP * period_s for step in steps_s):
         return True
     return len(steps_s) >= 3 and statistics.median(steps_s) >= VARIABLE_TYPICAL_STEP * period_s
+
+
+def steady_rate(steps_s: list[float]) -> float | None:
+    """The frame rate that steady steps between frames show (gaps, such as frames a camera
+    missed, left out); None when there are too few steps or they vary (a phone's recording)."""
+    if len(steps_s) < STEADY_MIN_STEPS:
+        return None
+    typical = statistics.median(steps_s)
+    regular = [step for step in steps_s if 0.5 * typical <= step <= 1.5 * typical]
+    if len(regular) < 0.8 * len(steps_s):
+        return None
+    mean = statistics.fmean(regular)
+    if any(abs(step - mean) > max(STEADY_STEP_SPREAD * mean, STEADY_STEP_SPREAD_S)
+           for step in regular):
+        return None
+    return 1.0 / mean
 
 
 class _Timeline:
@@ -191,11 +216,22 @@ class VideoFileSource(PacedSource):
     def _start(self) -> None:
         self._cap = self._open_capture()
         file_fps = self._cap.get(cv2.CAP_PROP_FPS)
+        steps = self._probe_steps()
+        own = steady_rate(steps)
         if 0.1 <= file_fps <= 1000.0:
             self._fps = file_fps
+            if own is not None and abs(own / file_fps - 1.0) > STATED_RATE_TOLERANCE:
+                log.warning("%s states %.4g fps (its average: frames missing?) but its frames "
+                            "are %.4g fps apart: numbered and timed at %.4g fps", self.path,
+                            file_fps, own, own)
+                self._fps = own
+        elif own is not None and 0.1 <= own <= 1000.0:
+            log.warning("%s does not state its frame rate; its frames are %.4g fps apart",
+                        self.path, own)
+            self._fps = own
         else:
             log.warning("%s does not state its frame rate; assuming %g fps", self.path, self._fps)
-        self._timeline = _Timeline(self.path, self._fps, self._probe_steps())
+        self._timeline = _Timeline(self.path, self._fps, steps)
         try:
             self._first = self._next_media()
         except EndOfMediaError:
@@ -219,12 +255,14 @@ class VideoFileSource(PacedSource):
                 raise EndOfMediaError
         number, media_time_s = self._timeline.place(self._decoded + failed,
                                                     cap.get(cv2.CAP_PROP_POS_MSEC))
+        missing = number - (self._decoded + failed)
         self._decoded = number + 1
         return MediaFrame(
             image=image,
             number=number,
             media_time_s=media_time_s,
             skipped_before=failed,
+            missing_before=max(0, missing),
         )
 
     def _probe_steps(self) -> list[float]:

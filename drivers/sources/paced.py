@@ -58,6 +58,9 @@ class MediaFrame:
     measured: bool = True  # False: the recording's vehicle did not measure this frame
     inspected: bool | None = None  # a recording's: the vehicle searched it for holes
     skipped_before: int = 0  # unreadable frames passed over just before this one
+    # Frames the medium's timestamps show were never recorded, just before this one (a
+    # constant-rate camera that stalled): counted as dropped.
+    missing_before: int = 0
     wall_s: float | None = None  # a recording's own capture time (time.time) for this frame
 
 
@@ -305,6 +308,7 @@ class PacedSource(FrameSource):
                          self._frames)
                 return None
             self._count_corrupt(media.skipped_before)
+            self._drops += media.missing_before
             self._highest_number = max(self._highest_number, media.number)
             self._pass_end_s = max(self._pass_end_s, media.media_time_s)
             converted = (
