@@ -432,9 +432,11 @@ class MavlinkLink(AutopilotLink):
                 min_distance_m=self.settings.min_distance_m,
                 max_distance_m=self.settings.max_distance_m,
                 texts_dropped=self._texts_dropped,
-                # Known only while its heartbeat is: a lost autopilot's last word could keep
-                # the page's settings locked for good (it hears no distance then either).
-                armed=ap.armed if ap is not None and state == "connected" else None,
+                # Its last heartbeat's word, kept while the heartbeat is lost: a lost heartbeat
+                # (a router restarting, a tether glitch) is not a disarmed vehicle, and a mesh
+                # typo saved in that gap reached the armed vehicle as ten times the distance
+                # once the heartbeat came back (pilot review). A restart of netpose clears it.
+                armed=ap.armed if ap is not None else None,
             )
 
     def _state_locked(self) -> str:

@@ -1153,6 +1153,18 @@ def test_nothing_is_changed_from_the_page_while_the_vehicle_is_armed(tmp_path: P
             after_cm = statistics.median(r.msg.current_distance for r in after)
             assert abs(after_cm / before_cm - 1.0) < 0.2, (before_cm, after_cm)
 
+            # The heartbeat lost (a tether glitch) is not a disarmed vehicle: still locked.
+            autopilot.heartbeats_enabled = False
+            deadline = time.monotonic() + 10.0
+            while "autopilot heartbeat lost" not in d.log():
+                assert time.monotonic() < deadline, d.log()
+                time.sleep(0.2)
+            status, reply = d.request("POST", "/api/settings",
+                                      {"changes": {"mesh.bar_length_m": 0.25}})
+            assert status == 409 and "armed" in reply["error"], reply
+            assert d.config.read_bytes() == before
+            autopilot.heartbeats_enabled = True
+
             autopilot.armed = False
             deadline = time.monotonic() + 10.0
             while not d.request("GET", "/api/settings")[1]["editable"]:

@@ -255,8 +255,9 @@ class AutopilotHealth:
     sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
                                   "applet) is being sent right now", False)
     armed: bool | None = doc(
-        "the autopilot's HEARTBEAT says it is armed (the web page's settings and restart wait "
-        "for it to be disarmed); null while no heartbeat is current", None)
+        "the autopilot's last HEARTBEAT said it is armed (the web page's settings and restart "
+        "wait for it to be disarmed); kept while its heartbeat is lost, since a lost heartbeat "
+        "is not a disarmed vehicle; null while no autopilot has been heard", None)
 
 
 @dataclass(frozen=True, kw_only=True)

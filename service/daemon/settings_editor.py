@@ -61,7 +61,9 @@ RELOAD_TIMEOUT_S = 15.0
 # as ArduPilot itself asks for some of its own parameters. Whoever reaches the page (BlueOS
 # ships it without a token) can no longer change the rangefinder of a vehicle in use.
 ARMED = ("the vehicle is armed: settings, calibration and restarts from the page wait until it "
-         "is disarmed (a change mid-dive changes the distance the autopilot steers by)")
+         "is disarmed (a change mid-dive changes the distance the autopilot steers by); an "
+         "autopilot whose heartbeat is lost stays armed as last heard, until it is heard "
+         "disarmed or netpose is restarted")
 # How often a wait for the daemon's reload looks whether it is stopping instead.
 _STOP_POLL_S = 0.1
 
