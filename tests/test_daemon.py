@@ -158,6 +158,29 @@ def test_a_camera_that_dies_after_flapping_is_said_at_once() -> None:
     assert texts[-1] == "netpose: camera lost: no distance", texts
 
 
+def test_a_camera_that_dies_soon_after_another_text_is_said_within_seconds() -> None:
+    """The page's Restart says "no camera frames" while the stream reopens; a camera that died
+    10 s later was held back by the 30 s interval and reached the pilot 22 s after it died
+    (pilot review). An outage that lasts SUSTAINED_LOSS_S is said whatever the interval; the
+    short outages of a flapping camera stay held back."""
+    from drivers.mavlink_link import RecordingAutopilotLink
+    from service.daemon.service_notices import SUSTAINED_LOSS_S, ServiceNotices
+
+    link = RecordingAutopilotLink()
+    notices = ServiceNotices(link, interval_s=30.0)
+    said_at: list[float] = []
+    for tick in range(400):  # 40 s at 10 passes a second
+        t = tick / 10
+        up = None if t < 1.0 else (t >= 3.0 and t < 12.0)  # frames late at start, then dead
+        before = len(link.texts)
+        notices.camera(up, t)
+        said_at += [t] * (len(link.texts) - before)
+    texts = [text for _, text in link.texts]
+    assert texts == ["netpose: no camera frames: no distance", "netpose: camera back",
+                     "netpose: camera lost: no distance"], texts
+    assert said_at[-1] == pytest.approx(12.0 + SUSTAINED_LOSS_S, abs=0.15), said_at
+
+
 def test_the_pilot_hears_the_camera_come_back_and_netpose_stop(frames: list[Frame]) -> None:
     """The camera's return is said once its loss was; netpose stopping (a signal, the page's
     Restart, an update) is said before the link closes, not left as a silent rangefinder."""

@@ -9,7 +9,10 @@ distance for a reason the pilot can act on, so each is said as a STATUSTEXT when
 the camera's loss once per `interval_s` at most (a camera that flaps does not flood the
 screen), its return only after its loss was said. The outages held back by that interval are
 counted and said when it allows, so a flapping camera's last word on the pilot's screen is not
-"camera back" (it was, for 27 of every 30 s, while the camera dropped out 3 more times).
+"camera back" (it was, for 27 of every 30 s, while the camera dropped out 3 more times). An
+outage that lasts `SUSTAINED_LOSS_S` is said whatever the interval: a camera that died within
+30 s of an earlier text (the one a restart from the page makes, a flap) reached the pilot's
+ground station 15-22 s after netpose knew, with the last distance frozen on its indicator.
 """
 
 from __future__ import annotations
@@ -21,6 +24,9 @@ from service.signals import RESTART
 
 MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
+# Longer than the outages of a camera that flaps (a few seconds each, held to one text per
+# interval), short enough for a pilot holding a distance to the net.
+SUSTAINED_LOSS_S = 5.0
 
 
 class ServiceNotices:
@@ -33,6 +39,7 @@ class ServiceNotices:
         self._last_loss_text_at = -float("inf")
         self._had_frames = False
         self._down = False
+        self._down_since = 0.0
         self._held = 0  # outages not said (the interval held them back) since the last text
         # The last texts said (tests and a debugger read them): a daemon runs for months.
         self.sent: collections.deque[str] = collections.deque(maxlen=32)
@@ -58,9 +65,11 @@ class ServiceNotices:
             return
         began = not self._down
         self._down = True
+        if began:
+            self._down_since = now
         if self._loss_said:
             return
-        if allowed:
+        if allowed or now - self._down_since >= SUSTAINED_LOSS_S:
             text = self._loss_text()
             # This outage, and those held back since the last text (this one among them if
             # it began while held back).
