@@ -41,9 +41,16 @@ AutopilotDistance = DistanceAlong
 # a fresh distance comes first.
 INSPECT_MAX_BUDGET = 1
 
-# Frames in a row the estimator must call "too close" before the autopilot is told so: one
-# frame of a blur filling the view (a fish passing the lens) must not replace a distance.
+# Frames the estimator must call "too close", with no frame between them that measures the net
+# or shows no lattice at all, before the autopilot is told so: one frame of a blur filling the
+# view (a fish passing the lens) must not replace a distance. Frames between them that still
+# show the net's lattice but cannot measure it ("only 2 ROIs share one lattice") neither count
+# nor end the count: at 0.12 m the renderer's approach alternates between the two, so "too
+# close" was never said, nor held, and the autopilot got nothing for 2.9 s at the closest
+# point, the same as open water (pilot review).
 TOO_CLOSE_FRAMES = 2
+# ... and such frames hold "too close" for at most this long after the last frame that was.
+TOO_CLOSE_HOLD_S = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,10 +239,12 @@ class Pipeline:
         if not deferred:
             self._prior = estimate if estimate is not None and estimate.detected else None
             self._prior_t = t if self._prior is not None else math.nan
-        too_close = estimate is not None and estimate.too_close
-        self._too_close_frames = self._too_close_frames + 1 if too_close else 0
-        if too_close:
+        if estimate is not None and estimate.too_close:
+            self._too_close_frames += 1
             self._too_close_t = t
+        elif estimate is not None and (estimate.net_seen
+                                       or not any(r.detected for r in estimate.rois)):
+            self._too_close_frames = 0  # the net measured (or its range seen), or no lattice
         if self._too_close_frames == TOO_CLOSE_FRAMES:
             # The net came nearer than the filter's track can follow: its prediction is from
             # before, and must not be coasted on once the net is out of "too close" again
@@ -298,12 +307,14 @@ class Pipeline:
     ) -> RangeReading:
         if track.measurement in (Outcome.ACCEPTED, Outcome.RESET) and estimate is not None:
             self._last_quality = estimate.confidence
-        if self._too_close_frames >= TOO_CLOSE_FRAMES:
+        if (self._too_close_frames >= TOO_CLOSE_FRAMES
+                and t - self._too_close_t <= TOO_CLOSE_HOLD_S):
             # Nearer than the mesh can be resolved: the autopilot must see "below minimum"
             # (OutOfRangeLow), not the silence of open water, and not a coasting prediction
-            # from before the net came this close. Without a new frame (a tick, a skipped
-            # frame) that is still the last word, stamped with the frame that said it, so the
-            # link stops repeating it once it is stale rather than falling back to the filter.
+            # from before the net came this close. A frame that still shows the lattice says
+            # so too. Without a new frame (a tick, a skipped frame) that is still the last
+            # word, stamped with the frame that said it, so the link stops repeating it once
+            # it is stale rather than falling back to the filter.
             return RangeReading(RangeStatus.TOO_CLOSE,
                                 t_capture=t if estimate is not None else self._too_close_t)
         if not track.valid or track.distance_m is None:

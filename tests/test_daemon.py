@@ -821,6 +821,31 @@ def test_a_net_too_close_to_measure_is_told_to_the_autopilot_and_the_pilot(
     assert any("net too close to measure ended" in r.getMessage() for r in caplog.records)
 
 
+def test_too_close_is_said_and_held_while_frames_still_show_the_lattice(
+    frames: list[Frame]
+) -> None:
+    """At 0.13 m the estimator alternates between "too close" and frames that show the net's
+    lattice but cannot measure it ("only 3 ROIs share one lattice"). Each of those reset the
+    count of too-close frames in a row, so the autopilot got "too close" now and then and
+    nothing between, the same as open water, at the closest point (pilot review). Such frames
+    now neither count nor end it: one unbroken run of "too close"."""
+    close = render_frames(CLOSE_URL.replace("range=0.18", "range=0.13"), 12)
+    h = make_harness(demo_config(), [Step(frame=f) for f in frames_at([*frames[:15], *close],
+                                                                      FPS, 100.0)])
+    h.run_script()
+    reasons = [e.reason for e in h.telemetry.estimates[15:]]
+    too_close = [i for i, r in enumerate(reasons) if r.startswith("net too close")]
+    between = reasons[too_close[0]:too_close[-1]]
+    # The case itself: frames with a lattice but no measurement among the too-close ones.
+    assert any("ROIs share one lattice" in r or "do not agree" in r for r in between), reasons
+    statuses = [r.status for r in h.link.ranges]
+    first = statuses.index(RangeStatus.TOO_CLOSE)
+    last = len(statuses) - 1 - statuses[::-1].index(RangeStatus.TOO_CLOSE)
+    assert statuses[first:last + 1] == [RangeStatus.TOO_CLOSE] * (last + 1 - first), statuses
+    assert last - first >= 8, statuses
+    assert RangeStatus.GOOD not in statuses[first:]
+
+
 def test_after_too_close_the_old_distance_is_never_sent_again(frames: list[Frame]) -> None:
     """The net came too close to measure, then the camera stalled, then the view showed no
     net: none of that may bring back the filter's distance from before the net came close
