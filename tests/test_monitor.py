@@ -107,11 +107,15 @@ def test_rates_link_state_and_values_from_received_messages() -> None:
     assert view.estimate is not None and view.estimate["seq"] == 59
     assert view.problems == set()
     summary = state.summary(t)
-    assert f"{VEHICLE} live" in summary and "d 1.59+/-0.020 m" in summary and "10.0Hz" in summary
+    assert f"{VEHICLE} live" in summary and "perp 1.59+/-0.020 m" in summary and "10.0Hz" in summary
     screen = "\n".join(state.render(t))
     assert "estimate" in screen and "cam streaming" in screen and "filtered" in screen
-    # `d` is perpendicular; what the autopilot gets (here along the axis) is said apart.
+    # `perp` is perpendicular; what the autopilot gets (here along the axis) is said first.
     assert "autopilot 1.62 m along the camera axis" in screen
+    assert (screen.index("  autopilot ") < screen.index("  estimate  perp")
+            < screen.index("  filtered  "))
+    assert summary.index("ap: 1.62 m") < summary.index("perp 1.59")
+    assert "axis 1.62 m" in screen
     assert "searching" not in screen
     # Open water: the daemon says it searches at a paced rate, and the monitor shows it.
     searching = dataclasses.replace(
@@ -148,7 +152,7 @@ def test_estimates_that_stopped_are_not_shown_as_a_live_distance() -> None:
     assert "no estimate for 10.0 s" in screen
     assert state.rate_hz(VEHICLE, "estimate", t + 1.0) < 10.0 * 0.7  # falls as soon as silent
     summary = state.summary(now)
-    assert "no estimate for 10.0 s" in summary and "d 1.50" not in summary
+    assert "no estimate for 10.0 s" in summary and "perp 1.50" not in summary
 
 
 def test_what_the_autopilot_gets_is_said_with_the_link_and_the_filters_state() -> None:

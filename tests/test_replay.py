@@ -559,9 +559,9 @@ def test_axes_follow_the_mesh_bars_of_a_rendered_net() -> None:
 def test_caption_lines() -> None:
     estimate = NetEstimate(detected=True, confidence=0.914, normal=(0.0, -0.3907, -0.9205),
                            distance_m=0.8234, range_m=0.8945)
-    assert caption_lines(estimate)[0] == "d=0.82 m  tilt 23 deg  conf 0.91"
+    assert caption_lines(estimate)[0] == "perp 0.82 m  axis 0.89 m  tilt 23 deg  conf 0.91"
     lines = caption_lines(estimate, truth=Truth(distance_m=0.81, normal=(0.0, -0.39, -0.92)))
-    assert lines[1] == "truth d=0.81 m  tilt 23 deg  err +1.3 cm"
+    assert lines[1] == "truth perp 0.81 m  tilt 23 deg  err +1.3 cm"
     missed = NetEstimate(detected=False, confidence=0.1, reason="too few ROIs")
     assert caption_lines(missed) == ["no net (too few ROIs)  conf 0.10"]
     seen = NetEstimate(detected=False, confidence=0.2, approx_range_m=0.834,
@@ -570,11 +570,15 @@ def test_caption_lines() -> None:
     assert caption_lines(seen) == [
         "net seen, ~0.83 +- 0.03 m: no distance (plane too uncertain (range +- 4%, normal +- "
         "2 deg))"]
-    # The web page's live view adds what the autopilot was handed: another distance than `d`
-    # by default (along the axis), and it says which.
+    # The web page's live view leads with what the autopilot was handed, as its header does
+    # (along the axis by default, not the perpendicular distance), and says which.
     sent = RangeReading(RangeStatus.GOOD, 0.0, distance_m=0.8945, along="optical_axis")
-    assert caption_lines(estimate, sent=sent)[-1] == "autopilot 0.89 m along the axis"
-    assert caption_lines(estimate, sent=RangeReading.none(0.0))[-1] == "autopilot: nothing sent"
+    assert caption_lines(estimate, sent=sent)[0] == "autopilot 0.89 m along the axis"
+    assert caption_lines(estimate, sent=RangeReading.none(0.0))[0] == "autopilot: nothing sent"
+    close = NetEstimate(detected=False, confidence=0.0, too_close=True,
+                        reason="net too close to measure: a mesh of ~71 px period fills the view")
+    assert caption_lines(close) == [
+        "too close: net too close to measure: a mesh of ~71 px period fills the view"]
 
 
 def test_truth_csv_round_trip_and_errors(tmp_path: Path) -> None:

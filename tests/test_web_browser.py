@@ -95,8 +95,11 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     # Plots: points keep coming (pushed, not polled).
     points = page.evaluate("window.netpose.points.length")
     page.wait_for_function(f"window.netpose.points.length > {points + 10}", timeout=30_000)
-    state = page.text_content("#state")
-    assert state in ("tracking", "coasting", "lost")
+    # No autopilot is heard (the link sends to a port nobody reads): the badge says so, not
+    # the filter's green "tracking".
+    page.wait_for_function("document.getElementById('state').textContent === 'no autopilot'",
+                           timeout=30_000)
+    assert "notsent" in page.get_attribute("#state", "class")
     # Health: every row, with the source streaming.
     page.wait_for_selector("#health tr[data-row='Source']")
     rows = page.eval_on_selector_all("#health tr", "trs => trs.map(t => t.dataset.row)")
@@ -328,10 +331,62 @@ def test_the_header_shows_the_distance_the_autopilot_gets(browser: Any, tmp_path
                 "document.getElementById('distance-kind').textContent === "
                 "'autopilot link lost: nothing reaches it'", timeout=30_000)
             assert "unsent" in view.get_attribute("#distance", "class")
+            # ... and the badge no longer shows the filter's green: red, "link lost".
+            assert view.text_content("#state") == "link lost"
+            assert "bad" in view.get_attribute("#state", "class")
         assert not errors, errors
     finally:
         assert daemon.stop() == 0, daemon.log()
         observer.close()
+
+
+def test_too_close_is_the_loudest_state_and_a_dead_daemons_health_is_not_shown_live(
+        browser: Any, shots: Path, tmp_path: Path) -> None:
+    """Near the net the page read a grey LOST beside a struck-through "too close", with "no
+    net:" under it, and a measured 0.25 m (below the rangefinder's 0.30 m minimum) greyed and
+    struck through: the most dangerous state looked the calmest (pilot review). Now both say
+    TOO CLOSE in red, the distance is not struck through, and the line under it says to back
+    off. Then the daemon stops: its Health rows were still green ("heartbeat 0.2 s ago ·
+    sending distance") 15 s later; now they are greyed and said to be the last status."""
+    # (The measured 0.25 m may read 0.24-0.26 m: any distance below the 0.30 m minimum.)
+    cases = (("0.13", "^too close$"), ("0.25", "^0\\.2[3-7] m$"))
+    errors: list[str] = []
+    for range_m, shown in cases:
+        observer = DistanceObserver(as_autopilot=True)
+        folder = tmp_path / range_m
+        folder.mkdir()
+        daemon = WebDaemon(folder, sections={
+            "camera": {"url": "synthetic:?width=640&height=360&fps=10&realtime=1"
+                              f"&trajectory=static&range={range_m}&tilt=10&seed=5"},
+            "mavlink": {"url": observer.url}})
+        try:
+            _started(daemon)
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(daemon.base + "/")
+            page.wait_for_function(
+                "document.getElementById('state').textContent === 'too close' && "
+                f"/{shown}/.test(document.getElementById('distance').textContent)",
+                timeout=30_000)
+            assert "tooclose" in page.get_attribute("#state", "class")
+            distance_class = page.get_attribute("#distance", "class")
+            assert "close" in distance_class and "unsent" not in distance_class
+            tilt = page.text_content("#tilt")
+            assert not tilt.startswith("no net"), tilt
+            if range_m == "0.13":
+                assert tilt.startswith("back off"), tilt
+            page.screenshot(path=str(shots / f"web-page-too-close-{range_m}.png"))
+            page.wait_for_function("document.querySelectorAll('#health tbody tr').length > 3",
+                                   timeout=30_000)
+            assert page.evaluate("document.getElementById('health').classList"
+                                 ".contains('stale')") is False
+            assert not errors, errors
+        finally:
+            assert daemon.stop() == 0, daemon.log()
+            observer.close()
+    page.wait_for_function("document.getElementById('health').classList.contains('stale')",
+                           timeout=15_000)
+    assert "the daemon is not answering" in page.text_content("#digest")
 
 
 def _mpegts_to(port: int) -> list[str]:

@@ -44,37 +44,43 @@ def caption_lines(
     refused: str = "",
     sent: RangeReading | None = None,
 ) -> list[str]:
-    """'d=0.82 m  tilt 23 deg  conf 0.91', then the filter's, what the autopilot was handed
-    (`sent`: its distance is along the camera axis by default, not the `d` above) and the
-    truth's lines if given."""
+    """What the autopilot was handed first when `sent` is given ('autopilot 1.00 m along the
+    axis': what the page's header and a ground station show), then the estimate's 'perp 0.82 m
+    axis 1.00 m  tilt 35 deg  conf 0.91', the filter's and the truth's lines if given. Each
+    distance is named: the overlay led with a perpendicular "d=0.82" while the header and the
+    autopilot had the range along the axis, 1.00 m (pilot review)."""
     lines: list[str] = []
+    if sent is not None:
+        lines.append(sent_caption(sent))
     if estimate is None:
         lines.append(f"no estimate ({refused})" if refused else "no estimate")
     elif estimate.detected and estimate.distance_m is not None:
         tilt = estimate.tilt_deg
-        text = f"d={estimate.distance_m:.2f} m"
+        text = f"perp {estimate.distance_m:.2f} m"
+        if estimate.range_m is not None:
+            text += f"  axis {estimate.range_m:.2f} m"
         if tilt is not None:
             text += f"  tilt {tilt:.0f} deg"
         lines.append(f"{text}  conf {estimate.confidence:.2f}")
     elif (seen := estimate.seen_text()) is not None:
         lines.append(seen)
+    elif estimate.too_close:
+        lines.append(f"too close: {estimate.reason}")
     else:
         reason = estimate.reason or "no net"
         lines.append(f"no net ({reason})  conf {estimate.confidence:.2f}")
     if track is not None:
         if track.valid and track.distance_m is not None:
-            lines.append(f"filter {track.state.value}  d={track.distance_m:.2f} m")
+            lines.append(f"filter {track.state.value}  perp {track.distance_m:.2f} m")
         elif track.state is TrackState.LOST:
             lines.append("filter lost")
         else:
             lines.append(f"filter {track.state.value} (not reported)")
-    if sent is not None:
-        lines.append(sent_caption(sent))
     if truth is not None:
         if not truth.net_present:
             lines.append("truth: no net")
         elif truth.distance_m is not None:
-            text = f"truth d={truth.distance_m:.2f} m"
+            text = f"truth perp {truth.distance_m:.2f} m"
             tilt_true = truth.tilt()
             if tilt_true is not None:
                 text += f"  tilt {tilt_true:.0f} deg"

@@ -249,13 +249,14 @@ class MonitorState:
         parts = [f"{view.name} {link}"]
         parts.append(f"est {self.rate_hz(view.name, ESTIMATE_SUFFIX, now_mono):.1f}Hz")
         silence = self.estimate_silence_s(view, now_mono)
-        parts.append(_estimate_text(view.estimate) if silence is None
-                     else f"no estimate for {silence:.1f} s")
         filtered = (view.estimate or {}).get("filtered") if silence is None else None
         if filtered:
-            # The raw estimate is not what the autopilot has: say what it was handed.
+            # What the autopilot was handed first (the page's header and a ground station show
+            # it), then the raw estimate with each distance named.
             parts.append(f"[{filtered.get('state') or '-'}] ap: "
                          + _autopilot_text(filtered, view.status))
+        parts.append(_estimate_text(view.estimate) if silence is None
+                     else f"no estimate for {silence:.1f} s")
         parts.append(f"status {self.rate_hz(view.name, STATUS_SUFFIX, now_mono):.1f}Hz")
         parts.append(_status_text(view.status))
         if view.holes:
@@ -281,23 +282,27 @@ class MonitorState:
                     f"  last {age:5.1f} s ago"
                 )
             silence = self.estimate_silence_s(view, now_mono)
+            estimate = (view.estimate or {}) if silence is None else {}
+            filtered = estimate.get("filtered") or {}
+            if filtered:
+                # First what the autopilot steers by (what the page's header and a ground
+                # station show); the monitor led with the perpendicular distance, 6-18 % off it
+                # at 20-35 deg of tilt, under the same letter "d" (pilot review).
+                lines.append("  autopilot " + _autopilot_text(filtered, view.status))
             if silence is not None:
                 # The last estimate is history: no distance, filter or autopilot of now.
                 lines.append(f"  estimate  no estimate for {silence:.1f} s (last: "
                              f"{_estimate_text(view.estimate) or '-'})")
             else:
                 lines.append("  estimate  " + (_estimate_text(view.estimate) or "-"))
-            estimate = (view.estimate or {}) if silence is None else {}
-            filtered = estimate.get("filtered") or {}
             if filtered:
                 lines.append(
                     f"  filtered  {filtered.get('state') or '-'}  valid {filtered.get('valid')}"
-                    f"  d {_fmt(filtered.get('distance_m'))}"
+                    f"  perp {_fmt(filtered.get('distance_m'))}"
                     f" +/- {_fmt(sigma_of(filtered, 'distance'), 3)} m"
                     f"  closing {_fmt(filtered.get('closing_speed_mps'), 2)} m/s"
                     " (+ toward the net)"
                 )
-                lines.append("  autopilot " + _autopilot_text(filtered, view.status))
             latency = estimate.get("latency_ms") or {}
             if latency:
                 lines.append(
@@ -356,16 +361,17 @@ def _estimate_text(estimate: Mapping[str, Any] | None) -> str:
                     f"({reason.split(':')[0]})")
         return f"no net ({reason})"
     return (
-        f"d {_fmt(estimate.get('distance_m'))}+/-{_fmt(sigma_of(estimate, 'distance'), 3)} m"
-        f" range {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
+        f"perp {_fmt(estimate.get('distance_m'))}+/-{_fmt(sigma_of(estimate, 'distance'), 3)} m"
+        f" axis {_fmt(estimate.get('range_m'))} m tilt {_fmt(estimate.get('tilt_deg'), 1)} deg"
         f" conf {_fmt(estimate.get('confidence'))}"
     )
 
 
 def _autopilot_text(filtered: Mapping[str, Any],
                     status: Mapping[str, Any] | None = None) -> str:
-    """What the autopilot was handed with this frame: `d` above is the perpendicular distance,
-    and the autopilot may get the one along the camera's axis (service.autopilot_distance).
+    """What the autopilot was handed with this frame: the estimate's `perp` is the
+    perpendicular distance, and the autopilot may get the one along the camera's axis
+    (service.autopilot_distance), the estimate's `axis`.
     With the link to the autopilot down, or none heard, what is handed over reaches nothing,
     and that is said with it (the daemon's latest status)."""
     told = _handed_text(filtered)

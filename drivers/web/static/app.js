@@ -202,6 +202,18 @@ function refresh() {
     const frame = h.frameAge === null ? "" : `frame from ${fmt(h.frameAge, 0)} s ago`;
     note.textContent = [h.live ? "" : h.reason, frame].filter(Boolean).join(" · ");
   }
+  // The Health card's rows are the last status: once the daemon stops answering they are no
+  // longer the state of anything ("heartbeat 0.2 s ago · sending distance" in green, 15 s
+  // after the daemon was gone).
+  const table = $("health");
+  if (table) {
+    const old = !h.connected || h.statusStale;
+    table.classList.toggle("stale", old);
+    if (old && $("digest")) {
+      const age = h.statusAge === null ? "" : ` ${fmt(h.statusAge, 0)} s ago`;
+      $("digest").textContent = `as of the last status${age}: the daemon is not answering`;
+    }
+  }
   if ($("live-rate")) {
     const now = performance.now();
     while (page.frameTimes.length && page.frameTimes[0] < now - 5000) page.frameTimes.shift();
@@ -228,7 +240,6 @@ function renderHeader(h) {
       : m ? `last estimate${age}` : "");
     return;
   }
-  setText("state", f.state, "badge " + f.state);
   const handed = f.autopilot === "good" ? fmt(f.autopilot_distance_m) + " m"
     : f.autopilot === "too_close" ? "too close" : "–";
   // Sent is not received: with the link to the autopilot down (a router restarting, a wrong
@@ -243,8 +254,21 @@ function renderHeader(h) {
       ? `below the rangefinder's ${fmt(limits.min_distance_m)} m minimum: the autopilot reads "too close"`
     : typeof limits.max_distance_m === "number" && value > limits.max_distance_m
       ? `beyond the rangefinder's ${fmt(limits.max_distance_m)} m maximum: the autopilot reads no distance` : "";
+  // Nearer than the autopilot's minimum, or too close to measure: the state that matters most
+  // near a net, shown loudest (red, never struck through, never "no net"); it read as a grey
+  // LOST with "too close" struck through (pilot review).
+  const close = f.autopilot === "too_close" || outside.startsWith("below");
   const sent = f.autopilot !== "none" && h.sending !== false && !unheard && !outside;
-  setText("distance", handed, "big" + (sent ? "" : " unsent"));
+  // The badge says what reaches the autopilot before what the filter believes: a green
+  // TRACKING beside a distance that reaches nothing read as "net hold is working".
+  const notSent = f.autopilot !== "none" && h.sending === false;
+  const stateText = h.autopilot === "lost" ? "link lost" : unheard ? "no autopilot"
+    : close ? "too close" : notSent ? "not sent" : f.state;
+  const stateClass = h.autopilot === "lost" ? "bad" : unheard ? "notsent"
+    : close ? "tooclose" : notSent ? "notsent" : f.state;
+  setText("state", stateText, "badge " + stateClass);
+  $("state").title = `What reaches the autopilot; the filter is ${f.state}`;
+  setText("distance", handed, "big" + (close && !unheard ? " close" : sent ? "" : " unsent"));
   let kind;
   if (f.autopilot === "none") kind = "nothing sent to the autopilot";
   else if (unheard) kind = unheard;
@@ -259,6 +283,8 @@ function renderHeader(h) {
   const raw = f.autopilot_along === "optical_axis" ? m.range_m : m.distance_m;
   setText("tilt", m.detected ? `raw ${fmt(raw)} m, tilt ${fmt(m.tilt_deg, 0)}°, conf ${fmt(m.confidence)}${other}`
     : m.net_seen ? `net seen, ~${fmt(m.approx_range_m)} ± ${fmt(m.approx_sigma_range_m)} m: no distance (${(m.reason || "").split(":")[0]})`
+    : f.autopilot === "too_close" ? `back off: ${(m.reason || "").startsWith("net too close")
+      ? m.reason : "net too close to measure"}`
     : `no net: ${m.reason || "–"}${other}`);
 }
 
@@ -376,11 +402,6 @@ function onStatus(s) {
   }));
   $("digest").textContent = `configuration ${s.config_digest}`;
 }
-
-setInterval(() => {
-  if (page.lastStatusAt && Date.now() - page.lastStatusAt > 5000 && $("digest"))
-    $("digest").textContent = "no status from the daemon for 5 s";
-}, 1000);
 
 // Nothing arriving is news too: judge freshness, the frame rate and the plots' "now" on a timer.
 setInterval(() => {
