@@ -340,6 +340,7 @@ class MavlinkLink(AutopilotLink):
         self._reconnects = 0
         self._sending_distance = False
         self._sending_net_plane = False
+        self._net_plane_why = "no plane yet"  # why it is not sent (said on the page, the monitor)
         # The link's own state-change lines (sending / not sending): at most one a second per
         # output, as the daemon's (issue 13): a loaded Pi flips the net plane frame by frame.
         self._sending_log = StateLog()
@@ -429,6 +430,8 @@ class MavlinkLink(AutopilotLink):
                 freshness_s=self._gate.freshness_s,
                 sending_changes=self._gate.changes,
                 sending_net_plane=self._sending_net_plane,
+                net_plane=("off" if not self.settings.send_net_plane
+                           else "sent" if self._sending_net_plane else self._net_plane_why),
                 min_distance_m=self.settings.min_distance_m,
                 max_distance_m=self.settings.max_distance_m,
                 texts_dropped=self._texts_dropped,
@@ -705,6 +708,8 @@ class MavlinkLink(AutopilotLink):
             self._note_sending("net_plane", False, now,
                                "the autopilot's clock is not confirmed (not yet known, or it "
                                "rebooted): net plane held")
+            with self._lock:
+                self._net_plane_why = "held: the autopilot's clock is not confirmed"
             return
         max_age = self.settings.max_age_s
         # A fresh plane goes out whether it confirms the net or not (a zero vector: "no net in
@@ -719,6 +724,9 @@ class MavlinkLink(AutopilotLink):
             plane_why = "the newest frame did not confirm the net: sending a zero vector"
         self._note_sending("net_plane", fresh_plane and plane is not None and plane.usable, now,
                            plane_why)
+        with self._lock:
+            self._net_plane_why = ("zero vector: the newest frame did not confirm the net"
+                                   if fresh_plane else plane_why)
         if fresh_plane and plane is not None:
             usec = self._autopilot_time_ms(plane.t_capture) * 1000
             x, y, z = plane.foot_m

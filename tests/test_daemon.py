@@ -670,6 +670,30 @@ def test_a_reload_says_what_it_cannot_apply_live(
     assert "restart needed for: camera, web" in caplog.records[-1].getMessage()
 
 
+def test_a_reload_that_changes_which_distance_the_autopilot_gets_tells_the_pilot(
+    tmp_path: Path, frames: list[Frame]
+) -> None:
+    """service.autopilot_distance changes what the rangefinder's number means (by cos(tilt):
+    1.00 -> 0.82 m at 35 deg) on the pilot's screen and in net hold; it changed from the page
+    without a word to the pilot, where a mesh change is said (pilot review). Said once per
+    change; a reload of other settings says nothing."""
+    h, path, base = _reloadable(tmp_path, frames[:20])
+    h.iterate(5)
+    path.write_text(base.replace("[service]", '[service]\nautopilot_distance = "perpendicular"',
+                                 1))
+    assert h.daemon.reload()
+    assert [t for _, t in h.link.texts] == ["netpose: rangefinder now perpendicular to net"]
+    path.write_text(base.replace("[service]", '[service]\nautopilot_distance = "perpendicular"'
+                                 "\nsummary_interval_s = 10.0", 1).replace(
+                                     "summary_interval_s = 30.0\n", "", 1))
+    assert h.daemon.reload()
+    path.write_text(base)
+    assert h.daemon.reload()
+    assert [t for _, t in h.link.texts] == ["netpose: rangefinder now perpendicular to net",
+                                           "netpose: rangefinder now along camera axis"]
+    assert all(len(t) <= 50 for _, t in h.link.texts)
+
+
 def test_reload_changes_how_often_the_status_is_published(
     tmp_path: Path, frames: list[Frame]
 ) -> None:

@@ -561,6 +561,7 @@ def test_net_plane_can_be_switched_off() -> None:
         link = MavlinkLink(settings(autopilot.url, send_net_plane=False))
         with link, feeding(link, plane=plane):
             autopilot.wait_for("DISTANCE_SENSOR", count=5)
+            assert link.status().net_plane == "off"
     assert autopilot.received("DEBUG_VECT") == []
 
 
@@ -576,6 +577,7 @@ def test_net_plane_fields_time_and_staleness() -> None:
             wait_status(link, "state", "connected")
             with feeding(link, plane=plane):
                 first = autopilot.wait_for("DEBUG_VECT", count=3)
+                assert link.status().net_plane == "sent"
             link.set_net_plane(dataclasses.replace(plane, t_capture=time.monotonic() - 1.0))
             time.sleep(0.2)  # anything already on its way has arrived
             count = len(autopilot.received("DEBUG_VECT"))
@@ -590,6 +592,7 @@ def test_net_plane_fields_time_and_staleness() -> None:
     lag_us = autopilot.boot_ms(first[-1].t) * 1000 - msg.time_usec
     assert -5_000 <= lag_us <= 100_000  # the frame's capture time, not the send time
     assert stale == [] and status.sending_net_plane is False
+    assert status.net_plane.startswith("newest plane 1.")  # and says why, for the page
 
 
 def test_no_net_plane_is_stamped_in_a_rebooted_autopilots_future() -> None:
@@ -936,6 +939,7 @@ def test_a_frame_without_the_net_is_sent_as_a_zero_plane() -> None:
             status = link.status()
     assert (zero.name, zero.x, zero.y, zero.z) == ("NET_PLANE", 0.0, 0.0, 0.0)
     assert status.sending_net_plane is False  # nothing valid is being sent
+    assert status.net_plane == "zero vector: the newest frame did not confirm the net"
 
 
 def test_a_flapping_net_plane_is_sent_frame_by_frame_but_logged_once_a_second(

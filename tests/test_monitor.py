@@ -182,6 +182,14 @@ def test_what_the_autopilot_gets_is_said_with_the_link_and_the_filters_state() -
     stale = dataclasses.replace(status_message(), autopilot=AutopilotHealth(state="connected"))
     state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(stale)), 100.2)
     assert "camera axis, NOT being sent now" in "\n".join(state.render(100.2))
+    # The net-hold applet's input is said with it, and why it is not sent: "TRACKING, 1.00 m"
+    # said nothing of why net hold did not act (pilot review).
+    held = dataclasses.replace(status_message(), autopilot=AutopilotHealth(
+        state="connected", sending_distance=True,
+        net_plane="held: the autopilot's clock is not confirmed"))
+    state.ingest(f"netpose/{VEHICLE}/status", encode(to_json(held)), 100.3)
+    assert ("autopilot 1.53 m along the camera axis; net hold input: held: the autopilot's "
+            "clock is not confirmed") in "\n".join(state.render(100.3))
 
 
 def test_uncertainty_and_closing_speed_read_as_what_they_are() -> None:

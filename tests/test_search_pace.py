@@ -49,6 +49,10 @@ def test_nothing_in_view_is_measured_at_the_camera_rate_then_at_search_hz() -> N
     late = [t for t in times if t >= HOLD_S]
     assert len(late) == pytest.approx(5.0 * (6.0 - HOLD_S), abs=1)
     assert pacer.pacing
+    # The reason given for a frame not measured says how long by now: it said "for 2 s" (the
+    # hold) 11 s into the loss (pilot review).
+    assert pacer.why(6.0) == "not measured: no net in view for 6 s, searching at 5 frames/s"
+    assert pacer.why(11.4) == "not measured: no net in view for 11 s, searching at 5 frames/s"
 
 
 @pytest.mark.parametrize("estimate,state", [

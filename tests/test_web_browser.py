@@ -107,6 +107,9 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
                     "Inspection", "Latency"]
     assert "frames searched" in page.text_content("#health tr[data-row='Inspection']")
     assert "streaming" in page.text_content("#health tr[data-row='Source']")
+    # The net-hold applet's input and why it is not sent (no autopilot: its clock unknown).
+    assert "net hold input: held: the autopilot's clock is not confirmed" in page.text_content(
+        "#health tr[data-row='Autopilot link']")
     # CPU and latency are judged, not always green: a loop that lowered its work (budget level
     # 2) and a p99 past half the freshness limit show as warnings.
     dots = page.evaluate("""() => {
@@ -182,6 +185,19 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     page.click("#calibration-apply")
     page.wait_for_selector("#restart-banner:not([hidden])", timeout=30_000)
     assert "camera" in page.text_content("#restart-sections")
+    # The restart costs the autopilot its distance for seconds: asked first; declined, nothing.
+    asked: list[str] = []
+
+    def decline(dialog: Any) -> None:
+        asked.append(dialog.message)
+        dialog.dismiss()
+
+    page.once("dialog", decline)
+    page.click("#restart")
+    page.wait_for_timeout(500)
+    assert asked and "no distance for a few seconds" in asked[0], asked
+    assert "restarting with the saved configuration" not in daemon.log()
+    assert page.is_visible("#restart-banner")
     assert re.search(rb'^calibration = "calibration-[0-9a-f]{8}\.yaml"$',
                      daemon.config.read_bytes(), re.M)
     page.locator("section.setup").screenshot(path=str(shots / "web-calibration.png"))
@@ -387,6 +403,38 @@ def test_too_close_is_the_loudest_state_and_a_dead_daemons_health_is_not_shown_l
     page.wait_for_function("document.getElementById('health').classList.contains('stale')",
                            timeout=15_000)
     assert "the daemon is not answering" in page.text_content("#digest")
+
+
+def test_an_open_page_comes_back_in_step_with_a_restarted_daemon(
+        browser: Any, tmp_path: Path) -> None:
+    """The daemon restarted from outside (systemd, BlueOS, a power cycle of the Pi) while the
+    page was open: its "Restart now" banner stayed up although nothing was pending, and its
+    plot went from a thousand points to the new daemon's twenty. The page reloads the settings
+    on a reconnect and keeps the points from before the restart."""
+    daemon = WebDaemon(tmp_path)
+    try:
+        _started(daemon)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(daemon.base + "/")
+        page.wait_for_function("window.netpose.points.length > 30", timeout=30_000)
+        status, reply = daemon.request("POST", "/api/settings",
+                                       {"changes": {"mavlink.sensor_id": 1}}, token=True)
+        assert status == 200 and reply["restart_needed"] == ["mavlink"], reply
+        page.wait_for_selector("#restart-banner:not([hidden])", timeout=30_000)
+        assert daemon.stop() == 0, daemon.log()
+        page.wait_for_function("!window.netpose.health.connected", timeout=15_000)
+        before = page.evaluate("window.netpose.points.length")
+        first_before = page.evaluate("window.netpose.points[0][0]")
+        _started(daemon)
+        page.wait_for_function("window.netpose.health.live", timeout=60_000)
+        page.wait_for_selector("#restart-banner", state="hidden", timeout=30_000)
+        points = page.evaluate("window.netpose.points")
+        assert len(points) >= before and points[0][0] == first_before, (len(points), before)
+        assert not errors, errors
+    finally:
+        assert daemon.stop() == 0, daemon.log()
 
 
 def _mpegts_to(port: int) -> list[str]:

@@ -254,6 +254,10 @@ class AutopilotHealth:
         "the rangefinder's maximum the autopilot is told (DISTANCE_SENSOR.max_distance)", None)
     sending_net_plane: bool = doc("the net plane (DEBUG_VECT NET_PLANE, for the net-hold "
                                   "applet) is being sent right now", False)
+    net_plane: str = doc(
+        "the net-hold applet's input in words: `off` (mavlink.send_net_plane false), `sent`, "
+        "or why not (held while the autopilot's clock is unconfirmed, a zero vector while the "
+        "newest frame did not confirm the net, ...)", "off")
     armed: bool | None = doc(
         "the autopilot's last HEARTBEAT said it is armed (the web page's settings and restart "
         "wait for it to be disarmed); kept while its heartbeat is lost, since a lost heartbeat "

@@ -193,7 +193,8 @@ class Daemon:
                                                budget=self.budget.level)
                 self.search.measured(result)
             else:
-                result = self.pipeline.skip(frame.t_monotonic, frame.index, self.search.why())
+                result = self.pipeline.skip(frame.t_monotonic, frame.index,
+                                            self.search.why(frame.t_monotonic))
                 self.budget.skipped(frame.t_monotonic, frame.index)
             self.last_index = frame.index
         self.service_notices.camera(self.source_watch.up, now)
@@ -414,6 +415,14 @@ class Daemon:
             if "service" in changed:
                 logging.getLogger().setLevel(new.service.log_level)
                 self.pipeline.set_autopilot_distance(new.service.autopilot_distance)
+                if new.service.autopilot_distance != self.config.service.autopilot_distance:
+                    # The rangefinder's number changes meaning (by cos(tilt): 1.00 -> 0.82 m
+                    # at 35 deg) on the pilot's screen and in net hold: said, like a mesh change.
+                    along = ("along camera axis" if new.service.autopilot_distance
+                             == "optical_axis" else "perpendicular to net")
+                    log.warning("the autopilot's distance is now %s (service.autopilot_distance"
+                                " = %s)", along, new.service.autopilot_distance)
+                    self.parts.link.notify_pilot(f"netpose: rangefinder now {along}")
             if _file_digest(new.calibration_path()) != self._calibration_digest:
                 changed.add("camera")
             needs_restart = sorted(changed & RESTART_SECTIONS)

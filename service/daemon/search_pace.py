@@ -60,7 +60,9 @@ class SearchPacer:
             self._sign_t = result.t
             self.pacing = False
 
-    def why(self) -> str:
-        """The reason given for a frame that is not measured."""
-        return (f"not measured: no net in view for {self.hold_s:g} s, searching at "
+    def why(self, t: float) -> str:
+        """The reason given for the frame captured at `t`, not measured: how long the net has
+        been out of view by now (it said "for 2 s", the hold, however long it had been)."""
+        gone_s = self.hold_s if self._sign_t is None else max(self.hold_s, t - self._sign_t)
+        return (f"not measured: no net in view for {gone_s:.0f} s, searching at "
                 f"{self.search_hz:g} frames/s")

@@ -376,15 +376,19 @@ def _autopilot_text(filtered: Mapping[str, Any],
     and that is said with it (the daemon's latest status)."""
     told = _handed_text(filtered)
     link = (status or {}).get("autopilot") or {}
+    # The net-hold applet's input beside the distance: "TRACKING, 1.00 m" said nothing of
+    # why net hold did not act while its plane was held (pilot review).
+    plane = link.get("net_plane")
+    net_hold = f"; net hold input: {plane}" if isinstance(plane, str) and plane != "off" else ""
     if told == "nothing sent" or not link:
-        return told
+        return told + net_hold
     if link.get("state") == "lost":
-        return f"{told}, NOT reaching it: autopilot link lost"
+        return f"{told}, NOT reaching it: autopilot link lost{net_hold}"
     if link.get("state") == "waiting":
-        return f"{told}, NOT reaching one: no autopilot heard"
+        return f"{told}, NOT reaching one: no autopilot heard{net_hold}"
     if link.get("sending_distance") is False:
-        return f"{told}, NOT being sent now"
-    return told
+        return f"{told}, NOT being sent now{net_hold}"
+    return told + net_hold
 
 
 def _handed_text(filtered: Mapping[str, Any]) -> str:

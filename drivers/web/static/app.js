@@ -6,6 +6,7 @@
 const $ = (id) => document.getElementById(id);
 const view = document.body.dataset.view;
 const page = {
+  reconnecting: false,   // connected before: a new connection may be to a restarted daemon
   points: [],            // plotPoint(): [t, raw, rawTilt, sent, filteredTilt, seen, along]
   spanS: 300, historyS: 300, tokenRequired: false, liveHz: 4, pushHz: 10,
   frames: 0, frameTimes: [], estimates: 0, lastStatusAt: 0, liveUrl: null,
@@ -34,6 +35,12 @@ function connect() {
   ws.onopen = () => {
     // The daemon may have restarted (another clock, another rate): learn both again.
     retryMs = 500; page.connected = true; page.clockOffsetS = null; refresh();
+    // ... and its settings: a "Restart now" banner from before an outside restart stayed up
+    // (and clicking it cost the autopilot another few seconds of distance).
+    if (view === "full" && page.reconnecting) {
+      loadSettings().catch(() => {}); loadRecordings().catch(() => {});
+    }
+    page.reconnecting = true;
   };
   ws.onclose = () => {
     page.connected = false; refresh();
@@ -56,7 +63,14 @@ function onMessage(msg) {
       if ($("vehicle")) $("vehicle").textContent = "· " + msg.vehicle;
       if ($("token-row")) $("token-row").hidden = !msg.token_required;
       break;
-    case "history": page.points = msg.points; drawPlots(); break;
+    case "history": {
+      // A daemon that restarted sends the little history it has: the minutes before, still
+      // on this page and on the same host clock, are kept (the plot went from 1056 points to
+      // 23, losing what led up to the restart). The time between shows as a gap.
+      const first = msg.points.length ? msg.points[0][0] : Infinity;
+      page.points = page.points.filter((p) => p[0] < first).concat(msg.points);
+      drawPlots(); break;
+    }
     case "estimate": onEstimate(msg); break;
     case "status":
       onStatus(msg);
@@ -381,7 +395,7 @@ function onStatus(s) {
   const rows = [
     ["Service", s.state, `${s.version}, up ${fmt(s.uptime_s, 0)} s`, ""],
     ["Source", fs.state, `${fmt(fs.fps, 1)} frames/s, ${fs.dropped} skipped, ${fs.corrupt} damaged`, fs.error],
-    ["Autopilot link", ap.state, `${ap.url} · ${ap.heartbeat_age_s === null || ap.heartbeat_age_s === undefined ? "no heartbeat yet" : `heartbeat ${fmt(ap.heartbeat_age_s, 1)} s ago`} · ${ap.sending_distance ? "sending distance" : "not sending"}`, ap.last_error],
+    ["Autopilot link", ap.state, `${ap.url} · ${ap.heartbeat_age_s === null || ap.heartbeat_age_s === undefined ? "no heartbeat yet" : `heartbeat ${fmt(ap.heartbeat_age_s, 1)} s ago`} · ${ap.sending_distance ? "sending distance" : "not sending"}${ap.net_plane && ap.net_plane !== "off" ? ` · net hold input: ${ap.net_plane}` : ""}`, ap.last_error],
     ["Telemetry", tm ? tm.state : "disabled", tm ? `${tm.key_root} · ${tm.links ?? 0} links` : "", tm ? tm.last_error : ""],
     ["Frame rate", es.fps ? "ok" : "warn", `${fmt(es.fps, 1)} frames/s measured${es.searching_hz ? ` (no net in view: searching at ${fmt(es.searching_hz, 0)} frames/s)` : ""}, net in ${fmt(100 * (es.detected_fraction ?? 0), 0)} %`, es.last_error],
     // Judged, not always green: a loop that had to lower its work per frame (budget level 2
@@ -614,6 +628,9 @@ if (view === "full") {
   $("calibration-apply").onclick = applyCalibration;
   $("record").onclick = toggleRecording;
   $("restart").onclick = async () => {
+    // A restart costs the autopilot its distance for seconds: asked, not one click away.
+    if (!confirm("Restart netpose now? The autopilot gets no distance for a few seconds."))
+      return;
     try { await send("api/restart", {}); setLink("down", "restarting…"); showRestart([]); }
     catch (e) { alert(e.message); }
   };
