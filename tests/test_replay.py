@@ -306,7 +306,8 @@ def test_every_nth_frame_without_video(
     assert summary["every"] == 3 and summary["frames"] == 10 and "truth" not in summary
 
 
-def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> None:
+def test_config_file_tunes_the_filter(recording: Recording, replayed: Path,
+                                      tmp_path: Path) -> None:
     """--config takes [filter] (and [estimator]) from a daemon configuration: with
     acquire_count = 5 the first valid output comes two frames later than with the default 3.
     The configuration names neither a mesh nor a calibration that exists here: not needed."""
@@ -330,6 +331,26 @@ def test_config_file_tunes_the_filter(recording: Recording, tmp_path: Path) -> N
         assert num(r, "filtered_sigma_distance_total_m") == pytest.approx(math.hypot(
             num(r, "filtered_sigma_distance_m"), 0.05 * num(r, "filtered_distance_m")),
             rel=1e-9)
+    # The summary says what made the numbers: a default and a tuned run were described alike
+    # (research review). The tuning in force, the calibration by its content, the software.
+    tuned = json.loads((out / "summary.json").read_text())
+    default = json.loads((replayed / "summary.json").read_text())
+    assert tuned["tuning"]["config"] == str(config) and default["tuning"]["config"] is None
+    assert tuned["tuning"]["digest"] != default["tuning"]["digest"]
+    assert tuned["tuning"]["filter"]["acquire_count"] == 5
+    assert tuned["tuning"]["estimator"]["min_rois"] == 5
+    assert tuned["tuning"]["scale_sigma_fraction"] == pytest.approx(0.05, rel=1e-9)
+    import hashlib
+
+    assert tuned["camera"]["sha256"] == hashlib.sha256(
+        recording.calibration.read_bytes()).hexdigest()
+    assert tuned["camera"]["fx"] == CAMERA.fx and tuned["camera"]["width"] == CAMERA.width
+    assert tuned["software"]["numpy"] == np.__version__
+    assert tuned["software"]["opencv"] == cv2.__version__
+    assert tuned["first_frame_unix"] is None  # a video keeps no wall clock
+    assert {r["time_unix"] for r in rows} == {""}
+    # The first frame is searched whole; the next ones are tracked from the one before.
+    assert rows[0]["searched"] == "1" and "0" in {r["searched"] for r in rows[1:]}
 
 
 def test_a_replay_that_inspected_nothing_says_so(
@@ -752,9 +773,14 @@ def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
     with open_source(f"recording:{folder}") as source:
         walls = [f.t_wall for f in iter(lambda: source.read(1.0), None)]
     assert walls == pytest.approx([1.7e9 + n / FPS for n in range(8)], abs=1e-3)
-    assert summary["recording"] == {"dropped": 3, "finished": False,
+    assert summary["recording"] == {"dropped": 3, "finished": False, "started_unix": None,
                                     "stopped_because": "writing failed: No space left on device",
                                     "state_restored": False}  # it has no pipeline_state.json
+    # The vehicle's wall clock, per frame and for the first one, to line up with a DVL's log.
+    replayed_rows = read_csv(out / "estimates.csv")
+    assert [num(r, "time_unix") for r in replayed_rows] == pytest.approx(
+        [1.7e9 + n / FPS for n in range(8)], abs=1e-6)
+    assert summary["first_frame_unix"] == pytest.approx(1.7e9, abs=1e-6)
     assert "dropped 3 frames" in err and "No space left on device" in err
 
 

@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import logging
 import math
+import platform
+import subprocess
 import sys
 import threading
 import time
@@ -44,6 +47,7 @@ from service.core.scale import (
     DEFAULT_FOCAL_TOLERANCE,
     scale_sigma_fraction,
 )
+from service.core.state_io import to_plain
 from service.core.tracking import FilterSettings, NetTracker
 from service.daemon.wiring import load_daemon_config
 from service.pipeline import AutopilotDistance, Pipeline
@@ -386,6 +390,7 @@ class ReplayRun:
     # Bars sampled in the inspected frames, and those clear enough to show a missing one.
     bars_sampled: int = 0
     bars_judgeable: int = 0
+    first_frame_unix: float | None = None  # the first frame's capture on the wall clock
 
     @property
     def judgeable_share(self) -> float | None:
@@ -512,7 +517,9 @@ def _recording_word(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     stopped), said when a replay of it may differ from what the vehicle decided: the
     vehicle's filter ran over frames the recording does not hold."""
     dropped = manifest.get("dropped")
+    started = manifest.get("started_unix")
     word = {"dropped": dropped if isinstance(dropped, int) else None,
+            "started_unix": started if isinstance(started, int | float) else None,
             "finished": manifest.get("finished") is True,
             "stopped_because": str(manifest.get("stopped_because") or "") or None}
     problems = []
@@ -632,6 +639,8 @@ def _replay(
                 if video is not None and annotator is not None:
                     video.write(_annotated(annotator, result))
                 csv_file.write(result)
+                if outcome.first_frame_unix is None:
+                    outcome.first_frame_unix = result.frame.t_unix
                 replayed.append(result.frame.index)
                 stats.add(result)
                 outcome.frames_read += 1
@@ -675,7 +684,7 @@ def _replay(
         # matched at all.
         whole = args.every == 1 and args.max_frames is None and not outcome.interrupted
         _say_unmatched_truth(args.truth, truth, replayed, whole)
-    _finish(args, url, stats, outcome, out_dir, source)
+    _finish(args, url, stats, outcome, out_dir, source, _provenance(args, camera, tuning))
     if outcome.interrupted:
         print(f"netpose replay: stopped by {outcome.stop_reason} after {outcome.frames_read} "
               f"frames; outputs in {out_dir} cover those frames", file=sys.stderr)
@@ -751,6 +760,52 @@ def _remove_stale_outputs(out_dir: Path) -> None:
             png.unlink()
 
 
+def _provenance(args: argparse.Namespace, camera: CameraModel, tuning: Tuning
+                ) -> dict[str, Any]:
+    """What made this replay's numbers, so that two runs can be told apart and one repeated: a
+    default, a tuned and a recalibrated run of one recording had the same description (the
+    calibration by its path only, a file saved over it undetectable), and the version has been
+    0.1.0 for hundreds of commits (research review)."""
+    effective = {
+        "estimator": to_plain(tuning.estimator or EstimatorSettings()),
+        "filter": to_plain(tuning.filter or FilterSettings()),
+        "damage": to_plain(tuning.damage or DamageSettings()),
+        "autopilot_distance": tuning.autopilot_distance,
+        "scale_sigma_fraction": tuning.scale_sigma_fraction,
+    }
+    canonical = json.dumps(effective, sort_keys=True, separators=(",", ":"))
+    try:
+        calibration_sha = hashlib.sha256(Path(args.calibration).read_bytes()).hexdigest()
+    except OSError:
+        calibration_sha = None
+    return {
+        "tuning": {"config": None if args.config is None else str(args.config),
+                   "digest": "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()[:16],
+                   **effective},
+        "camera": {"sha256": calibration_sha, "width": camera.width, "height": camera.height,
+                   "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                   "distortion": list(camera.distortion)},
+        "fps_option": args.fps,
+        "software": {"netpose": __version__, "git": _git_describe(),
+                     "python": platform.python_version(), "numpy": np.__version__,
+                     "opencv": cv2.__version__},
+    }
+
+
+def _git_describe() -> str | None:
+    """The commit of a netpose run from its checkout (`git describe --always --dirty`); None
+    for an installed copy."""
+    checkout = Path(__file__).resolve().parents[2]
+    if not (checkout / ".git").exists():
+        return None
+    try:
+        done = subprocess.run(["git", "-C", str(checkout), "describe", "--always", "--dirty"],
+                              capture_output=True, text=True, timeout=10, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() or None if done.returncode == 0 else None
+
+
 def _finish(
     args: argparse.Namespace,
     url: str,
@@ -758,6 +813,7 @@ def _finish(
     outcome: ReplayRun,
     out_dir: Path,
     source: FrameSource,
+    provenance: dict[str, Any],
 ) -> None:
     try:
         plots = write_plots(stats, out_dir)
@@ -773,6 +829,8 @@ def _finish(
         "every": args.every,
         "filter_enabled": bool(args.filter),
         "truth_file": None if args.truth is None else str(args.truth),
+        **provenance,
+        "first_frame_unix": outcome.first_frame_unix,
         "interrupted": outcome.interrupted,
         "stop_reason": outcome.stop_reason or None,
         "source": {"corrupt_frames": source_stats.corrupt, "dropped_frames": source_stats.drops},

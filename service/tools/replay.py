@@ -359,6 +359,10 @@ CSV_COLUMNS = (
     "inspected",
     # the sigmas with the scale's error (mesh.bar_length_tolerance, camera.focal_tolerance)
     "sigma_distance_total_m", "filtered_sigma_distance_total_m",
+    # the capture's wall-clock time (a recording's), to line up with a DVL or a vehicle log;
+    # whether the estimator searched the whole frame (1) or tried the last detection's plane
+    # first (0: a frame's result depends on the one before it)
+    "time_unix", "searched",
 )
 
 
@@ -428,6 +432,8 @@ def csv_row(result: FrameResult, timing: bool = True) -> list[str]:
         None if result.result.damage is None else result.result.damage.searched,
         None if e is None else total_sigma(e.distance_m, e.sigma_distance_m, scale),
         None if kv is None else total_sigma(kv.distance_m, kv.sigma_distance_m, scale),
+        None if result.frame.t_unix is None else round(result.frame.t_unix, 6),
+        None if e is None else e.searched,
     ]
     return [_cell(v) for v in values]
 
