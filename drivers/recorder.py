@@ -53,6 +53,7 @@ from service import __version__
 from service.core.camera import CameraModel, save_camera
 from service.core.files import write_atomically
 from service.core.messages import DamageMessage, EstimateMessage, StatusMessage, to_json
+from service.core.redact import redact_text
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +107,10 @@ class RecordingSetup:
     # camera's focal tolerance)
     mesh_bar_length_m: float
     mesh_opening_angle_deg: float
+    # The daemon's configuration digest (the one its log and every status message carry) and
+    # its source, redacted: a recording joined to the dive's telemetry and log by them.
+    config_digest: str = ""
+    source: str = ""
 
 
 @dataclass(frozen=True)
@@ -559,6 +564,8 @@ class Recorder(Closeable):
             "pipeline_state": STATE_FILE,
             "mesh": {"bar_length_m": setup.mesh_bar_length_m,
                      "opening_angle_deg": setup.mesh_opening_angle_deg},
+            "config_digest": setup.config_digest or None,
+            "source": redact_text(setup.source) if setup.source else None,
             "image": "8-bit grey PNG, the estimator's input",
         }
         write_atomically(session.folder / MANIFEST,

@@ -1253,6 +1253,12 @@ def test_a_recording_downloads_and_replays_to_the_daemons_output(
     folder = tmp_path / name
     rows = [json.loads(line) for line in (folder / "frames.jsonl").read_text().splitlines()]
     assert len(rows) == stopped["frames"] and stopped["dropped"] == 0
+    # The recording names the configuration (the digest its log and status carry) and the
+    # source it was made from: a recording is joined to the dive's telemetry by them.
+    manifest = json.loads((folder / "recording.json").read_text())
+    statuses = [m for m in daemon.collect(2.5)[0] if m.get("kind") == "status"]
+    assert statuses and manifest["config_digest"] == statuses[-1]["config_digest"], manifest
+    assert manifest["source"].startswith("synthetic:"), manifest
     out = tmp_path / "replay"
     done = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(folder), "--out",
                            str(out), "--filter", "--no-video", "--progress", "off"],

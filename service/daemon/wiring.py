@@ -202,7 +202,7 @@ def build_observers(config: Config, camera: CameraModel, controls: WebControls |
     def setup() -> RecordingSetup:
         now = controls.current_config()
         return RecordingSetup(camera, tuning_toml(now), now.mesh.bar_length_m,
-                              now.mesh.opening_angle_deg)
+                              now.mesh.opening_angle_deg, now.digest, now.camera.url)
 
     from drivers.web.page import WebPage  # aiohttp's weight only when the page is on
 
