@@ -388,8 +388,7 @@ def test_image_folder_with_a_frame_the_calibration_does_not_fit(
     assert code == 0
     rows = read_csv(out / "estimates.csv")
     assert [num(r, "time_s") for r in rows] == pytest.approx([i / 5 for i in range(6)])
-    # Which image each row is (name order: '10.png' before '2.png'), for the researcher to
-    # check; a video's rows have none.
+    # Which image each row is, for the researcher to check; a video's rows have none.
     assert [r["source_file"] for r in rows] == [f"frame_{i:03d}.png" for i in range(6)]
     assert rows[3]["detected"] == "0" and "aspect ratio" in rows[3]["reason"]
     for i in (0, 1, 2, 4, 5):

@@ -605,6 +605,26 @@ def test_a_constant_rate_video_that_lost_frames_keeps_its_own_rate(
     assert (stats.frames, stats.drops, stats.corrupt) == (len(times), 10, 0)
 
 
+def test_unpadded_frame_numbers_are_read_in_number_order(tmp_path: Path) -> None:
+    """Exporters often name frames frame_0.png ... frame_43.png: read in text order, row
+    "frame 2" was frame_10.png, so every pairing with a truth table keyed by the file's number
+    was wrong, without a word (research review). Numbers in names count by value; padded
+    names keep their order; `netpose estimate` and `netpose calibrate` read folders alike."""
+    from service.core.grey import frame_order
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for n in range(12):
+        assert cv2.imwrite(str(folder / f"frame_{n}.png"), numbered_pattern(n, *SIZE))
+    with open_source(f"images:{folder}?fps=10") as source:
+        frames = [f for f in iter(lambda: source.read(1.0), None)]
+    assert [read_pattern_number(f.image) for f in frames] == list(range(12))
+    padded = [Path(f"{n:04d}.png") for n in (10, 2, 0, 111)]
+    assert sorted(padded, key=frame_order) == sorted(padded)
+    assert [p.name for p in sorted([Path("b2.png"), Path("a10.png"), Path("a9.png")],
+                                   key=frame_order)] == ["a9.png", "a10.png", "b2.png"]
+
+
 def test_a_variable_rate_video_loops_on_in_time(tmp_path: Path) -> None:
     """The next pass starts after the last frame's own time, not after as many stated periods
     as there were frames (1 s for 18 frames stated at 30 fps, of a 2.1 s recording): time

@@ -27,7 +27,13 @@ from drivers.sources.base import SourceOptions
 from drivers.sources.opencv_capture import VideoCaptureLike, open_ffmpeg_capture
 from drivers.sources.paced import EndOfMediaError, MediaFrame, MediaGoneError, PacedSource
 from drivers.sources.url import SourceUrl, parse_source_url, url_error
-from service.core.grey import IMAGE_SUFFIXES, DamagedImageError, decode_gray, is_image_name
+from service.core.grey import (
+    IMAGE_SUFFIXES,
+    DamagedImageError,
+    decode_gray,
+    frame_order,
+    is_image_name,
+)
 
 log = logging.getLogger(__name__)
 
@@ -378,7 +384,7 @@ class ImageFolderSource(PacedSource):
         else:
             raise SourceError(self.url, f"no such folder: {path.resolve()}")
         self._files = sorted(
-            p for p in candidates if p.is_file() and is_image_name(p)
+            (p for p in candidates if p.is_file() and is_image_name(p)), key=frame_order
         )
         if not self._files:
             raise SourceError(

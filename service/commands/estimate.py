@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from service.core.errors import ConfigError
-from service.core.grey import IMAGE_SUFFIXES, is_image_name
+from service.core.grey import IMAGE_SUFFIXES, frame_order, is_image_name
 from service.core.results import NetEstimate
 from service.core.scale import (
     DEFAULT_BAR_LENGTH_TOLERANCE,
@@ -73,8 +73,8 @@ def _images(paths: list[Path]) -> list[Path]:
     stays, to be reported)."""
     out: list[Path] = []
     for path in paths:
-        found = sorted(p for p in path.iterdir() if p.is_file() and
-                       is_image_name(p)) if path.is_dir() else []
+        found = sorted((p for p in path.iterdir() if p.is_file() and is_image_name(p)),
+                       key=frame_order) if path.is_dir() else []
         out.extend(found or [path])
     return out
 

@@ -16,6 +16,7 @@ Pure functions: bytes and arrays in, arrays out; reading files is the caller's b
 
 from __future__ import annotations
 
+import re
 import struct
 import zlib
 from pathlib import Path
@@ -42,6 +43,15 @@ def is_image_name(path: Path) -> bool:
     AppleDouble "._000.png" beside every file copied to exFAT or SMB: not an image, and sorted
     first it took the first frame numbers)."""
     return not path.name.startswith(".") and path.suffix.lower() in IMAGE_SUFFIXES
+
+
+def frame_order(path: Path) -> tuple[tuple[str | int, ...], str]:
+    """Sort key of a folder's frames: by name, its numbers by value, so that `frame_2.png`
+    comes before `frame_10.png` (exporters often leave numbers unpadded; read as text, row
+    "frame 2" was frame_10.png and every pairing with a truth table after it was wrong).
+    Zero-padded names keep their order; equal numbers fall back to the name."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple(int(t) if i % 2 else t for i, t in enumerate(parts)), path.name
 
 
 class DamagedImageError(EstimatorInputError):

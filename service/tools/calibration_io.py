@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.errors import NetposeError
-from service.core.grey import IMAGE_SUFFIXES, is_image_name
+from service.core.grey import IMAGE_SUFFIXES, frame_order, is_image_name
 
 GrayImage = npt.NDArray[np.uint8]
 
@@ -79,7 +79,7 @@ def plan_inputs(inputs: Sequence[str | Path]) -> InputPlan:
     for raw in inputs:
         path = Path(raw)
         if path.is_dir():
-            found = sorted(p for p in path.iterdir() if is_image_name(p))
+            found = sorted((p for p in path.iterdir() if is_image_name(p)), key=frame_order)
             if not found:
                 raise CalibrationInputError(
                     f"{path}: folder contains no images ({', '.join(sorted(IMAGE_SUFFIXES))})"
