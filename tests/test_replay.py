@@ -668,6 +668,29 @@ def test_replay_of_a_real_sequence_says_where_the_net_was_seen_without_a_distanc
         assert r["reason"].startswith("plane too uncertain")
 
 
+def test_truth_in_another_unit_is_said(
+    recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A DVL's export in centimetres gave a -59 m mean error, exit status 0 and no word
+    (research review): the measured distances a hundredth of the truth's are said, with the
+    unit they look like. Truth in metres says nothing."""
+    import dataclasses
+
+    in_cm = tmp_path / "truth_cm.csv"
+    write_truth_csv(in_cm, ((i, dataclasses.replace(
+        t, distance_m=None if t.distance_m is None else 100.0 * t.distance_m,
+        range_m=None if t.range_m is None else 100.0 * t.range_m))
+        for i, t in enumerate(recording.truths)))
+    assert main(replay_args(recording, tmp_path / "cm", "--truth", str(in_cm), "--no-video",
+                            "--max-frames", "8", "--progress", "off")) == 0
+    err = capsys.readouterr().err
+    assert "the measured distances are 0.01 times the truth's" in err, err
+    assert "(in centimetres?)" in err
+    assert main(replay_args(recording, tmp_path / "m", "--truth", str(recording.truth_csv),
+                            "--no-video", "--max-frames", "8", "--progress", "off")) == 0
+    assert "times the truth's" not in capsys.readouterr().err
+
+
 def test_truth_that_matches_no_frame_is_said(
     recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

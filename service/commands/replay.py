@@ -684,6 +684,9 @@ def _replay(
         # matched at all.
         whole = args.every == 1 and args.max_frames is None and not outcome.interrupted
         _say_unmatched_truth(args.truth, truth, replayed, whole)
+    doubt = stats.truth_scale_doubt()
+    if doubt:
+        print(f"netpose replay: warning: --truth {args.truth or ''}: {doubt}", file=sys.stderr)
     _finish(args, url, stats, outcome, out_dir, source, _provenance(args, camera, tuning))
     if outcome.interrupted:
         print(f"netpose replay: stopped by {outcome.stop_reason} after {outcome.frames_read} "

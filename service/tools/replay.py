@@ -21,6 +21,7 @@ import difflib
 import json
 import logging
 import math
+import statistics
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -565,6 +566,27 @@ class DetectionMap:
 
 class ReplayStats:
     """Accumulates FrameResults; `summary()` is the content of summary.json."""
+
+    def truth_scale_doubt(self) -> str:
+        """A truth table in another unit (a DVL's export in centimetres) or of another quantity
+        gave a -59 m mean error and exit status 0 (research review): where the median ratio of
+        the measured to the true distances over at least 3 frames is off by more than a factor
+        of 2 (no calibration or mesh error is that large), what it looks like; else ""."""
+        s = self.series
+        ratios = [d / t for d, t in zip(s.distance, s.true_distance, strict=True)
+                  if math.isfinite(d) and math.isfinite(t) and t > 0]
+        if len(ratios) < 3:
+            return ""
+        ratio = statistics.median(ratios)
+        if 0.5 <= ratio <= 2.0:
+            return ""
+        units = {100.0: "centimetres", 1000.0: "millimetres", 1 / 0.3048: "feet",
+                 1 / 0.0254: "inches"}
+        guess = next((f" (in {name}?)" for factor, name in units.items()
+                      if abs(math.log(ratio * factor)) < 0.3), "")
+        return (f"the measured distances are {ratio:.3g} times the truth's (median of "
+                f"{len(ratios)} frames){guess}: is the truth file in metres, and of the "
+                "perpendicular distance?")
 
     def __init__(self) -> None:
         self.series = _Series()
