@@ -806,6 +806,33 @@ def test_a_recording_that_lost_frames_says_so_in_the_replays_summary(
     assert "dropped 3 frames" in err and "No space left on device" in err
 
 
+def test_every_nth_frame_of_a_recording_is_every_nth_it_holds(
+    recording: Recording, tmp_path: Path
+) -> None:
+    """A recording's frame numbers have gaps where the vehicle skipped frames: --every 2 kept
+    each frame at least 2 numbers after the last kept one, 98 of 130 at steps of 2-4, while the
+    summary said every 2 (research review). It keeps every 2nd frame the recording holds."""
+    folder = tmp_path / "netpose-rov-0001-20260101T000000Z"
+    (folder / "frames").mkdir(parents=True)
+    save_camera(CAMERA, folder / "camera.yaml")
+    numbers = [0, 1, 3, 4, 6, 9, 10, 12]
+    lines = []
+    for image, n in zip(recording.frames, numbers, strict=False):
+        name = f"frames/{n:08d}.png"
+        cv2.imwrite(str(folder / name), image)
+        lines.append(json.dumps({"frame": name, "index": n, "t_mono": 100.0 + n / FPS,
+                                 "t_unix": 1.7e9 + n / FPS}))
+    (folder / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    (folder / "recording.json").write_text(json.dumps({
+        "format": "netpose-recording", "version": 1, "camera": "camera.yaml",
+        "mesh": {"bar_length_m": MESH.bar_length_m, "opening_angle_deg": 90.0},
+        "frames": len(numbers), "dropped": 0, "finished": True}))
+    out = tmp_path / "out"
+    assert main(["replay", str(folder), "--every", "2", "--out", str(out), "--no-video",
+                 "--progress", "off"]) == 0
+    assert [int(r["frame"]) for r in read_csv(out / "estimates.csv")] == numbers[::2]
+
+
 def test_two_replays_without_timing_are_byte_identical(
     recording: Recording, tmp_path: Path
 ) -> None:

@@ -33,7 +33,7 @@ import numpy.typing as npt
 
 from drivers.sources import FrameSource, SourceOptions, SourceState, open_source
 from drivers.sources.files import ImageFolderSource
-from drivers.sources.recording import is_recording
+from drivers.sources.recording import RecordingSource, is_recording
 from service import __version__
 from service.core.camera import CameraModel, load_camera
 from service.core.damage import DamageSettings
@@ -230,7 +230,8 @@ def replay_frames(
     """ReplayFrames from an opened source until it ends or `stop` is set.
 
     Every `every`-th frame by the source's frame numbers (so frames the source could not
-    decode do not shift the choice); times are relative to the first frame read.
+    decode do not shift the choice), of a netpose recording every `every`-th frame it holds;
+    times are relative to the first frame read.
     """
     t0: float | None = None
     next_index = 0
@@ -238,6 +239,11 @@ def replay_frames(
     # An image folder's files, in the order it reads them (frame n is file n). Only a folder:
     # a recording's frame numbers are the vehicle's, with gaps, not positions in its list.
     files: list[Path] = source.files if isinstance(source, ImageFolderSource) else []
+    # A recording holds the frames the vehicle processed, its numbers with gaps where it
+    # skipped some: every N-th of them, not every N-th number (which kept 98 of 130 frames at
+    # steps of 2-4 for --every 2: research review).
+    by_row = isinstance(source, RecordingSource)
+    rows = 0
     while not stop.is_set():
         frame = source.read(READ_TIMEOUT_S)
         if frame is None:
@@ -249,7 +255,11 @@ def replay_frames(
                 waiting_logged = True
             continue
         waiting_logged = False
-        if frame.index < next_index:
+        if by_row:
+            rows += 1
+            if (rows - 1) % every:
+                continue
+        elif frame.index < next_index:
             continue
         next_index = frame.index + every
         if t0 is None:
