@@ -118,10 +118,14 @@ class Pipeline:
         autopilot_distance: AutopilotDistance = "optical_axis",
         inspector: NetInspector | None = None,
         scale_sigma_fraction: float = 0.0,
+        independent: bool = False,
     ) -> None:
         """`scale_sigma_fraction`: how well the image's metric scale is known (the mesh's bar
         and the focal length, `Config.scale_sigma_fraction`); 0 counts only the image's
-        precision."""
+        precision. `independent`: every frame is searched whole, without the last detection
+        as its prior (stills, per-frame evaluations: `netpose replay --independent`); the
+        daemon's frames are a sequence, and tracked."""
+        self._independent = independent
         self._estimator = estimator
         self._scale_sigma_fraction = scale_sigma_fraction
         self._tracker = tracker
@@ -224,7 +228,8 @@ class Pipeline:
             # there in the next: the whole-frame search a miss would start costs three to ten
             # tracked frames (a latency spike the autopilot sees as a gap), so it waits one
             # frame, which tries the last plane again.
-            estimate = self._estimator.estimate(image, prior=self._prior, budget=budget,
+            prior = None if self._independent else self._prior
+            estimate = self._estimator.estimate(image, prior=prior, budget=budget,
                                                 prior_age_s=age,
                                                 search=self._search_deferred)
         except NetposeError as exc:

@@ -668,6 +668,37 @@ def test_replay_of_a_real_sequence_says_where_the_net_was_seen_without_a_distanc
         assert r["reason"].startswith("plane too uncertain")
 
 
+@needs_real_field
+def test_an_independent_replay_gives_what_estimate_gives_frame_by_frame(
+    tmp_path: Path,
+) -> None:
+    """By default a replay tracks, as the daemon does: a frame's result depends on the one
+    before it, so replay and `netpose estimate` disagreed on which real frames were measured
+    ([0, 2, 4, 8] against [0, 2, 3, 8]) and a folder of stills depended on its file order
+    (research review). With --independent each frame is estimated on its own: the same frames
+    detected, the same ranges, as `netpose estimate`."""
+    folder = REAL_FIELD_DIR / "sequence_2024-08-22_142905"
+    calibration = folder / "camera.yaml"
+    out = tmp_path / "out"
+    assert main(["replay", str(folder), "--calibration", str(calibration), "--mesh-size",
+                 "0.0275", "--out", str(out), "--no-video", "--progress", "off",
+                 "--independent", "--max-frames", "6"]) == 0
+    rows = read_csv(out / "estimates.csv")
+    assert {r["searched"] for r in rows} == {"1"}
+    assert json.loads((out / "summary.json").read_text())["independent"] is True
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "estimate", "--json", "-c", str(calibration),
+         "--mesh-size", "0.0275", *(str(folder / f"{n:03d}.png") for n in range(6))],
+        cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=300)
+    estimated = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(estimated) == len(rows) == 6, done.stderr
+    for row, alone in zip(rows, estimated, strict=True):
+        assert (row["detected"] == "1") == alone["detected"], (row["frame"], alone)
+        assert (row["net_seen"] == "1") == alone["net_seen"], (row["frame"], alone)
+        if alone["detected"]:
+            assert num(row, "range_m") == pytest.approx(alone["range_m"], abs=1e-5)
+
+
 def test_truth_in_another_unit_is_said(
     recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

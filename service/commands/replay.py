@@ -123,6 +123,11 @@ def add_parser(subparsers: Any) -> None:
                    help="also run the tracking filter and write its output")
     p.add_argument("--every", type=int, default=1, metavar="N",
                    help="process every N-th frame only (default 1: all)")
+    p.add_argument("--independent", action="store_true",
+                   help="estimate every frame on its own, without the previous detection as "
+                   "its prior (a folder of stills, per-frame evaluations: what `netpose "
+                   "estimate` gives); by default frames are a sequence, tracked as the daemon "
+                   "tracks them")
     p.add_argument("--truth", type=Path, default=None, metavar="CSV",
                    help="ground truth per frame number (columns frame, range_m, distance_m, "
                    "nx, ny, nz, net_present; see docs/replay.md)")
@@ -592,7 +597,8 @@ def _replay(
     pipeline = Pipeline(NetEstimator(camera, mesh, tuning.estimator),
                         NetTracker(tuning.filter or FilterSettings()),
                         tuning.autopilot_distance, _inspector(args, camera, mesh, tuning),
-                        scale_sigma_fraction=tuning.scale_sigma_fraction)
+                        scale_sigma_fraction=tuning.scale_sigma_fraction,
+                        independent=args.independent)
     state = getattr(args, "pipeline_state", None)
     if state is not None:
         # A recording started mid-dive: continue from the daemon's filter and prior.
@@ -840,6 +846,7 @@ def _finish(
         "calibration": str(args.calibration),
         "mesh": {"bar_length_m": args.mesh_size, "opening_angle_deg": args.opening_angle},
         "every": args.every,
+        "independent": bool(args.independent),
         "filter_enabled": bool(args.filter),
         "truth_file": None if args.truth is None else str(args.truth),
         **provenance,
