@@ -100,6 +100,10 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
     page.wait_for_function("document.getElementById('state').textContent === 'no autopilot'",
                            timeout=30_000)
     assert "notsent" in page.get_attribute("#state", "class")
+    # The distance plot is beside the live view, above the fold (it began at y = 991 px of a
+    # 1400x900 window, an empty damage card in its place: pilot review).
+    plot_box = page.eval_on_selector("#plot-distance", "c => c.getBoundingClientRect().bottom")
+    assert plot_box < 600, plot_box
     # Health: every row, with the source streaming.
     page.wait_for_selector("#health tr[data-row='Source']")
     rows = page.eval_on_selector_all("#health tr", "trs => trs.map(t => t.dataset.row)")
@@ -218,12 +222,42 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
 
 
 def test_the_cockpit_widget_page(daemon: WebDaemon, browser: Any, shots: Path) -> None:
-    page = browser.new_page(viewport={"width": 480, "height": 420})
-    page.goto(daemon.base + "/widget")
-    page.wait_for_function("window.netpose.frames >= 3 && window.netpose.points.length > 5",
-                           timeout=30_000)
-    assert page.text_content("#distance") != ""
-    page.screenshot(path=str(shots / "web-widget.png"))
+    """The widget in the boxes Cockpit gives it (its default: a fifth of the screen's width
+    and 36 % of its height, 384x389 on a 1920x1080 laptop, 273x276 on 1366x768): header, live
+    view and the whole distance plot, without scrolling, the plot's labels drawn at their size.
+    At those sizes the page scrolled, 32 or 0 of the plot's 90 px showed, and its labels were
+    5-7 px; every load logged a missing favicon (pilot review)."""
+    console: list[str] = []
+
+    def on_console(msg: Any) -> None:
+        if msg.type == "error":
+            console.append(msg.text)
+
+    for width, height in ((480, 420), (384, 389), (273, 276)):
+        page = browser.new_page(viewport={"width": width, "height": height})
+        page.on("console", on_console)
+        page.goto(daemon.base + "/widget")
+        page.wait_for_function("window.netpose.frames >= 3 && window.netpose.points.length > 5",
+                               timeout=30_000)
+        page.wait_for_timeout(1200)  # the plot redrawn at its size
+        assert page.text_content("#distance") != ""
+        shown = page.evaluate("""() => {
+            const plot = document.getElementById("plot-distance").getBoundingClientRect();
+            const img = document.getElementById("live").getBoundingClientRect();
+            const canvas = document.getElementById("plot-distance");
+            return {scroll: document.scrollingElement.scrollHeight, inner: innerHeight,
+                    plotTop: plot.top, plotBottom: plot.bottom, plotHeight: plot.height,
+                    imgHeight: img.height, canvasWidth: canvas.width,
+                    cssWidth: plot.width, dpr: devicePixelRatio}; }""")
+        assert shown["scroll"] <= shown["inner"] + 1, shown
+        assert shown["plotBottom"] <= shown["inner"] + 1 and shown["plotHeight"] >= 85, shown
+        assert shown["imgHeight"] >= 60, shown
+        assert abs(shown["canvasWidth"] - shown["cssWidth"] * shown["dpr"]) <= 1, shown
+        assert not console, console
+        page.screenshot(path=str(shots / f"web-widget-{width}x{height}.png"))
+        if (width, height) == (480, 420):
+            page.screenshot(path=str(shots / "web-widget.png"))
+        page.close()
 
 
 def test_another_site_cannot_frame_the_page(daemon: WebDaemon, browser: Any) -> None:

@@ -326,8 +326,17 @@ function plotEnd() {
 
 function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
   if (!canvas) return;
+  // Drawn at the size it is shown (CSS pixels times the screen's density), so its labels stay
+  // 11 px: a 600 px canvas shrunk into Cockpit's 384 px widget had 7 px labels.
+  const rect = canvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
+  if (rect.width >= 1 && rect.height >= 1) {
+    const w = Math.round(rect.width * dpr), h = Math.round(rect.height * dpr);
+    if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+  }
   const ctx = canvas.getContext("2d");
-  const W = canvas.width, H = canvas.height, L = 44, B = 18, T = 6;
+  const scale = rect.width >= 1 ? canvas.width / rect.width : 1;
+  ctx.setTransform(scale, 0, 0, scale, 0, 0);
+  const W = canvas.width / scale, H = canvas.height / scale, L = 44, B = 18, T = 6;
   ctx.clearRect(0, 0, W, H);
   const pts = page.points;
   if (!pts.length) return;
@@ -346,7 +355,8 @@ function plot(canvas, rawIndex, filtIndex, label, seenIndex = null) {
   for (let k = 0; k <= 4; k++) {
     const v = lo + ((hi - lo) * k) / 4;
     ctx.beginPath(); ctx.moveTo(L, y(v)); ctx.lineTo(W, y(v)); ctx.stroke();
-    ctx.fillText(v.toFixed(rawIndex === 1 ? 2 : 0), 2, y(v) + 4);
+    // Tenths where whole degrees would repeat ("11, 11, 10, 9, 9" over a 2 deg span).
+    ctx.fillText(v.toFixed(rawIndex === 1 ? 2 : hi - lo < 8 ? 1 : 0), 2, y(v) + 4);
   }
   const step = page.spanS > 120 ? 60 : 10;
   for (let s = 0; s <= page.spanS; s += step) {
