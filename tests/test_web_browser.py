@@ -425,7 +425,8 @@ def test_too_close_is_the_loudest_state_and_a_dead_daemons_health_is_not_shown_l
             assert not tilt.startswith("no net"), tilt
             if range_m == "0.13":
                 assert tilt.startswith("back off"), tilt
-            page.screenshot(path=str(shots / f"web-page-too-close-{range_m}.png"))
+            name = "too-close" if range_m == "0.13" else "below-minimum"
+            page.screenshot(path=str(shots / f"web-page-{name}.png"))
             page.wait_for_function("document.querySelectorAll('#health tbody tr').length > 3",
                                    timeout=30_000)
             assert page.evaluate("document.getElementById('health').classList"
