@@ -245,7 +245,11 @@ class Pipeline:
             self._prior = estimate if estimate is not None and estimate.detected else None
             self._prior_t = t if self._prior is not None else math.nan
         if estimate is not None and estimate.too_close:
-            self._too_close_frames += 1
+            # Only too-close frames within TOO_CLOSE_HOLD_S of each other count together: two
+            # spurious ones minutes apart, with partial lattices between (20 frames in a row
+            # of the real sequence at 0.6-0.8 m), must not make "too close" (diff review).
+            recent = t - self._too_close_t <= TOO_CLOSE_HOLD_S
+            self._too_close_frames = self._too_close_frames + 1 if recent else 1
             self._too_close_t = t
         elif estimate is not None and (estimate.net_seen
                                        or not any(r.detected for r in estimate.rois)):

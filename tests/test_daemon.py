@@ -870,6 +870,40 @@ def test_too_close_is_said_and_held_while_frames_still_show_the_lattice(
     assert RangeStatus.GOOD not in statuses[first:]
 
 
+def test_too_close_frames_far_apart_never_make_too_close(frames: list[Frame]) -> None:
+    """Frames that show a partial lattice neither count nor end "too close", but two spurious
+    too-close frames any time apart then made it (the diff review: 600 s apart with partial
+    frames between, the autopilot was told TOO_CLOSE at a 0.7 m stand-off). Only too-close
+    frames within TOO_CLOSE_HOLD_S of each other count together."""
+    from service.core.results import NetEstimate, RoiResult
+    from service.core.tracking import FilterSettings, NetTracker
+    from service.pipeline import TOO_CLOSE_HOLD_S, Pipeline
+
+    partial_roi = RoiResult(center_px=(100.0, 100.0), size_px=128, level=0, detected=True)
+    partial = NetEstimate(detected=False, confidence=0.2, rois=(partial_roi,),
+                          reason="only 2 ROIs share one lattice")
+    close = NetEstimate(detected=False, confidence=0.0, rois=(partial_roi,), too_close=True,
+                        reason="net too close to measure")
+
+    class Scripted:
+        def __init__(self, script: list[NetEstimate]) -> None:
+            self.script = iter(script)
+
+        def estimate(self, image: Any, **_: Any) -> NetEstimate:
+            return next(self.script)
+
+    def statuses(gap_frames: int) -> list[RangeStatus]:
+        script = [close, *[partial] * gap_frames, close, partial]
+        pipeline = Pipeline(Scripted(script), NetTracker(FilterSettings()))  # type: ignore[arg-type]
+        image = frames[0].image
+        return [pipeline.measure(image, k / FPS, k).reading.status for k in range(len(script))]
+
+    far = round(2 * TOO_CLOSE_HOLD_S * FPS)
+    assert RangeStatus.TOO_CLOSE not in statuses(far)
+    near = statuses(2)  # 0.3 s apart: the alternation at 0.12-0.15 m
+    assert near[-2:] == [RangeStatus.TOO_CLOSE, RangeStatus.TOO_CLOSE], near
+
+
 def test_after_too_close_the_old_distance_is_never_sent_again(frames: list[Frame]) -> None:
     """The net came too close to measure, then the camera stalled, then the view showed no
     net: none of that may bring back the filter's distance from before the net came close
