@@ -586,14 +586,14 @@ def test_a_constant_rate_video_that_lost_frames_keeps_its_own_rate(
     tmp_path: Path, stall_at: float
 ) -> None:
     """A 10 fps recording whose camera stalled for a second: its container states the average
-    rate (frames over duration: 9.8 fps here), not the frames' own. Numbered and timed at that
+    rate (frames over duration: 9.3 fps here), not the frames' own. Numbered and timed at that
     rate, every frame before the stall came later than it was presented (0.1 s off at 4 s, and
     growing with the file), the stall read as 0.2 s and only two of its ten lost frames were
     missing numbers. The frames' own steps give the rate: each frame at its own time, the
     stall whole, its ten frames counted as dropped. Also where the stall lies inside the first
     frames read at open (1.0 s)."""
     times = [0.1 * i for i in range(int(round(stall_at * 10)) + 1)]
-    times += [times[-1] + 1.1 + 0.1 * i for i in range(50 - len(times))]
+    times += [times[-1] + 1.1 + 0.1 * i for i in range(120 - len(times))]
     path = write_timed_video(tmp_path / "stalled.mp4", times, stated_fps=10)
     with open_source(f"file:{path}") as source:
         frames = [f for f in iter(lambda: source.read(1.0), None)]
@@ -603,6 +603,22 @@ def test_a_constant_rate_video_that_lost_frames_keeps_its_own_rate(
     elapsed = [f.t_monotonic - frames[0].t_monotonic for f in frames]
     assert elapsed == pytest.approx(times, abs=1.5e-3)  # the container's 1 ms ticks
     assert (stats.frames, stats.drops, stats.corrupt) == (len(times), 10, 0)
+
+
+def test_a_camera_that_halves_its_rate_loses_no_frames(tmp_path: Path) -> None:
+    """A UVC camera halves its rate in low light: 30 fps for 4 s, then 15 fps; nothing lost.
+    Its container states the average (21 fps); taken for a 30 fps camera with gaps, every step
+    after the change was numbered as a lost frame, 15 of them, and every later number was 15
+    too high (diff review). A rate more than a tenth from the stated one is a change of rate,
+    not lost frames: numbered as they come."""
+    times = [i / 30 for i in range(120)] + [4 + i / 15 for i in range(90)]
+    path = write_timed_video(tmp_path / "halves.mp4", times, stated_fps=30)
+    with open_source(f"file:{path}") as source:
+        frames = [f for f in iter(lambda: source.read(1.0), None)]
+        stats = source.stats()
+    assert [read_pattern_number(f.image) for f in frames] == list(range(len(times)))
+    assert [f.index for f in frames] == list(range(len(times)))
+    assert (stats.frames, stats.drops) == (len(times), 0)
 
 
 def test_unpadded_frame_numbers_are_read_in_number_order(tmp_path: Path) -> None:
