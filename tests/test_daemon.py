@@ -181,6 +181,34 @@ def test_a_camera_that_dies_soon_after_another_text_is_said_within_seconds() -> 
     assert said_at[-1] == pytest.approx(12.0 + SUSTAINED_LOSS_S, abs=0.15), said_at
 
 
+def test_a_camera_with_long_outages_again_and_again_does_not_flood_the_pilot() -> None:
+    """Outages of 6 s every 10 s: each lasted SUSTAINED_LOSS_S, so each was said, with its
+    return, 22 texts in 110 s that buried the autopilot's own (diff review). The early word for
+    a lasting outage is given once per interval; the rest are counted as before."""
+    import re as regex
+
+    from drivers.mavlink_link import RecordingAutopilotLink
+    from service.daemon.service_notices import ServiceNotices
+
+    link = RecordingAutopilotLink()
+    notices = ServiceNotices(link, interval_s=30.0)
+    outages, was_up = 0, True
+    for tick in range(1200):  # 120 s at 10 passes a second
+        t = tick / 10
+        up = (t % 10.0) < 4.0
+        outages += int(was_up and not up)
+        was_up = up
+        notices.camera(up, t)
+    warnings = [text for severity, text in link.texts if severity <= 4]
+    assert len(warnings) <= 2 * (120 // 30 + 1), link.texts
+    counted = 0
+    for text in warnings:
+        found = regex.search(r"\((\d+)x in|lost (\d+)x in", text)
+        counted += int(next(g for g in found.groups() if g)) if found else 1
+    # The outages since the last text may still be held (two at most in 30 s of these).
+    assert counted >= outages - 2, (outages, link.texts)
+
+
 def test_the_pilot_hears_the_camera_come_back_and_netpose_stop(frames: list[Frame]) -> None:
     """The camera's return is said once its loss was; netpose stopping (a signal, the page's
     Restart, an update) is said before the link closes, not left as a silent rangefinder."""

@@ -10,9 +10,10 @@ the camera's loss once per `interval_s` at most (a camera that flaps does not fl
 screen), its return only after its loss was said. The outages held back by that interval are
 counted and said when it allows, so a flapping camera's last word on the pilot's screen is not
 "camera back" (it was, for 27 of every 30 s, while the camera dropped out 3 more times). An
-outage that lasts `SUSTAINED_LOSS_S` is said whatever the interval: a camera that died within
-30 s of an earlier text (the one a restart from the page makes, a flap) reached the pilot's
-ground station 15-22 s after netpose knew, with the last distance frozen on its indicator.
+outage that lasts `SUSTAINED_LOSS_S` is said whatever the interval, once per interval: a
+camera that died within 30 s of an earlier text (the one a restart from the page makes, a flap)
+reached the pilot's ground station 15-22 s after netpose knew, with the last distance frozen on
+its indicator; a camera whose every outage lasts 6 s must not send a pair of texts for each.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ class ServiceNotices:
         self._had_frames = False
         self._down = False
         self._down_since = 0.0
+        self._last_sustained_at = -float("inf")  # the last loss said early, for lasting
         self._held = 0  # outages not said (the interval held them back) since the last text
         # The last texts said (tests and a debugger read them): a daemon runs for months.
         self.sent: collections.deque[str] = collections.deque(maxlen=32)
@@ -69,7 +71,11 @@ class ServiceNotices:
             self._down_since = now
         if self._loss_said:
             return
-        if allowed or now - self._down_since >= SUSTAINED_LOSS_S:
+        sustained = (now - self._down_since >= SUSTAINED_LOSS_S
+                     and now - self._last_sustained_at >= self.interval_s)
+        if sustained and not allowed:
+            self._last_sustained_at = now
+        if allowed or sustained:
             text = self._loss_text()
             # This outage, and those held back since the last text (this one among them if
             # it began while held back).
