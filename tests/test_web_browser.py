@@ -140,6 +140,21 @@ def test_the_page_shows_live_data_and_sets_up_the_daemon(
         return [document.getElementById("distance-kind").textContent,
                 document.getElementById("distance").className]; }""")
     assert below[0].startswith("below the rangefinder's 0.30 m minimum"), below
+    # Beyond the maximum the autopilot reads no distance: not the filter's green.
+    beyond = page.evaluate("""() => {
+        const s = JSON.parse(JSON.stringify(window.netpose.status));
+        s.autopilot.state = "connected"; s.autopilot.sending_distance = true;
+        s.autopilot.max_distance_m = 8.0;
+        onStatus(s);
+        const m = JSON.parse(JSON.stringify(window.netpose.lastEstimate));
+        m.filtered = Object.assign({}, m.filtered, {state: "tracking", autopilot: "good",
+            valid: true, autopilot_distance_m: 9.5, autopilot_along: "optical_axis"});
+        m.time_mono = s.time_mono;
+        onEstimate(m);
+        renderHeader(window.netpose.health);
+        return [document.getElementById("state").textContent,
+                document.getElementById("state").className]; }""")
+    assert beyond == ["not sent", "badge notsent"], beyond
     page.wait_for_timeout(5000)
     rate = page.evaluate("""() => { const t = window.netpose.frameTimes;
                                     return 1000 * (t.length - 1) / (t[t.length - 1] - t[0]); }""")
@@ -470,6 +485,15 @@ def test_an_open_page_comes_back_in_step_with_a_restarted_daemon(
         page.wait_for_selector("#restart-banner", state="hidden", timeout=30_000)
         points = page.evaluate("window.netpose.points")
         assert len(points) >= before and points[0][0] == first_before, (len(points), before)
+        # A computer that rebooted runs another monotonic clock: the points from before would
+        # sit "in the future" of the new ones (the diff review's plot off its canvas), so a
+        # hello from another boot drops them.
+        left = page.evaluate("""() => {
+            onMessage({kind: "hello", instance: "another", boot_id: "another boot",
+                       history_s: 300, live_hz: 4, push_hz: 10, token_required: false,
+                       vehicle: "demo"});
+            return window.netpose.points.length; }""")
+        assert left == 0
         assert not errors, errors
     finally:
         assert daemon.stop() == 0, daemon.log()

@@ -143,6 +143,12 @@ class WebPage(Generic[R]):
         self._backend = backend
         self._recorder = recorder
         self._vehicle = vehicle
+        # Said in every hello: an open page tells a restarted daemon (a new instance: its
+        # settings and recordings are reloaded) from a reconnect (an unsaved form is kept),
+        # and a rebooted computer (another monotonic clock: its plot points are dropped) from
+        # a restarted process (the same clock: they are kept).
+        self._instance = uuid.uuid4().hex
+        self._boot_id = _boot_id()
         self._feed = LiveFeed()
         self._history = PlotHistory(settings.history_s)
         self._clients: set[ClientSlots] = set()
@@ -416,7 +422,8 @@ class WebPage(Generic[R]):
                                      "token_required": bool(self.settings.token),
                                      "live_hz": self.settings.live_hz,
                                      "push_hz": self.settings.push_hz,
-                                     "history_s": self.settings.history_s}))
+                                     "history_s": self.settings.history_s,
+                                     "instance": self._instance, "boot_id": self._boot_id}))
         client.add_event(json.dumps({"kind": "history", "points": self._history.points()}))
         for text in self._last_texts.values():
             client.set_text(json.loads(text)["kind"], text)
@@ -1038,3 +1045,11 @@ def _loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False  # a name: it may well resolve to the network
+
+
+def _boot_id() -> str | None:
+    """This boot of the computer (Linux): the daemon's monotonic clock is this boot's."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text(encoding="ascii").strip()
+    except OSError:
+        return None

@@ -17,6 +17,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import platform
 import subprocess
 import sys
@@ -422,6 +423,7 @@ def run(args: argparse.Namespace) -> int:
     if args.video_width < 16:
         raise ConfigError("--video-width", f"must be at least 16 px, got {args.video_width}")
     _recording_defaults(args)
+    args.git_commit = _git_commit()  # the code that runs, before it runs
     camera = load_camera(args.calibration)
     try:
         mesh = MeshGeometry(args.mesh_size, args.opening_angle)
@@ -805,24 +807,35 @@ def _provenance(args: argparse.Namespace, camera: CameraModel, tuning: Tuning
                    "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
                    "distortion": list(camera.distortion)},
         "fps_option": args.fps,
-        "software": {"netpose": __version__, "git": _git_describe(),
+        "software": {"netpose": __version__, "git": args.git_commit,
                      "python": platform.python_version(), "numpy": np.__version__,
                      "opencv": cv2.__version__},
     }
 
 
-def _git_describe() -> str | None:
-    """The commit of a netpose run from its checkout (`git describe --always --dirty`); None
-    for an installed copy."""
+def _git_commit() -> str | None:
+    """The commit of a netpose run from its checkout, "-dirty" when its tracked files differ;
+    None for an installed copy. Read before the first frame (a checkout switched during a long
+    replay was recorded instead of the code that ran), and without writing the checkout's
+    index (`git describe --dirty` refreshes it: a read-only tool took index.lock)."""
     checkout = Path(__file__).resolve().parents[2]
     if not (checkout / ".git").exists():
         return None
-    try:
-        done = subprocess.run(["git", "-C", str(checkout), "describe", "--always", "--dirty"],
-                              capture_output=True, text=True, timeout=10, check=False)
-    except (OSError, subprocess.SubprocessError):
+    env = dict(os.environ, GIT_OPTIONAL_LOCKS="0")
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(checkout), *args], capture_output=True,
+                                  text=True, timeout=10, check=False, env=env)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout if done.returncode == 0 else None
+
+    commit = (git("rev-parse", "--short", "HEAD") or "").strip()
+    if not commit:
         return None
-    return done.stdout.strip() or None if done.returncode == 0 else None
+    changes = git("status", "--porcelain", "--untracked-files=no")
+    return commit + ("-dirty" if changes else "") if changes is not None else commit
 
 
 def _finish(

@@ -6,7 +6,8 @@
 const $ = (id) => document.getElementById(id);
 const view = document.body.dataset.view;
 const page = {
-  reconnecting: false,   // connected before: a new connection may be to a restarted daemon
+  instance: null,        // the daemon's, from its hello: another one is a restarted daemon
+  bootId: null,          // the computer's boot: another one is another clock for the points
   points: [],            // plotPoint(): [t, raw, rawTilt, sent, filteredTilt, seen, along]
   spanS: 300, historyS: 300, tokenRequired: false, liveHz: 4, pushHz: 10,
   frames: 0, frameTimes: [], estimates: 0, lastStatusAt: 0, liveUrl: null,
@@ -35,12 +36,6 @@ function connect() {
   ws.onopen = () => {
     // The daemon may have restarted (another clock, another rate): learn both again.
     retryMs = 500; page.connected = true; page.clockOffsetS = null; refresh();
-    // ... and its settings: a "Restart now" banner from before an outside restart stayed up
-    // (and clicking it cost the autopilot another few seconds of distance).
-    if (view === "full" && page.reconnecting) {
-      loadSettings().catch(() => {}); loadRecordings().catch(() => {});
-    }
-    page.reconnecting = true;
   };
   ws.onclose = () => {
     page.connected = false; refresh();
@@ -58,6 +53,14 @@ function setLink(cls, text) { const el = $("link"); el.className = "conn " + cls
 function onMessage(msg) {
   switch (msg.kind) {
     case "hello":
+      // Another computer boot: the plot's points are on another clock, and go. Another daemon
+      // (restarted): its settings are reloaded (a "Restart now" banner from before an outside
+      // restart stayed up); a mere reconnect keeps a form being edited.
+      if (page.bootId !== null && msg.boot_id !== page.bootId) page.points = [];
+      if (page.instance !== null && msg.instance !== page.instance && view === "full") {
+        loadSettings().catch(() => {}); loadRecordings().catch(() => {});
+      }
+      page.instance = msg.instance; page.bootId = msg.boot_id;
       page.tokenRequired = msg.token_required; page.historyS = msg.history_s;
       page.liveHz = msg.live_hz || page.liveHz; page.pushHz = msg.push_hz || page.pushHz;
       if ($("vehicle")) $("vehicle").textContent = "· " + msg.vehicle;
@@ -145,7 +148,11 @@ function onEstimate(m) {
   if (page.estimateArrivals.length > 21) page.estimateArrivals.shift();
   const gaps = page.estimateArrivals.slice(1).map((t, i) => (t - page.estimateArrivals[i]) / 1000);
   if (gaps.length >= 3) page.estimateGapS = median(gaps);
-  page.points.push(plotPoint(m));
+  const point = plotPoint(m);
+  // Points are in time order: one older than the newest held is from another clock (a daemon
+  // on a computer that rebooted and said no boot id): the held ones after it go.
+  while (page.points.length && page.points[page.points.length - 1][0] > point[0]) page.points.pop();
+  page.points.push(point);
   const oldest = m.frame_time_mono - Math.max(page.historyS, page.spanS);
   while (page.points.length && page.points[0][0] < oldest) page.points.shift();
   refresh();
@@ -275,7 +282,8 @@ function renderHeader(h) {
   const sent = f.autopilot !== "none" && h.sending !== false && !unheard && !outside;
   // The badge says what reaches the autopilot before what the filter believes: a green
   // TRACKING beside a distance that reaches nothing read as "net hold is working".
-  const notSent = f.autopilot !== "none" && h.sending === false;
+  // Beyond the maximum the autopilot reads no distance (OutOfRangeHigh): not a green hold.
+  const notSent = f.autopilot !== "none" && (h.sending === false || outside.startsWith("beyond"));
   const stateText = h.autopilot === "lost" ? "link lost" : unheard ? "no autopilot"
     : close ? "too close" : notSent ? "not sent" : f.state;
   const stateClass = h.autopilot === "lost" ? "bad" : unheard ? "notsent"
